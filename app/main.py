@@ -1,0 +1,91 @@
+"""Entry point of the ``ssm-studio`` command.
+
+``ssm-studio`` alone opens the segmentation workspace on the demo data; ``ssm-studio view IMAGE
+[--model M] [--session S]`` opens given files; every other subcommand is an engine command from
+``core.cli`` and runs without importing Qt. ``--screenshot out.png`` renders the window to a
+PNG and exits; with no display it re-runs itself under a virtual X server (``xvfb-run``),
+because Qt's offscreen platform cannot render the OpenGL views.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+
+from core import __version__
+from core.cli import add_commands, run_command
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ssm-studio",
+        description="Shape-model-based interactive segmentation of deep brain structures. "
+                    "Without a command, opens the segmentation workspace on the demo data.",
+    )
+    parser.add_argument("--version", action="version", version=f"ssm-studio {__version__}")
+    _add_gui_options(parser)
+    sub = parser.add_subparsers(title="commands", metavar="COMMAND")
+    view = sub.add_parser("view", help="open an image (and optionally a model or a session) in the GUI",
+                          description="Open an image in the segmentation workspace.")
+    view.add_argument("image", nargs="?", help="NIfTI volume (.nii, .nii.gz)")
+    view.add_argument("--model", help="shape model file (.npz)")
+    view.add_argument("--session", help="session file (.json) to restore")
+    _add_gui_options(view, suppress=True)
+    view.set_defaults(_command="view")
+    add_commands(sub)
+    return parser
+
+
+def _add_gui_options(parser: argparse.ArgumentParser, suppress: bool = False) -> None:
+    default = argparse.SUPPRESS if suppress else None
+    parser.add_argument("--screenshot", metavar="PNG", default=default,
+                        help="render the main window to this PNG file and exit")
+    parser.add_argument("--tab", choices=["segment", "build"], default=default,
+                        help="workspace to show first (default: segment)")
+
+
+def _needs_virtual_display() -> bool:
+    return sys.platform.startswith("linux") and not os.environ.get("DISPLAY") \
+        and not os.environ.get("WAYLAND_DISPLAY") and not os.environ.get("SSM_STUDIO_IN_XVFB")
+
+
+def _rerun_under_xvfb(argv: list[str]) -> int:
+    xvfb = shutil.which("xvfb-run")
+    if xvfb is None:
+        print("ssm-studio: error: no display, and xvfb-run is not installed to provide a virtual "
+              "one (apt-get install xvfb xauth)", file=sys.stderr)
+        return 2
+    env = dict(os.environ, SSM_STUDIO_IN_XVFB="1", QT_QPA_PLATFORM="xcb")
+    cmd = [xvfb, "-a", "-s", "-screen 0 1600x1000x24", sys.executable, "-m", "app.main", *argv]
+    return subprocess.call(cmd, env=env)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if hasattr(args, "_run"):  # an engine command: no Qt
+        return run_command(args)
+    screenshot = getattr(args, "screenshot", None)
+    if _needs_virtual_display():
+        if screenshot:
+            return _rerun_under_xvfb(argv)
+        print("ssm-studio: no display found. Run it on a desktop, or render the window with "
+              "'ssm-studio --screenshot out.png'.", file=sys.stderr)
+        return 2
+    from app.window import run_gui
+
+    return run_gui(
+        image=getattr(args, "image", None),
+        model=getattr(args, "model", None),
+        session=getattr(args, "session", None),
+        screenshot=screenshot,
+        tab=getattr(args, "tab", None) or "segment",
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,115 @@
+"""Mesh operators on (vertices, faces) numpy arrays: normals, edges, graph and Laplacians.
+
+The shared toolbox of the algorithm modules (fairing in correspondence, the graph gradient of
+the local-support factorisation, normals for anisotropic fitting). Everything is vectorised;
+sparse operators are ``scipy.sparse`` CSR matrices. Shapes: vertices (N, 3) float, faces (F, 3)
+int.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True) -> np.ndarray:
+    """Per-face normals (F, 3); area-weighted (twice the area) when ``normalize`` is False."""
+    v = vertices[faces]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    if normalize:
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    return n
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (N, 3), the area-weighted mean of the adjacent face normals.
+
+    Outward for a closed surface whose faces are consistently oriented counter-clockwise
+    seen from outside.
+    """
+    fn = face_normals(vertices, faces, normalize=False)
+    n = np.zeros_like(vertices, dtype=np.float64)
+    for k in range(3):
+        np.add.at(n, faces[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges (E, 2), each with i < j."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.sort(e, axis=1)
+    return np.unique(e, axis=0)
+
+
+def adjacency(faces: np.ndarray, n_vertices: int, weights: np.ndarray | None = None) -> sp.csr_matrix:
+    """Symmetric vertex adjacency (N, N); entry (i, j) is the edge weight (default 1)."""
+    e = edges(faces)
+    w = np.ones(len(e)) if weights is None else np.asarray(weights, dtype=np.float64)
+    a = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                np.concatenate([e[:, 1], e[:, 0]]))),
+                      shape=(n_vertices, n_vertices))
+    return a.tocsr()
+
+
+def uniform_laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """Umbrella operator L = D^-1 A - I (N, N): (L x)_i = mean of neighbours - x_i."""
+    a = adjacency(faces, n_vertices)
+    deg = np.asarray(a.sum(axis=1)).ravel()
+    inv = sp.diags(1.0 / np.maximum(deg, 1.0))
+    return (inv @ a - sp.identity(n_vertices)).tocsr()
+
+
+def cotangent_laplacian(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
+    """Cotangent-weight Laplacian (N, N), negative semi-definite, rows summing to zero."""
+    v = vertices[faces]
+    n = len(vertices)
+    weights = []
+    rows, cols = [], []
+    for k in range(3):
+        i, j, o = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3], k
+        a = v[:, (k + 1) % 3] - v[:, o]
+        b = v[:, (k + 2) % 3] - v[:, o]
+        cot = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(np.cross(a, b), axis=1), 1e-12)
+        weights.append(0.5 * cot)
+        rows.append(i)
+        cols.append(j)
+    w = np.concatenate(weights)
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    w_mat = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([r, c]), np.concatenate([c, r]))),
+                          shape=(n, n)).tocsr()
+    return (w_mat - sp.diags(np.asarray(w_mat.sum(axis=1)).ravel())).tocsr()
+
+
+def n_components(faces: np.ndarray, n_vertices: int) -> int:
+    """Number of connected pieces of the mesh graph (isolated unused vertices ignored)."""
+    used = np.unique(faces)
+    a = adjacency(faces, n_vertices)[used][:, used]
+    return int(connected_components(a, directed=False)[0])
+
+
+def boundary_edges(faces: np.ndarray) -> np.ndarray:
+    """Edges used by exactly one triangle (B, 2); empty for a closed (watertight) surface."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    return uniq[counts == 1]
+
+
+def is_closed(faces: np.ndarray) -> bool:
+    """True when every edge is shared by exactly two triangles."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Enclosed volume (mm^3) of a closed, consistently oriented surface (divergence theorem)."""
+    v = vertices[faces]
+    return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
+
+
+def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Mean length of the unique edges."""
+    e = edges(faces)
+    return float(np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1).mean())

@@ -1,0 +1,122 @@
+"""The linear shape model x = mean + sum_m a_m * factor_m, as plain data.
+
+Every model-building method (PCA, LSF, SPLOCS, Varimax; see ``core.models``) produces a
+:class:`ShapeModel`; the reconstruction engine, the evaluation code, the model file format
+(``core.io.save_model`` / ``load_model``) and the GUI all consume it. Conventions:
+
+- shapes are (N, 3) arrays of vertex positions in mm; vectorised shapes are ``X.reshape(-1)``,
+  i.e. vertex-major interleaved ``[x0, y0, z0, x1, ...]`` (length 3N);
+- ``factors`` is (M, N, 3): factor m displaces vertex i by ``a_m * factors[m, i]``;
+- ``coef_var`` is (M,): the variance of each coefficient over the training shapes, i.e. the
+  Gaussian prior a ~ N(0, diag(coef_var)) used by fitting and sampling;
+- ``world_transform`` (4, 4) maps the model frame to world (RAS, mm): the placement of the
+  model's mean where its training shapes were (e.g. on the structure in the MRI).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class ShapeModel:
+    """A point distribution model with its mesh topology and world placement.
+
+    Attributes
+    ----------
+    mean : (N, 3) float ndarray
+        Mean shape in the model frame (mm).
+    factors : (M, N, 3) float ndarray
+        Deformation factors.
+    coef_var : (M,) float ndarray
+        Prior variance of each coefficient (> 0).
+    faces : (F, 3) int ndarray
+        Triangles indexing the N vertices.
+    world_transform : (4, 4) float ndarray
+        Model frame -> world (RAS, mm), homogeneous, column-vector convention.
+    method : str
+        Name of the building method ("pca", "lsf", "splocs", "varimax", ...).
+    params : dict
+        The method's parameters (JSON-serialisable).
+    source_meshes : list of str
+        Names of the training meshes.
+    info : dict
+        Extra metadata kept with the model file (timings, evaluation, ground-truth links).
+    """
+
+    mean: np.ndarray
+    factors: np.ndarray
+    coef_var: np.ndarray
+    faces: np.ndarray
+    world_transform: np.ndarray = field(default_factory=lambda: np.eye(4))
+    method: str = "pca"
+    params: dict[str, Any] = field(default_factory=dict)
+    source_meshes: list[str] = field(default_factory=list)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.mean = np.asarray(self.mean, dtype=np.float64)
+        self.factors = np.asarray(self.factors, dtype=np.float64)
+        self.coef_var = np.asarray(self.coef_var, dtype=np.float64).reshape(-1)
+        self.faces = np.asarray(self.faces, dtype=np.int64)
+        self.world_transform = np.asarray(self.world_transform, dtype=np.float64)
+        problem = self.validate()
+        if problem:
+            raise ValueError(problem)
+
+    def validate(self) -> str | None:
+        """Return a description of the first inconsistency found, or None if consistent."""
+        if self.mean.ndim != 2 or self.mean.shape[1] != 3 or self.mean.shape[0] < 4:
+            return f"mean must be (N, 3) with N >= 4, got shape {self.mean.shape}"
+        n = self.mean.shape[0]
+        if self.factors.ndim != 3 or self.factors.shape[1:] != (n, 3):
+            return f"factors must be (M, {n}, 3), got shape {self.factors.shape}"
+        m = self.factors.shape[0]
+        if self.coef_var.shape != (m,):
+            return f"coef_var must have {m} entries (one per factor), got {self.coef_var.shape[0]}"
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
+            return f"faces must be (F, 3) triangles, got shape {self.faces.shape}"
+        if self.faces.min() < 0 or self.faces.max() >= n:
+            return f"faces index vertices outside 0..{n - 1}"
+        if self.world_transform.shape != (4, 4):
+            return f"world_transform must be 4x4, got {self.world_transform.shape}"
+        for name in ("mean", "factors", "coef_var", "world_transform"):
+            if not np.all(np.isfinite(getattr(self, name))):
+                return f"{name} contains NaN or infinite values"
+        if np.any(self.coef_var <= 0):
+            return "coef_var must be positive"
+        return None
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.mean.shape[0])
+
+    @property
+    def n_factors(self) -> int:
+        return int(self.factors.shape[0])
+
+    @property
+    def basis(self) -> np.ndarray:
+        """Factors as a (3N, M) matrix Phi, so that vec(x) = vec(mean) + Phi @ a."""
+        return self.factors.reshape(self.n_factors, -1).T
+
+    def instance(self, coef: np.ndarray | None = None) -> np.ndarray:
+        """Shape for coefficients ``coef`` (M,) in the model frame, (N, 3)."""
+        if coef is None or self.n_factors == 0:
+            return self.mean.copy()
+        coef = np.asarray(coef, dtype=np.float64).reshape(-1)
+        if coef.shape != (self.n_factors,):
+            raise ValueError(f"expected {self.n_factors} coefficients, got {coef.shape[0]}")
+        return self.mean + np.tensordot(coef, self.factors, axes=1)
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        """Map (N, 3) model-frame points to world coordinates with ``world_transform``."""
+        t = self.world_transform
+        return np.asarray(points, dtype=np.float64) @ t[:3, :3].T + t[:3, 3]
+
+    def world_instance(self, coef: np.ndarray | None = None) -> np.ndarray:
+        """Shape for ``coef`` placed in world coordinates, (N, 3)."""
+        return self.to_world(self.instance(coef))

@@ -1,0 +1,45 @@
+"""Packaging and layout rules: the CLI answers, and core/ never imports Qt."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import core
+
+ROOT = Path(__file__).resolve().parents[1]
+QT_MODULES = {"PySide6", "PyQt5", "PyQt6", "pyvistaqt", "qtpy", "app"}
+
+
+def test_core_never_imports_qt_or_app():
+    offenders = []
+    for path in (ROOT / "core").rglob("*.py"):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in names
+                          if n.split(".")[0] in QT_MODULES]
+    assert offenders == []
+
+
+def test_version_and_help():
+    out = subprocess.run([sys.executable, "-m", "app.main", "--version"], capture_output=True,
+                         text=True, cwd=ROOT)
+    assert out.returncode == 0 and out.stdout.strip() == f"ssm-studio {core.__version__}"
+    out = subprocess.run([sys.executable, "-m", "app.main", "--help"], capture_output=True,
+                         text=True, cwd=ROOT)
+    assert out.returncode == 0 and "--screenshot" in out.stdout and "view" in out.stdout
+
+
+def test_engine_commands_do_not_import_qt():
+    code = ("import sys; from app.main import build_parser; build_parser(); "
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('PySide6', 'pyvistaqt')]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stdout + out.stderr
