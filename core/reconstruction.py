@@ -1,0 +1,591 @@
+"""Fit a shape model to sparse 3D points: GMM-based surface reconstruction with a shape prior.
+
+Bernard, Salamanca, Thunberg, Tack, Jentsch, Lamecker, Zachow, Hertel, Goncalves, Gemmar:
+"Shape-aware surface reconstruction from sparse 3D point-clouds", Medical Image Analysis 38
+(2017). The model's surface points are the centres of a Gaussian mixture and the user's points
+y_i (P, 3) are samples of it. With the model frame -> world similarity T(x) = s R x + t and
+the model x_j(a) = mean_j + Phi_j a (N vertices, M factors), EM minimises the negative log
+posterior
+
+    E(a, T, s2) = - sum_i log( (1 - w)/N sum_j g_j(y_i) + w/P ) + (lambda/2) a^T diag(var)^-1 a
+
+    g_j(y) = sqrt(det W_j) (2 pi s2)^(-3/2) exp(-(y - T x_j)^T W_j (y - T x_j) / (2 s2))  # Eq. 1
+
+where w is the uniform outlier weight and W_j the precision of component j:
+
+- ``gmm-iso``: W_j = I (spherical components, the CPD-like fit);
+- ``gmm-aniso``: W_j = eta n_j n_j^T + (I - n_j n_j^T), n_j the current model normal at
+  vertex j (in world), eta > 1: a flat covariance along the normal, wide in the tangent plane,
+  so user points slide along the surface instead of snapping to vertices (Eq. 5 of the paper);
+- ``icp``: hard nearest-vertex correspondences and W_j = I, with the same prior: the
+  baseline.
+
+E-step (Eq. 2): p_ij = g_j(y_i) / (sum_k g_k(y_i) + c), c = (N w) / (P (1 - w)).
+The sum over j is truncated to the K nearest model vertices of each user point (a
+``scipy.spatial.cKDTree`` on the current vertices), so one iteration costs O((N + P K) log N)
+instead of O(N P).
+
+User normals (optional, e.g. contour tangent x slice normal, pointing outwards) multiply the
+E-step weight by exp(kappa (u_i . n_j - 1)): a point is unlikely to belong to a part of the
+surface facing the other way (the two sides of a thin structure). This factor is treated as
+fixed in the M-step (a generalised EM step) and is part of the reported objective.
+
+M-step, with the responsibilities fixed, reduced to per-vertex sums w_j = sum_i p_ij and
+ybar_j = sum_i p_ij y_i (so it costs O(|J| M^2) for the |J| vertices with weight):
+
+- pose: for W_j = I the weighted Procrustes problem has the closed form of Umeyama (SVD of
+  the weighted cross-covariance, Eq. 3); for anisotropic W_j there is none, and we take one
+  Gauss-Newton step of the point-to-plane-like energy in the similarity parameters (scale,
+  small rotation via Rodrigues, translation), linearised at the current pose (documented
+  generalised EM: the energy decreases, the step is not the exact minimiser);
+- shape (Eq. 4): with the points mapped to the model frame, y'_i = R^T (y_i - t) / s and
+  s2' = s2 / s^2,
+      (sum_j w_j Phi_j^T W'_j Phi_j + lambda s2' diag(1/var)) a = sum_j Phi_j^T W'_j (ybar'_j - w_j mean_j)
+  (W'_j with the normals rotated to the model frame);
+- variance: s2 = sum_ij p_ij (y_i - x_j)^T W_j (y_i - x_j) / (3 sum_ij p_ij), floored at
+  ``min_sigma**2`` (without a floor, s2 -> 0 on sparse data removes the prior's weight and
+  the fit over-fits the few points).
+
+Convergence: relative change of E below ``tol``, or the largest vertex displacement in one
+iteration below ``xtol`` mm. A warm start (``init``: a previous :class:`FitResult`) starts from
+its pose, coefficients and variance, raised to cover every current point's distance to the
+previous surface (so a newly added point is not taken for an outlier).
+
+The reported ``pose`` is the full model frame -> world transform: ``D @ model.world_transform``
+with D the fitted world similarity (identity for ``pose="none"``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from core.shape_model import ShapeModel
+
+METHODS = ("gmm-aniso", "gmm-iso", "icp")
+POSES = ("similarity", "rigid", "none")
+MIN_POINTS = {"similarity": 3, "rigid": 3, "none": 1}
+
+
+@dataclass
+class FitResult:
+    """The result of :func:`fit_points`.
+
+    Attributes
+    ----------
+    coef : (M,) float ndarray
+        Shape coefficients.
+    pose : (4, 4) float ndarray
+        Model frame -> world transform (the fitted similarity composed with the model's
+        ``world_transform``).
+    vertices : (N, 3) float ndarray
+        Fitted surface in world coordinates (mm).
+    objective : list of float
+        Negative log posterior E (Eq. 1) at the start of each iteration, and after the last.
+    n_iter : int
+        EM iterations run.
+    converged : bool
+        True when a convergence test was met (not the iteration limit).
+    stop_reason : str
+        Why the iteration stopped, in words.
+    residual_mm : float
+        Mean Euclidean distance (mm) from the user's points to the fitted surface (closest
+        point on the triangles).
+    sigma2 : float
+        Final GMM variance (mm^2).
+    method, pose_mode : str
+        The options used.
+    n_points : int
+        Number of user points.
+    elapsed_s : float
+        Wall time of the fit.
+    """
+
+    coef: np.ndarray
+    pose: np.ndarray
+    vertices: np.ndarray
+    objective: list[float] = field(default_factory=list)
+    n_iter: int = 0
+    converged: bool = False
+    stop_reason: str = ""
+    residual_mm: float = float("nan")
+    sigma2: float = float("nan")
+    method: str = "gmm-aniso"
+    pose_mode: str = "similarity"
+    n_points: int = 0
+    elapsed_s: float = 0.0
+
+    @property
+    def scale(self) -> float:
+        """Isotropic scale of ``pose`` (cube root of |det| of its linear part)."""
+        return float(abs(np.linalg.det(self.pose[:3, :3])) ** (1.0 / 3.0))
+
+    def to_dict(self) -> dict:
+        """JSON-friendly summary (no vertices)."""
+        return {
+            "method": self.method, "pose_mode": self.pose_mode, "coef": self.coef.tolist(),
+            "pose": self.pose.tolist(), "objective": [float(v) for v in self.objective],
+            "n_iter": self.n_iter, "converged": self.converged, "stop_reason": self.stop_reason,
+            "residual_mm": self.residual_mm, "sigma2": self.sigma2, "n_points": self.n_points,
+            "elapsed_s": self.elapsed_s,
+        }
+
+
+# --------------------------------------------------------------------------------------
+# Geometry helpers
+# --------------------------------------------------------------------------------------
+
+
+def _vertex_normals_fast(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (N, 3), bincount-based (faster than np.add.at)."""
+    v0, v1, v2 = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    fn = np.cross(v1 - v0, v2 - v0)
+    idx = faces.reshape(-1)
+    n = len(vertices)
+    out = np.empty((n, 3))
+    rep = np.repeat(fn, 3, axis=0)
+    for k in range(3):
+        out[:, k] = np.bincount(idx, weights=rep[:, k], minlength=n)
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+
+
+def _rodrigues(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrix exp([omega]_x) (3, 3)."""
+    theta = float(np.linalg.norm(omega))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = omega / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
+
+
+def closest_points_on_triangles(points: np.ndarray, a: np.ndarray, b: np.ndarray,
+                                c: np.ndarray) -> np.ndarray:
+    """Closest point on triangle (a, b, c) to each point, all (Q, 3) (Ericson, RTCD 5.1.5)."""
+    ab, ac, ap = b - a, c - a, points - a
+    d1 = np.einsum("ij,ij->i", ab, ap)
+    d2 = np.einsum("ij,ij->i", ac, ap)
+    bp = points - b
+    d3 = np.einsum("ij,ij->i", ab, bp)
+    d4 = np.einsum("ij,ij->i", ac, bp)
+    cp = points - c
+    d5 = np.einsum("ij,ij->i", ab, cp)
+    d6 = np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    eps = 1e-300
+    # interior (default)
+    denom = np.where(np.abs(va + vb + vc) < eps, eps, va + vb + vc)
+    v = vb / denom
+    w = vc / denom
+    out = a + ab * v[:, None] + ac * w[:, None]
+    # edge regions (assigned in reverse priority so that vertex regions win)
+    bc_mask = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    wbc = (d4 - d3) / np.maximum((d4 - d3) + (d5 - d6), eps)
+    out = np.where(bc_mask[:, None], b + (c - b) * wbc[:, None], out)
+    ac_mask = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    wac = d2 / np.maximum(d2 - d6, eps)
+    out = np.where(ac_mask[:, None], a + ac * wac[:, None], out)
+    ab_mask = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    vab = d1 / np.maximum(d1 - d3, eps)
+    out = np.where(ab_mask[:, None], a + ab * vab[:, None], out)
+    out = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, out)
+    out = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, out)
+    out = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)
+    return out
+
+
+def _vertex_face_table(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(N, max valence) table of the faces around each vertex, padded by repeating one."""
+    idx = faces.reshape(-1)
+    face_of = np.repeat(np.arange(len(faces)), 3)
+    order = np.argsort(idx, kind="stable")
+    idx, face_of = idx[order], face_of[order]
+    counts = np.bincount(idx, minlength=n_vertices)
+    width = max(int(counts.max()), 1)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.arange(len(idx)) - starts[idx]
+    table = np.empty((n_vertices, width), dtype=np.int64)
+    first = np.where(counts > 0, face_of[np.minimum(starts, len(idx) - 1)], 0)
+    table[:] = first[:, None]
+    table[idx, rank] = face_of
+    return table
+
+
+def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                     k: int = 6, tree: cKDTree | None = None,
+                     table: np.ndarray | None = None) -> np.ndarray:
+    """Distance (P,) from each point to the triangle surface (vertices (N, 3), faces (F, 3)).
+
+    Exact over the triangles around the ``k`` nearest vertices of each point (the closest
+    triangle is among them on any reasonable mesh). Vectorised: O(P k valence).
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros(0)
+    tree = cKDTree(vertices) if tree is None else tree
+    table = _vertex_face_table(faces, len(vertices)) if table is None else table
+    k = min(k, len(vertices))
+    _, near = tree.query(points, k=k)
+    near = np.asarray(near).reshape(len(points), k)
+    cand = table[near].reshape(len(points), -1)  # (P, k * valence)
+    q = np.repeat(points, cand.shape[1], axis=0)
+    tri = faces[cand.reshape(-1)]
+    closest = closest_points_on_triangles(q, vertices[tri[:, 0]], vertices[tri[:, 1]],
+                                          vertices[tri[:, 2]])
+    dist = np.linalg.norm(closest - q, axis=1).reshape(len(points), -1)
+    return dist.min(axis=1)
+
+
+# --------------------------------------------------------------------------------------
+# Input checks
+# --------------------------------------------------------------------------------------
+
+
+def _check_inputs(model: ShapeModel, points, normals, method: str, pose: str,
+                  init: FitResult | None) -> tuple[np.ndarray, np.ndarray | None]:
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if pose not in POSES:
+        raise ValueError(f"unknown pose {pose!r}; choose one of {', '.join(POSES)}")
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.size == 0:
+        raise ValueError("no points to fit: place at least one contour point")
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be a (P, 3) array of world coordinates, got shape {pts.shape}")
+    bad = ~np.all(np.isfinite(pts), axis=1)
+    if bad.any():
+        rows = ", ".join(str(i) for i in np.flatnonzero(bad)[:5])
+        raise ValueError(f"{int(bad.sum())} point(s) have NaN or infinite coordinates (rows {rows})")
+    need = MIN_POINTS[pose]
+    if len(pts) < need:
+        raise ValueError(f"pose={pose!r} needs at least {need} points, got {len(pts)}")
+    nrm = None
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        if nrm.shape != pts.shape:
+            raise ValueError(f"normals must have the points' shape {pts.shape}, got {nrm.shape}")
+        if not np.all(np.isfinite(nrm)):
+            raise ValueError("normals contain NaN or infinite values")
+        length = np.linalg.norm(nrm, axis=1, keepdims=True)
+        nrm = np.where(length > 1e-12, nrm / np.maximum(length, 1e-300), 0.0)
+    if init is not None:
+        if np.shape(init.coef) != (model.n_factors,) or np.shape(init.pose) != (4, 4):
+            raise ValueError("the warm-start result does not belong to this model "
+                             f"({np.shape(init.coef)[0]} coefficients, model has {model.n_factors})")
+    return pts, nrm
+
+
+def _check_extent(points: np.ndarray, vertices: np.ndarray, factor: float) -> None:
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    outside = np.linalg.norm(np.maximum(lo - points, 0) + np.maximum(points - hi, 0), axis=1)
+    far = outside > factor * diag
+    if far.any():
+        raise ValueError(
+            f"{int(far.sum())} of {len(points)} point(s) lie far outside the model "
+            f"(up to {outside.max():.1f} mm from its bounding box; the model is {diag:.1f} mm "
+            "across): are the points in the same world (RAS, mm) space as the model?")
+
+
+# --------------------------------------------------------------------------------------
+# The fit
+# --------------------------------------------------------------------------------------
+
+
+class _ModelCache:
+    """Model quantities in the 'base' frame (model frame mapped by world_transform)."""
+
+    def __init__(self, model: ShapeModel):
+        t0 = model.world_transform
+        self.key = (id(model.mean), id(model.factors), t0.tobytes())
+        self.t0 = t0.copy()
+        self.mean = model.mean @ t0[:3, :3].T + t0[:3, 3]  # (N, 3)
+        self.factors = model.factors @ t0[:3, :3].T  # (M, N, 3)
+        self.basis_t = np.ascontiguousarray(self.factors.reshape(model.n_factors, -1))  # (M, 3N)
+        self.inv_var = 1.0 / model.coef_var
+        self.faces = model.faces
+        self.table = _vertex_face_table(model.faces, model.n_vertices)
+
+    def shape(self, coef: np.ndarray) -> np.ndarray:
+        if len(coef) == 0:
+            return self.mean.copy()
+        return self.mean + (coef @ self.basis_t).reshape(-1, 3)
+
+
+def _cache(model: ShapeModel) -> _ModelCache:
+    key = (id(model.mean), id(model.factors), model.world_transform.tobytes())
+    cached = model.__dict__.get("_fit_cache")
+    if cached is None or cached.key != key:
+        cached = _ModelCache(model)
+        model.__dict__["_fit_cache"] = cached
+    return cached
+
+
+def _procrustes(wj: np.ndarray, ybar: np.ndarray, z: np.ndarray,
+                with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted similarity (Umeyama) with y ~ s R z + t from per-vertex sums (Eq. 3)."""
+    total = wj.sum()
+    mu_y = ybar.sum(axis=0) / total
+    mu_z = (wj[:, None] * z).sum(axis=0) / total
+    cov = ybar.T @ z - total * np.outer(mu_y, mu_z)  # sum_ij p_ij (y_i - mu_y)(z_j - mu_z)^T
+    u, sv, vt = np.linalg.svd(cov)
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    rot = (u * d) @ vt
+    if with_scale:
+        var_z = float((wj * ((z - mu_z) ** 2).sum(axis=1)).sum())
+        scale = float((sv * d).sum() / max(var_z, 1e-300))
+    else:
+        scale = 1.0
+    return scale, rot, mu_y - scale * rot @ mu_z
+
+
+def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None = None, *,
+               method: str = "gmm-aniso", pose: str = "similarity", prior_weight: float = 1.0,
+               init: FitResult | None = None, max_iter: int = 100, tol: float = 1e-5,
+               xtol: float = 1e-3, outlier_weight: float = 0.01, anisotropy: float = 10.0,
+               normal_weight: float = 2.0, n_neighbors: int = 8, min_sigma: float = 0.3,
+               max_distance_factor: float = 1.0,
+               callback: Callable[[int, float], None] | None = None) -> FitResult:
+    """Fit ``model`` to user points by EM on the model-centred Gaussian mixture.
+
+    Parameters
+    ----------
+    model : ShapeModel
+        The model; its ``world_transform`` is the initial placement (when ``init`` is None).
+    points : (P, 3) array
+        User points in world coordinates (mm).
+    normals : (P, 3) array, optional
+        Outward unit normals at the points (rows of zeros: unknown). Used in the E-step.
+    method : {"gmm-aniso", "gmm-iso", "icp"}
+        Anisotropic GMM, isotropic GMM, or ICP with the same prior.
+    pose : {"similarity", "rigid", "none"}
+        Which world transform is estimated on top of ``model.world_transform``.
+    prior_weight : float
+        lambda, the weight of the Gaussian shape prior a ~ N(0, diag(coef_var)).
+    init : FitResult, optional
+        Warm start (previous fit of the same model).
+    max_iter, tol, xtol : int, float, float
+        Iteration limit; relative objective change; largest vertex move (mm).
+    outlier_weight : float
+        w in [0, 1), the weight of the uniform outlier component (ignored by ICP).
+    anisotropy : float
+        eta >= 1, normal / tangential precision ratio of the anisotropic components.
+    normal_weight : float
+        kappa >= 0, weight of the user-normal agreement exp(kappa (u . n - 1)).
+    n_neighbors : int
+        K, model vertices considered per user point in the E-step.
+    min_sigma : float
+        Floor of the GMM standard deviation (mm), about the expected point noise.
+    max_distance_factor : float
+        Points farther than this many model diagonals from the model's box are refused.
+    callback : callable(iteration, objective), optional
+        Called once per iteration; may raise ``core.progress.Cancelled``.
+
+    Returns
+    -------
+    FitResult
+
+    Raises
+    ------
+    ValueError
+        No points, too few points for the pose, NaN coordinates, points far outside the
+        model, or bad options (the message says which).
+    """
+    start_time = time.perf_counter()
+    pts, user_normals = _check_inputs(model, points, normals, method, pose, init)
+    if not prior_weight >= 0 or not 0 <= outlier_weight < 1 or not anisotropy >= 1:
+        raise ValueError("need prior_weight >= 0, 0 <= outlier_weight < 1 and anisotropy >= 1")
+    cache = _cache(model)
+    n_vertices, n_factors, n_points = model.n_vertices, model.n_factors, len(pts)
+    faces = cache.faces
+
+    # State: world similarity D = (scale, rot, trans) applied after world_transform; coef.
+    if init is None:
+        coef = np.zeros(n_factors)
+        scale, rot, trans = 1.0, np.eye(3), np.zeros(3)
+    else:
+        coef = np.asarray(init.coef, dtype=np.float64).copy()
+        delta = np.asarray(init.pose, dtype=np.float64) @ np.linalg.inv(cache.t0)
+        lin = delta[:3, :3]
+        scale = float(abs(np.linalg.det(lin)) ** (1.0 / 3.0))
+        u, _, vt = np.linalg.svd(lin / scale)
+        rot = u @ vt
+        trans = delta[:3, 3].copy()
+        if pose == "none":
+            scale, rot, trans = 1.0, np.eye(3), np.zeros(3)
+        elif pose == "rigid":
+            scale = 1.0
+
+    aniso = method == "gmm-aniso"
+    icp = method == "icp"
+    eta = anisotropy if aniso else 1.0
+    w_out = 0.0 if icp else outlier_weight
+    k_near = 1 if icp else min(n_neighbors, n_vertices)
+    use_normals = user_normals is not None and normal_weight > 0 and not icp
+    sigma2_min = float(min_sigma) ** 2
+
+    z = cache.shape(coef)  # base-frame shape (N, 3)
+    x = scale * z @ rot.T + trans  # world vertices
+    _check_extent(pts, x, max_distance_factor)
+
+    def e_step_pairs(x_world: np.ndarray):
+        tree = cKDTree(x_world)
+        _, idx = tree.query(pts, k=k_near)
+        idx = np.asarray(idx).reshape(n_points, k_near)
+        nrm = _vertex_normals_fast(x_world, faces) if (aniso or use_normals) else None
+        return idx, nrm
+
+    def mahalanobis(x_world: np.ndarray, idx: np.ndarray, nrm: np.ndarray | None) -> np.ndarray:
+        diff = pts[:, None, :] - x_world[idx]  # (P, K, 3)
+        d = np.einsum("pkc,pkc->pk", diff, diff)
+        if aniso:
+            along = np.einsum("pkc,pkc->pk", diff, nrm[idx])
+            d = d + (eta - 1.0) * along**2
+        return d
+
+    idx, nrm = e_step_pairs(x)
+    d = mahalanobis(x, idx, nrm)
+    dmin = d.min(axis=1)
+    if init is None:
+        sigma2 = max(float(d.mean()) / 3.0, float(dmin.max()) / 3.0, sigma2_min)
+    else:
+        sigma2 = max(float(init.sigma2) if np.isfinite(init.sigma2) else 0.0,
+                     float(dmin.max()) / 3.0, sigma2_min)
+
+    log_c = (np.log(n_vertices * w_out / ((1.0 - w_out) * n_points)) if w_out > 0 else -np.inf)
+    normal_term = None
+    objective: list[float] = []
+    converged = False
+    stop_reason = f"reached max_iter={max_iter}"
+    n_iter = 0
+
+    def energy(d: np.ndarray, sigma2: float, coef: np.ndarray) -> tuple[float, np.ndarray]:
+        """Negative log posterior (Eq. 1) and the responsibilities (Eq. 2)."""
+        logits = -d / (2.0 * sigma2)
+        if normal_term is not None:
+            logits = logits + normal_term
+        if icp:
+            logits = logits[:, :1]
+        m = logits.max(axis=1, keepdims=True)
+        ex = np.exp(logits - m)
+        s = ex.sum(axis=1, keepdims=True)
+        # log g normaliser: sqrt(det W) (2 pi s2)^(-3/2)
+        log_norm = 0.5 * np.log(eta) - 1.5 * np.log(2.0 * np.pi * sigma2)
+        comp = np.log(1.0 - w_out) - np.log(n_vertices) + log_norm + m[:, 0] + np.log(s[:, 0])
+        if w_out > 0:
+            loglik = np.logaddexp(comp, np.log(w_out / n_points))
+            denom = s + np.exp(np.minimum(log_c - log_norm - m, 700.0))
+        else:
+            loglik = comp
+            denom = s
+        prior = 0.5 * prior_weight * float(coef @ (cache.inv_var * coef))
+        return float(-loglik.sum() + prior), ex / denom
+
+    for it in range(max_iter):
+        if use_normals:
+            normal_term = normal_weight * (np.einsum("pc,pkc->pk", user_normals, nrm[idx]) - 1.0)
+        e_value, p = energy(d, sigma2, coef)
+        objective.append(e_value)
+        if callback is not None:
+            callback(it, e_value)
+        if it > 0 and abs(objective[-2] - e_value) <= tol * max(abs(e_value), 1.0):
+            converged, stop_reason = True, f"objective change below tol={tol:g}"
+            break
+        n_iter = it + 1
+
+        # Reduce responsibilities to per-vertex sums over the vertices J that have weight.
+        flat_idx = idx[:, : p.shape[1]].reshape(-1)
+        flat_p = p.reshape(-1)
+        wj_all = np.bincount(flat_idx, weights=flat_p, minlength=n_vertices)
+        verts = np.flatnonzero(wj_all > 1e-12 * max(wj_all.max(), 1e-300))
+        wj = wj_all[verts]
+        rep_pts = np.repeat(pts, p.shape[1], axis=0)
+        ybar_all = np.stack([np.bincount(flat_idx, weights=flat_p * rep_pts[:, c],
+                                         minlength=n_vertices) for c in range(3)], axis=1)
+        ybar = ybar_all[verts]
+        n_j = nrm[verts] if aniso else None
+
+        # M-step, pose (Eq. 3).
+        if pose != "none":
+            zj = z[verts]
+            if not aniso:
+                scale_new, rot, trans = _procrustes(wj, ybar, zj, with_scale=pose == "similarity")
+                scale = scale_new if pose == "similarity" else 1.0
+            else:
+                xj = scale * zj @ rot.T + trans
+                centre = (wj[:, None] * xj).sum(axis=0) / wj.sum()
+                q = xj - centre
+                # Jacobian columns: [q | -[q]_x | I], (|J|, 3, 7)
+                jac = np.zeros((len(verts), 3, 7))
+                jac[:, :, 0] = q
+                jac[:, 0, 2], jac[:, 0, 3] = q[:, 2], -q[:, 1]
+                jac[:, 1, 1], jac[:, 1, 3] = -q[:, 2], q[:, 0]
+                jac[:, 2, 1], jac[:, 2, 2] = q[:, 1], -q[:, 0]
+                jac[:, :, 4:] = np.eye(3)
+                if pose == "rigid":
+                    jac = jac[:, :, 1:]
+                resid = ybar - wj[:, None] * xj  # sum_i p_ij (y_i - x_j)
+                wjac = jac + (eta - 1.0) * n_j[:, :, None] * np.einsum("jc,jcq->jq", n_j, jac)[:, None, :]
+                lhs = np.einsum("j,jcq,jcr->qr", wj, jac, wjac)
+                rhs = np.einsum("jcq,jc->q", wjac, resid)
+                lhs += 1e-9 * np.trace(lhs) * np.eye(len(lhs))
+                theta = np.linalg.solve(lhs, rhs)
+                if pose == "rigid":
+                    theta = np.concatenate([[0.0], theta])
+                grow = 1.0 + theta[0]
+                rot_d = _rodrigues(theta[1:4])
+                scale = scale * grow
+                rot = rot_d @ rot
+                trans = grow * rot_d @ (trans - centre) + centre + theta[4:]
+
+        # M-step, shape (Eq. 4), in the base frame.
+        if n_factors > 0:
+            ybar_b = ((ybar - wj[:, None] * trans) @ rot) / scale  # R^T (ybar - w t) / s
+            sigma2_b = sigma2 / scale**2
+            phi = cache.factors[:, verts, :]  # (M, |J|, 3)
+            r = ybar_b - wj[:, None] * cache.mean[verts]
+            sqrt_w = np.sqrt(wj)
+            b = (phi * sqrt_w[None, :, None]).reshape(n_factors, -1)
+            lhs = b @ b.T
+            if aniso:
+                n_b = n_j @ rot  # normals in the base frame, R^T n
+                along = np.einsum("mjc,jc->mj", phi, n_b)
+                c_mat = along * np.sqrt((eta - 1.0) * wj)[None, :]
+                lhs += c_mat @ c_mat.T
+                r = r + (eta - 1.0) * n_b * np.einsum("jc,jc->j", n_b, r)[:, None]
+            rhs = np.einsum("mjc,jc->m", phi, r)
+            lhs[np.diag_indices(n_factors)] += prior_weight * sigma2_b * cache.inv_var
+            coef = np.linalg.solve(lhs, rhs)
+
+        # New vertices, E-step pairs for the next iteration, variance update.
+        z = cache.shape(coef)
+        x_new = scale * z @ rot.T + trans
+        moved = float(np.sqrt(((x_new - x) ** 2).sum(axis=1).max()))
+        x = x_new
+        d_same = mahalanobis(x, idx, nrm)[:, : p.shape[1]]
+        sigma2 = max(float((p * d_same).sum()) / (3.0 * max(p.sum(), 1e-300)), sigma2_min)
+        idx, nrm = e_step_pairs(x)
+        d = mahalanobis(x, idx, nrm)
+        if moved < xtol:
+            if use_normals:
+                normal_term = normal_weight * (np.einsum("pc,pkc->pk", user_normals, nrm[idx]) - 1.0)
+            objective.append(energy(d, sigma2, coef)[0])
+            converged, stop_reason = True, f"largest vertex move below xtol={xtol:g} mm"
+            break
+
+    pose_delta = np.eye(4)
+    pose_delta[:3, :3] = scale * rot
+    pose_delta[:3, 3] = trans
+    residual = surface_distance(pts, x, faces, table=cache.table)
+    return FitResult(coef=coef, pose=pose_delta @ cache.t0, vertices=x, objective=objective,
+                     n_iter=n_iter, converged=converged, stop_reason=stop_reason,
+                     residual_mm=float(residual.mean()), sigma2=float(sigma2), method=method,
+                     pose_mode=pose, n_points=n_points,
+                     elapsed_s=time.perf_counter() - start_time)
