@@ -1,0 +1,60 @@
+"""Linear shape models x = mean + Phi a learnt from shapes in correspondence.
+
+One estimator interface (:class:`core.models.base.DeformationModel`) for every method:
+
+- ``pca``: principal component analysis (global support);
+- ``lsf``: local-support factors by graph-based structured matrix factorisation (Bernard et
+  al., CVPR 2016) -- the product's distinguishing model;
+- ``splocs``: sparse localised deformation components (Neumann et al., SIGGRAPH Asia 2013);
+- ``varimax``: varimax-rotated PCA.
+
+``make_model(method, **params)`` builds an estimator by name; ``model_from_shape_model``
+rebuilds a fitted one from a :class:`core.shape_model.ShapeModel` (e.g. a loaded model file).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from core.models.base import DeformationModel
+from core.models.lsf import LSF
+from core.models.pca import PCA
+from core.models.splocs import SPLOCS
+from core.models.varimax import Varimax
+from core.shape_model import ShapeModel
+
+MODELS: dict[str, type[DeformationModel]] = {
+    "pca": PCA,
+    "lsf": LSF,
+    "splocs": SPLOCS,
+    "varimax": Varimax,
+}
+METHODS = tuple(MODELS)
+
+
+def model_class(method: str) -> type[DeformationModel]:
+    """The estimator class for a method name (case-insensitive)."""
+    key = str(method).strip().lower()
+    if key not in MODELS:
+        raise ValueError(f"unknown model method {method!r} (use one of {', '.join(METHODS)})")
+    return MODELS[key]
+
+
+def make_model(method: str, **params: Any) -> DeformationModel:
+    """An unfitted estimator of ``method`` with ``params`` (unknown names raise ValueError)."""
+    cls = model_class(method)
+    valid = cls._param_names()
+    unknown = sorted(set(params) - set(valid))
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {', '.join(unknown)} for method '{cls.method}' "
+                         f"(valid: {', '.join(valid)})")
+    return cls(**params)
+
+
+def model_from_shape_model(model: ShapeModel) -> DeformationModel:
+    """A fitted estimator holding the mean, factors and prior of ``model``."""
+    return model_class(model.method).from_shape_model(model)
+
+
+__all__ = ["DeformationModel", "PCA", "LSF", "SPLOCS", "Varimax", "MODELS", "METHODS",
+           "make_model", "model_class", "model_from_shape_model"]
