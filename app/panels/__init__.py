@@ -1,0 +1,1 @@
+"""Workspaces and side panels of the main window."""

@@ -1,0 +1,240 @@
+"""The model builder's calls into ``core``, one function per worker job (no Qt here).
+
+Every function here runs inside an :class:`app.workers.Worker`: it takes plain data, returns
+plain data, reports ``progress(fraction, message)`` and lets ``core.progress.Cancelled``
+propagate. The stage functions wrap ``core.pipeline``'s stages (correspond -> align -> fit
+model) so that the panel can cache each stage's result and rerun only what changed.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.io import MESH_SUFFIXES, DataFileError, TriMesh, load_mesh
+from core.progress import ProgressCallback, report, sub_progress
+
+ALIGN_METHODS = ("sync", "gpa")
+TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
+MODEL_ORDER = ("pca", "lsf", "splocs", "varimax")
+
+
+# ------------------------------------------------------------------------------------------
+# Training meshes
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MeshEntry:
+    """One training mesh file: the mesh (None if it could not be read) and its problems."""
+
+    path: str
+    name: str
+    mesh: TriMesh | None
+    problems: list[str] = field(default_factory=list)
+    included: bool = True
+
+
+def expand_mesh_paths(paths: list[str | os.PathLike]) -> list[Path]:
+    """Files and folders -> the mesh files among them (folders: their mesh files, sorted)."""
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            files += sorted(f for f in p.iterdir()
+                            if f.is_file() and any(f.name.lower().endswith(s) for s in MESH_SUFFIXES))
+        else:
+            files.append(p)
+    seen: set[Path] = set()
+    return [f for f in files if not (f in seen or seen.add(f))]
+
+
+def mesh_problems(mesh: TriMesh) -> list[str]:
+    """Warnings about a readable mesh that may spoil correspondence (not errors)."""
+    from core.mesh import boundary_edges, n_components
+
+    problems = []
+    used = np.zeros(mesh.n_vertices, bool)
+    used[mesh.faces.ravel()] = True
+    if not used.all():
+        problems.append(f"{int((~used).sum())} vertices in no triangle")
+    n_boundary = len(boundary_edges(mesh.faces))
+    if n_boundary:
+        problems.append(f"open surface ({n_boundary} boundary edges)")
+    pieces = n_components(mesh.faces, mesh.n_vertices) - int((~used).sum())
+    if pieces > 1:
+        problems.append(f"{pieces} separate pieces")
+    area = np.linalg.norm(np.cross(mesh.vertices[mesh.faces[:, 1]] - mesh.vertices[mesh.faces[:, 0]],
+                                   mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]]),
+                          axis=1)
+    degenerate = int((area <= 1e-12 * max(float(area.max(initial=0.0)), 1e-300)).sum())
+    if degenerate:
+        problems.append(f"{degenerate} degenerate triangles")
+    return problems
+
+
+def load_entries(files: list[str | os.PathLike], progress: ProgressCallback | None = None
+                 ) -> list[MeshEntry]:
+    """Read each file; an unreadable file becomes an entry with ``mesh=None`` and its error."""
+    entries = []
+    for i, f in enumerate(files):
+        report(progress, i / max(len(files), 1), Path(f).name)
+        name = Path(f).name
+        try:
+            mesh = load_mesh(f)
+        except DataFileError as exc:
+            entries.append(MeshEntry(str(f), name, None, [exc.problem if hasattr(exc, "problem")
+                                                          else str(exc)], included=False))
+            continue
+        mesh.name = name
+        entries.append(MeshEntry(str(f), name, mesh, mesh_problems(mesh)))
+    report(progress, 1.0, f"{len(entries)} files read")
+    return entries
+
+
+# ------------------------------------------------------------------------------------------
+# Model classes (for the parameter forms)
+# ------------------------------------------------------------------------------------------
+
+
+def model_classes() -> dict[str, type]:
+    """Model-building estimator classes by method name, in the order PCA, LSF, SPLOCS, Varimax."""
+    try:
+        from core.models import MODELS
+
+        return {name: MODELS[name] for name in sorted(MODELS, key=_model_rank)}
+    except ImportError:  # some estimator module missing: list those that import
+        pass
+    found: dict[str, type] = {}
+    try:
+        from core.models.base import DeformationModel
+    except ImportError:
+        return found
+    for name in MODEL_ORDER:
+        try:
+            module = importlib.import_module(f"core.models.{name}")
+        except ImportError:
+            continue
+        for obj in vars(module).values():
+            if isinstance(obj, type) and issubclass(obj, DeformationModel) and \
+                    getattr(obj, "method", "") == name:
+                found[name] = obj
+    return found
+
+
+def _model_rank(name: str) -> int:
+    return MODEL_ORDER.index(name) if name in MODEL_ORDER else len(MODEL_ORDER)
+
+
+def method_summary(cls: type) -> str:
+    """First paragraph of a class docstring (for tooltips)."""
+    doc = inspect.getdoc(cls) or cls.__name__
+    return doc.split("\n\n")[0].replace("\n", " ")
+
+
+def default_n_references() -> int:
+    try:
+        from core.correspondence import establish_correspondence
+    except ImportError:
+        return 3
+    default = inspect.signature(establish_correspondence).parameters.get("n_references")
+    return int(default.default) if default is not None and isinstance(default.default, int) else 3
+
+
+# ------------------------------------------------------------------------------------------
+# Pipeline stages
+# ------------------------------------------------------------------------------------------
+
+
+def run_correspondence(meshes: list[TriMesh], reference: str | int = "auto", n_references: int = 3,
+                       progress: ProgressCallback | None = None):
+    """Stage 1: bring every mesh into correspondence with a reference (CorrespondenceResult)."""
+    from core.correspondence import establish_correspondence
+
+    return establish_correspondence(meshes, reference=reference, n_references=n_references,
+                                    progress=progress)
+
+
+def _corresponded(corr) -> tuple[list[str], np.ndarray]:
+    """Names and (K, N, 3) vertices of the meshes that were put in correspondence."""
+    pairs = [(m.name, m.vertices) for m in corr.meshes if m is not None]
+    if len(pairs) < 3:
+        raise ValueError(f"only {len(pairs)} meshes could be put in correspondence; a model "
+                         "needs at least 3")
+    return [p[0] for p in pairs], np.stack([p[1] for p in pairs])
+
+
+def run_alignment(corr, method: str = "sync", transform: str = "similarity",
+                  progress: ProgressCallback | None = None):
+    """Stage 2: remove the pose of the corresponded shapes (AlignmentResult)."""
+    from core.alignment import align_shapes
+
+    _, shapes = _corresponded(corr)
+    return align_shapes(shapes, method=method, transform=transform, progress=progress)
+
+
+def run_model(corr, aligned, method: str = "pca", params: dict[str, Any] | None = None,
+              progress: ProgressCallback | None = None):
+    """Stage 3: fit the model on the aligned shapes; returns a ShapeModel placed in world."""
+    from core.models import make_model
+
+    names, _ = _corresponded(corr)
+    estimator = make_model(method, **(params or {}))
+    estimator.fit(aligned.aligned, faces=corr.faces, progress=progress)
+    world = model_world_transform(aligned.transforms)
+    return estimator.to_shape_model(corr.faces, world_transform=world, source_meshes=names,
+                                    info={"alignment": {"method": aligned.method,
+                                                        "transform": aligned.transform},
+                                          "reference": corr.reference_name})
+
+
+def model_world_transform(transforms: np.ndarray) -> np.ndarray:
+    """Model frame -> world: the average of the inverse alignment transforms, made a similarity.
+
+    ``transforms[k]`` maps shape k (world) into the model frame; the returned transform puts
+    the model's mean where the training shapes were on average.
+    """
+    inverses = np.linalg.inv(np.asarray(transforms, dtype=np.float64))
+    mean = inverses.mean(axis=0)
+    u, s, vt = np.linalg.svd(mean[:3, :3])
+    rotation = u @ vt
+    if np.linalg.det(rotation) < 0:
+        u[:, -1] *= -1
+        rotation = u @ vt
+    world = np.eye(4)
+    world[:3, :3] = rotation * np.cbrt(abs(np.linalg.det(mean[:3, :3])))
+    world[:3, 3] = mean[:3, 3]
+    return world
+
+
+def run_evaluation(corr, aligned, methods: dict[str, dict[str, Any]],
+                   progress: ProgressCallback | None = None) -> dict[str, Any]:
+    """Evaluate each method (name -> parameters) on the aligned training shapes."""
+    from core import evaluation
+
+    results = {}
+    for i, (method, params) in enumerate(methods.items()):
+        sub = sub_progress(progress, i / len(methods), (i + 1) / len(methods))
+        report(sub, 0.0, f"evaluating {method}")
+        results[method] = evaluation.evaluate(aligned.aligned, corr.faces, method, params,
+                                              progress=sub)
+    return results
+
+
+# ------------------------------------------------------------------------------------------
+# Shapes for the training-meshes view
+# ------------------------------------------------------------------------------------------
+
+
+def corresponded_meshes(corr) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    return [(m.name, m.vertices, corr.faces) for m in corr.meshes if m is not None]
+
+
+def aligned_meshes(corr, aligned) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    names = [m.name for m in corr.meshes if m is not None]
+    return [(n, x, corr.faces) for n, x in zip(names, aligned.aligned)]

@@ -1,0 +1,379 @@
+"""3D views of the model builder: training meshes, factor colour maps, random samples.
+
+Each view wraps one pyvistaqt ``QtInteractor`` created lazily, on first use, so that the
+panel is cheap to construct and tabs nobody opens cost nothing. Views draw numpy arrays only
+(vertices (N, 3), faces (F, 3)); the conversion to ``pyvista.PolyData`` happens here. A
+factor slider only rewrites the points array of the displayed mesh, which takes well under
+a millisecond, so it runs on the GUI thread without a worker.
+
+The factor colour map follows the figures of Bernard et al., CVPR 2016 ("Linear shape
+deformation models with local support using graph-based structured matrix factorisation"):
+the mean shape is coloured by the per-vertex displacement magnitude of the selected factor,
+here in mm at one standard deviation of its coefficient, ``sqrt(coef_var_m) * ||factor_m[i]||``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtWidgets import (
+    QHBoxLayout,
+    QLabel,
+    QListWidget,
+    QListWidgetItem,
+    QPushButton,
+    QSlider,
+    QSpinBox,
+    QSplitter,
+    QVBoxLayout,
+    QWidget,
+)
+
+# distinct colours for overlaid training meshes (tab10)
+_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
+            "#7f7f7f", "#bcbd22", "#17becf"]
+
+
+def polydata(vertices: np.ndarray, faces: np.ndarray):
+    """(N, 3) vertices and (F, 3) triangles -> ``pyvista.PolyData``."""
+    import pyvista as pv
+
+    faces = np.asarray(faces, dtype=np.int64)
+    cells = np.hstack([np.full((len(faces), 1), 3, np.int64), faces]).ravel()
+    return pv.PolyData(np.array(vertices, dtype=np.float64), cells)
+
+
+def grid_offsets(extents: np.ndarray, gap: float = 0.15) -> np.ndarray:
+    """Translations placing K objects of bounding-box sizes ``extents`` (K, 3) in a grid.
+
+    Objects go in rows of ceil(sqrt(K)) along x, rows stacked along -y, one cell size for all
+    (the largest extent plus ``gap`` of it). Returns (K, 3) offsets to add to each object
+    after centring it on its bounding-box centre.
+    """
+    k = len(extents)
+    if k == 0:
+        return np.zeros((0, 3))
+    cell = float(np.max(extents[:, :2])) * (1.0 + gap) if np.max(extents) > 0 else 1.0
+    columns = max(1, math.ceil(math.sqrt(k)))
+    index = np.arange(k)
+    return np.stack([(index % columns) * cell, -(index // columns) * cell, np.zeros(k)], axis=1)
+
+
+class LazyPlotter(QWidget):
+    """A placeholder that becomes a ``QtInteractor`` the first time it is needed."""
+
+    def __init__(self, parent: QWidget | None = None):
+        super().__init__(parent)
+        self._layout = QVBoxLayout(self)
+        self._layout.setContentsMargins(0, 0, 0, 0)
+        self._plotter = None
+        self._closed = False
+
+    @property
+    def created(self) -> bool:
+        return self._plotter is not None
+
+    @property
+    def plotter(self):
+        """The ``QtInteractor`` (created on first access)."""
+        if self._plotter is None:
+            if self._closed:
+                raise RuntimeError("view already closed")
+            from pyvistaqt import QtInteractor
+
+            self._plotter = QtInteractor(self, auto_update=False)
+            self._plotter.set_background("white")
+            self._layout.addWidget(self._plotter.interactor)
+        return self._plotter
+
+    def render(self) -> None:
+        if self._plotter is not None and not self._closed:
+            self._plotter.render()
+
+    def close_view(self) -> None:
+        """Close the interactor (idempotent)."""
+        self._closed = True
+        if self._plotter is not None:
+            self._plotter.close()
+            self._plotter = None
+
+
+class MeshesView(LazyPlotter):
+    """Several meshes, overlaid (one colour each, translucent) or side by side in a grid."""
+
+    def show_meshes(self, meshes: list[tuple[str, np.ndarray, np.ndarray]], layout: str = "overlay",
+                    scalars: list[np.ndarray] | None = None, scalar_title: str = "",
+                    clim: tuple[float, float] | None = None, cmap: str = "viridis") -> None:
+        """Draw ``(name, vertices (N,3), faces (F,3))`` triples; ``layout`` 'overlay' or 'grid'.
+
+        ``scalars`` (one (N,) array per mesh) colours the meshes with ``cmap`` instead.
+        """
+        plotter = self.plotter
+        plotter.clear()
+        if not meshes:
+            plotter.render()
+            return
+        names = [m[0] for m in meshes]
+        verts = [np.asarray(m[1], dtype=np.float64) for m in meshes]
+        if layout == "grid":
+            lo = np.array([v.min(axis=0) for v in verts])
+            hi = np.array([v.max(axis=0) for v in verts])
+            offsets = grid_offsets(hi - lo) - (lo + hi) / 2.0
+        else:
+            offsets = np.zeros((len(meshes), 3))
+        label_points = []
+        for i, (name, v, (_, _, faces)) in enumerate(zip(names, verts, meshes)):
+            poly = polydata(v + offsets[i], faces)
+            if scalars is not None:
+                poly.point_data["value"] = np.asarray(scalars[i], dtype=np.float64)
+                plotter.add_mesh(poly, scalars="value", cmap=cmap, clim=clim,
+                                 show_scalar_bar=(i == 0), smooth_shading=True,
+                                 scalar_bar_args={"title": scalar_title, "color": "black"})
+            else:
+                plotter.add_mesh(poly, color=_COLOURS[i % len(_COLOURS)], smooth_shading=True,
+                                 opacity=0.45 if layout == "overlay" else 1.0)
+            if layout == "grid":
+                label_points.append([(v[:, 0].min() + v[:, 0].max()) / 2 + offsets[i, 0],
+                                     v[:, 1].max() + offsets[i, 1], v[:, 2].max() + offsets[i, 2]])
+        if layout == "grid" and len(names) <= 36:
+            plotter.add_point_labels(np.array(label_points), names, font_size=10,
+                                     shape_opacity=0.0, show_points=False, text_color="black")
+        if layout == "grid":
+            plotter.view_xy()
+        plotter.reset_camera()
+        plotter.render()
+
+
+class FactorView(QWidget):
+    """Mean shape coloured by a factor's magnitude, with a slider deforming it by ±3 SD.
+
+    Signals
+    -------
+    factor_changed(int)
+        The selected factor index.
+    """
+
+    factor_changed = Signal(int)
+    SLIDER_STEPS_PER_SD = 100
+    CMAP = "viridis"
+
+    def __init__(self, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.view = LazyPlotter()
+        self.factor_list = QListWidget()
+        self.factor_list.setObjectName("factor_list")
+        self.factor_list.setToolTip("Deformation factors; the variance is that of the factor's "
+                                    "coefficient over the training shapes.")
+        self.slider = QSlider(Qt.Horizontal)
+        self.slider.setObjectName("factor_slider")
+        steps = 3 * self.SLIDER_STEPS_PER_SD
+        self.slider.setRange(-steps, steps)
+        self.slider.setTickInterval(self.SLIDER_STEPS_PER_SD)
+        self.slider.setTickPosition(QSlider.TicksBelow)
+        self.slider.setToolTip("Deform the mean along the selected factor, from -3 to +3 "
+                               "standard deviations of its coefficient.")
+        self.slider_label = QLabel("0.00 SD")
+        self.slider_label.setMinimumWidth(70)
+        self.reset_button = QPushButton("Reset")
+        self.reset_button.setToolTip("Back to the mean shape (0 SD).")
+        self.info_label = QLabel("No model yet: build one on the left.")
+        self.info_label.setWordWrap(True)
+
+        left = QWidget()
+        left_layout = QVBoxLayout(left)
+        left_layout.setContentsMargins(0, 0, 0, 0)
+        left_layout.addWidget(QLabel("Factors"))
+        left_layout.addWidget(self.factor_list)
+        splitter = QSplitter(Qt.Horizontal)
+        splitter.addWidget(left)
+        splitter.addWidget(self.view)
+        splitter.setStretchFactor(1, 4)
+        splitter.setSizes([170, 600])
+        slider_row = QHBoxLayout()
+        slider_row.addWidget(QLabel("-3 SD"))
+        slider_row.addWidget(self.slider, 1)
+        slider_row.addWidget(QLabel("+3 SD"))
+        slider_row.addWidget(self.slider_label)
+        slider_row.addWidget(self.reset_button)
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(2, 2, 2, 2)
+        layout.addWidget(splitter, 1)
+        layout.addLayout(slider_row)
+        layout.addWidget(self.info_label)
+
+        self._mean: np.ndarray | None = None
+        self._faces: np.ndarray | None = None
+        self._factors: np.ndarray | None = None
+        self._sd: np.ndarray | None = None
+        self._poly = None
+        self.factor_list.currentRowChanged.connect(self._on_factor_selected)
+        self.slider.valueChanged.connect(self._on_slider)
+        self.reset_button.clicked.connect(lambda: self.slider.setValue(0))
+        self.setEnabled(False)
+
+    # -- model ---------------------------------------------------------------------------
+
+    def set_model(self, mean: np.ndarray | None, factors: np.ndarray | None = None,
+                  coef_var: np.ndarray | None = None, faces: np.ndarray | None = None,
+                  title: str = "") -> None:
+        """Show a model (mean (N,3), factors (M,N,3), coef_var (M,), faces); None clears."""
+        self.factor_list.blockSignals(True)
+        self.factor_list.clear()
+        self.factor_list.blockSignals(False)
+        if mean is None:
+            self._mean = self._factors = self._sd = self._faces = None
+            self._poly = None
+            if self.view.created:
+                self.view.plotter.clear()
+                self.view.render()
+            self.info_label.setText("No model yet: build one on the left.")
+            self.setEnabled(False)
+            return
+        self._mean = np.asarray(mean, dtype=np.float64)
+        self._factors = np.asarray(factors, dtype=np.float64)
+        self._sd = np.sqrt(np.asarray(coef_var, dtype=np.float64))
+        self._faces = np.asarray(faces)
+        magnitudes = self.magnitudes()
+        # variance explained by each factor: coef_var_m * ||factor_m||^2
+        explained = np.asarray(coef_var) * np.sum(self._factors ** 2, axis=(1, 2))
+        total = float(explained.sum()) or 1.0
+        for m in range(len(self._factors)):
+            support = magnitudes[m] > 0.05 * magnitudes[m].max() if magnitudes[m].max() > 0 \
+                else np.zeros(len(self._mean), bool)
+            item = QListWidgetItem(f"{m + 1}: {100 * explained[m] / total:4.1f}% var, "
+                                   f"support {100 * support.mean():3.0f}%")
+            item.setToolTip(f"Factor {m + 1}: explains {100 * explained[m] / total:.1f}% of the "
+                            f"model's variance; coefficient variance {coef_var[m]:.4g}; "
+                            f"largest displacement at 1 SD {magnitudes[m].max():.2f} mm; "
+                            f"{support.sum()} of {len(support)} vertices move more than 5% "
+                            f"of that.")
+            self.factor_list.addItem(item)
+        self.info_label.setText(title)
+        self.setEnabled(True)
+        self._poly = None
+        if len(self._factors):
+            self.factor_list.setCurrentRow(0)  # draws
+        else:
+            self._draw(None)
+
+    def magnitudes(self) -> np.ndarray:
+        """(M, N) displacement of each vertex at 1 SD of each factor, mm."""
+        return np.linalg.norm(self._factors, axis=2) * self._sd[:, None]
+
+    @property
+    def current_factor(self) -> int:
+        return self.factor_list.currentRow()
+
+    @property
+    def current_sd(self) -> float:
+        return self.slider.value() / self.SLIDER_STEPS_PER_SD
+
+    def displayed_points(self) -> np.ndarray | None:
+        """The (N, 3) points currently drawn (a copy), or None."""
+        return None if self._poly is None else np.array(self._poly.points)
+
+    def deformed(self, factor: int, sd: float) -> np.ndarray:
+        """mean + sd * sqrt(coef_var_m) * factor_m, (N, 3)."""
+        return self._mean + sd * self._sd[factor] * self._factors[factor]
+
+    # -- drawing -------------------------------------------------------------------------
+
+    def _on_factor_selected(self, row: int) -> None:
+        if self._mean is None:
+            return
+        self.slider.blockSignals(True)
+        self.slider.setValue(0)
+        self.slider.blockSignals(False)
+        self.slider_label.setText("0.00 SD")
+        self._draw(row if row >= 0 else None)
+        self.factor_changed.emit(row)
+
+    def _draw(self, factor: int | None) -> None:
+        plotter = self.view.plotter
+        plotter.clear()
+        self._poly = polydata(self._mean, self._faces)
+        if factor is None:
+            plotter.add_mesh(self._poly, color="lightgray", smooth_shading=True)
+        else:
+            magnitude = self.magnitudes()[factor]
+            self._poly.point_data["mm at 1 SD"] = magnitude
+            plotter.add_mesh(self._poly, scalars="mm at 1 SD", cmap=self.CMAP,
+                             clim=(0.0, max(float(magnitude.max()), 1e-9)), smooth_shading=True,
+                             scalar_bar_args={"title": "mm at 1 SD", "color": "black",
+                                              "vertical": True, "position_x": 0.86,
+                                              "position_y": 0.06, "height": 0.78,
+                                              "width": 0.07, "title_font_size": 14,
+                                              "label_font_size": 12})
+            plotter.add_mesh(polydata(self._mean, self._faces), style="wireframe",
+                             color="gray", opacity=0.08)
+        plotter.reset_camera()
+        plotter.render()
+
+    def _on_slider(self, value: int) -> None:
+        sd = value / self.SLIDER_STEPS_PER_SD
+        self.slider_label.setText(f"{sd:+.2f} SD")
+        factor = self.current_factor
+        if self._poly is None or factor < 0:
+            return
+        self._poly.points = self.deformed(factor, sd)
+        self.view.render()
+
+
+class SamplesView(QWidget):
+    """Random shapes drawn from the model's coefficient prior, side by side.
+
+    Each sample is coloured by its per-vertex distance to the mean (mm).
+    """
+
+    def __init__(self, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.view = MeshesView()
+        self.count = QSpinBox()
+        self.count.setObjectName("sample_count")
+        self.count.setRange(1, 25)
+        self.count.setValue(6)
+        self.count.setToolTip("How many random shapes to draw, a ~ N(0, diag(coef_var)).")
+        self.draw_button = QPushButton("Draw samples")
+        self.draw_button.setObjectName("draw_samples")
+        self.draw_button.setToolTip("Draw new random shapes from the model.")
+        self.info_label = QLabel("")
+        row = QHBoxLayout()
+        row.addWidget(QLabel("Samples"))
+        row.addWidget(self.count)
+        row.addWidget(self.draw_button)
+        row.addWidget(self.info_label, 1)
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(2, 2, 2, 2)
+        layout.addLayout(row)
+        layout.addWidget(self.view, 1)
+        self._model = None
+        self._rng = np.random.default_rng()
+        self.samples: np.ndarray | None = None
+        self.draw_button.clicked.connect(self.draw)
+        self.setEnabled(False)
+
+    def set_model(self, model, seed: int | None = None) -> None:
+        """``model`` a ShapeModel (or None to clear)."""
+        self._model = model
+        self.samples = None
+        self._rng = np.random.default_rng(seed)
+        self.setEnabled(model is not None)
+        if self.view.created:
+            self.view.show_meshes([])
+
+    def draw(self) -> None:
+        model = self._model
+        if model is None:
+            return
+        n = self.count.value()
+        coef = self._rng.standard_normal((n, model.n_factors)) * np.sqrt(model.coef_var)
+        self.samples = model.mean[None] + np.tensordot(coef, model.factors, axes=1)
+        distances = [np.linalg.norm(s - model.mean, axis=1) for s in self.samples]
+        top = max(float(np.max(distances)), 1e-9)
+        self.view.show_meshes([(f"sample {i + 1}", s, model.faces)
+                               for i, s in enumerate(self.samples)], layout="grid",
+                              scalars=distances, scalar_title="distance to mean (mm)",
+                              clim=(0.0, top), cmap="viridis")
+        self.info_label.setText(f"{n} samples, coefficients ~ N(0, coef_var)")
