@@ -1,0 +1,117 @@
+"""Deformation factor sliders: one per factor, over +-3 standard deviations of its coefficient.
+
+Moving a slider sets that coefficient to ``value * sqrt(coef_var[m])`` and redraws the surface
+(no refit: this is the manual edit). With a local-support model (SPLOCS, LSF, Varimax) each
+slider moves one region only. The sliders follow the state when a refit changes the
+coefficients (signals blocked while doing so, so there is no feedback loop). One slider drag
+is one undo step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import (QGridLayout, QLabel, QPushButton, QScrollArea, QSlider,
+                               QVBoxLayout, QWidget)
+
+from app.state import SegmentationState
+
+STEPS_PER_SD = 100
+MAX_SD = 3.0
+
+
+class FactorsPanel(QWidget):
+    """Sliders for the coefficients of the current model."""
+
+    def __init__(self, state: SegmentationState, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.state = state
+        self.sliders: list[QSlider] = []
+        self.value_labels: list[QLabel] = []
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(4, 4, 4, 4)
+        self.summary = QLabel("No model loaded")
+        self.summary.setWordWrap(True)
+        layout.addWidget(self.summary)
+        self.scroll = QScrollArea()
+        self.scroll.setWidgetResizable(True)
+        self.container = QWidget()
+        self.grid = QGridLayout(self.container)
+        self.grid.setContentsMargins(0, 0, 0, 0)
+        self.grid.setVerticalSpacing(2)
+        self.scroll.setWidget(self.container)
+        layout.addWidget(self.scroll, 1)
+        self.reset_button = QPushButton("Reset to mean shape")
+        self.reset_button.setToolTip("Set every coefficient to 0 (undoable)")
+        self.reset_button.clicked.connect(self.reset)
+        layout.addWidget(self.reset_button)
+        state.model_changed.connect(self._rebuild)
+        state.surface_changed.connect(self._sync)
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        while self.grid.count():
+            item = self.grid.takeAt(0)
+            if item.widget() is not None:
+                item.widget().deleteLater()
+        self.sliders, self.value_labels = [], []
+        model = self.state.model
+        if model is None:
+            self.summary.setText("No model loaded")
+            self.reset_button.setEnabled(False)
+            return
+        self.reset_button.setEnabled(True)
+        self.summary.setText(f"{model.method.upper()} model: {model.n_factors} factors, "
+                             f"{model.n_vertices} vertices. Sliders span \u00b13 SD.")
+        for m in range(model.n_factors):
+            name = QLabel(f"{m + 1}")
+            name.setToolTip(f"Factor {m + 1}, SD {np.sqrt(model.coef_var[m]):.3g}")
+            slider = QSlider(Qt.Orientation.Horizontal)
+            slider.setRange(int(-MAX_SD * STEPS_PER_SD), int(MAX_SD * STEPS_PER_SD))
+            slider.setPageStep(STEPS_PER_SD // 2)
+            slider.setObjectName(f"factor-{m}")
+            slider.valueChanged.connect(lambda value, m=m: self._on_slider(m, value))
+            slider.sliderPressed.connect(self.state.checkpoint)
+            value = QLabel("+0.00")
+            value.setMinimumWidth(44)
+            value.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+            self.grid.addWidget(name, m, 0)
+            self.grid.addWidget(slider, m, 1)
+            self.grid.addWidget(value, m, 2)
+            self.sliders.append(slider)
+            self.value_labels.append(value)
+        self.grid.setRowStretch(model.n_factors, 1)
+        self._sync()
+
+    def _sync(self) -> None:
+        model, coef = self.state.model, self.state.coef
+        if model is None or coef is None or len(self.sliders) != model.n_factors:
+            return
+        sd_values = coef / np.sqrt(model.coef_var)
+        for slider, label, value in zip(self.sliders, self.value_labels, sd_values):
+            slider.blockSignals(True)
+            slider.setValue(int(round(np.clip(value, -MAX_SD, MAX_SD) * STEPS_PER_SD)))
+            slider.blockSignals(False)
+            label.setText(f"{value:+.2f}")
+
+    def _on_slider(self, index: int, value: int) -> None:
+        model = self.state.model
+        if model is None:
+            return
+        slider = self.sliders[index]
+        if not slider.isSliderDown():
+            self.state.checkpoint()      # keyboard/page steps: one undo step each
+        sd = value / STEPS_PER_SD
+        self.value_labels[index].setText(f"{sd:+.2f}")
+        self.state.set_coefficient(index, sd * float(np.sqrt(model.coef_var[index])))
+
+    def set_factor_sd(self, index: int, sd: float) -> None:
+        """Set factor ``index`` to ``sd`` standard deviations (as a slider move would)."""
+        self.sliders[index].setValue(int(round(sd * STEPS_PER_SD)))
+
+    def reset(self) -> None:
+        if self.state.model is None:
+            return
+        self.state.checkpoint()
+        self.state.set_surface(np.zeros(self.state.model.n_factors), self.state.pose)
+        self.state.edited.emit("coef")

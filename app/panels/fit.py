@@ -1,0 +1,99 @@
+"""Fit settings and result: method, pose, prior weight, automatic refit; residual, iterations."""
+
+from __future__ import annotations
+
+import math
+
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout,
+                               QLabel, QPushButton, QVBoxLayout, QWidget)
+
+from app.state import SegmentationState
+
+METHODS = (("gmm-aniso", "GMM, anisotropic (slides along surface)"),
+           ("gmm-iso", "GMM, isotropic"),
+           ("icp", "ICP (nearest vertex)"))
+POSES = (("similarity", "Similarity (rotate, shift, scale)"),
+         ("rigid", "Rigid (rotate, shift)"),
+         ("none", "None (shape only)"))
+
+
+class FitPanel(QWidget):
+    """Settings of the live refit and a read-out of the last one."""
+
+    settings_changed = Signal()
+    refit_requested = Signal()
+
+    def __init__(self, state: SegmentationState, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.state = state
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(4, 4, 4, 4)
+        form = QFormLayout()
+        self.method = QComboBox()
+        for key, text in METHODS:
+            self.method.addItem(text, key)
+        self.pose = QComboBox()
+        for key, text in POSES:
+            self.pose.addItem(text, key)
+        self.prior = QDoubleSpinBox()
+        self.prior.setRange(0.0, 1000.0)
+        self.prior.setDecimals(2)
+        self.prior.setSingleStep(0.25)
+        self.prior.setValue(1.0)
+        self.prior.setToolTip("Weight of the Gaussian shape prior (0 = none; larger = closer to the mean shape)")
+        form.addRow("Method", self.method)
+        form.addRow("Pose", self.pose)
+        form.addRow("Prior weight", self.prior)
+        layout.addLayout(form)
+        row = QHBoxLayout()
+        self.auto = QCheckBox("Refit on every edit")
+        self.auto.setChecked(True)
+        self.refit_button = QPushButton("Refit now")
+        row.addWidget(self.auto)
+        row.addStretch(1)
+        row.addWidget(self.refit_button)
+        layout.addLayout(row)
+        self.result = QLabel()
+        self.result.setObjectName("fit-result")
+        self.result.setWordWrap(True)
+        layout.addWidget(self.result)
+        layout.addStretch(1)
+        for widget in (self.method, self.pose):
+            widget.currentIndexChanged.connect(self.settings_changed)
+        self.prior.valueChanged.connect(self.settings_changed)
+        self.refit_button.clicked.connect(self.refit_requested)
+        state.fit_info_changed.connect(self._show)
+        self._show()
+
+    @property
+    def settings(self) -> dict:
+        return {"method": self.method.currentData(), "pose": self.pose.currentData(),
+                "prior_weight": float(self.prior.value())}
+
+    def set_settings(self, method: str | None = None, pose: str | None = None,
+                     prior_weight: float | None = None) -> None:
+        for combo, key in ((self.method, method), (self.pose, pose)):
+            if key is not None:
+                index = combo.findData(key)
+                if index < 0:
+                    raise ValueError(f"unknown fit option '{key}'")
+                combo.setCurrentIndex(index)
+        if prior_weight is not None:
+            self.prior.setValue(float(prior_weight))
+
+    def _show(self) -> None:
+        info = self.state.fit_info
+        lines = []
+        if info.n_iter:
+            residual = "–" if math.isnan(info.residual_mm) else f"{info.residual_mm:.2f} mm"
+            lines.append(f"<b>Residual</b> {residual} &nbsp; <b>Iterations</b> {info.n_iter}")
+            state = "converged" if info.converged else "stopped"
+            lines.append(f"{state}: {info.stop_reason}" if info.stop_reason else state)
+            if not math.isnan(info.seconds):
+                lines.append(f"round trip {1000 * info.seconds:.0f} ms")
+        if info.message:
+            lines.append(f"<span style='color:#c0392b'>{info.message}</span>")
+        if not lines:
+            lines.append("No fit yet: draw contour points in a slice view.")
+        self.result.setText("<br>".join(lines))

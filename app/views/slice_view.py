@@ -1,0 +1,383 @@
+"""One orthogonal slice view (axial, coronal or sagittal) painted with QPainter.
+
+The slice is resampled in world coordinates by ``core.planes.SliceSampler`` and drawn as a
+QImage; overlays (crosshair, the model's cross-section contours, contour points, orientation
+letters, slice position) are painted on top in screen space. A view transform maps in-plane
+world coordinates (U, V) in mm to widget pixels::
+
+    x = width / 2 + (U - center_u) * scale,   y = height / 2 - (V - center_v) * scale
+
+so that a click converts exactly to a world point ``U u + V v + depth n``.
+
+Mouse: left button = the active tool (navigate: move the crosshair; draw: add contour points
+along a click or drag, Ctrl+click deletes the nearest point; window/level: drag), Shift+left
+drag = window/level in any tool, right drag = zoom, middle drag = pan, wheel = next/previous
+slice, Ctrl+wheel = zoom. Keys: Page Up/Down and Up/Down arrows step slices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from PySide6.QtCore import QLineF, QPointF, QRectF, Qt, Signal
+from PySide6.QtGui import QColor, QFont, QImage, QPainter, QPen
+from PySide6.QtWidgets import QSizePolicy, QWidget
+
+from app.state import FRAME_NAMES, SegmentationState
+from core.planes import FRAMES, SliceImage, window_to_uint8
+from core.slicing import intersect_plane
+
+CONTOUR_COLOR = QColor(255, 170, 0)          # model cross-section (orange)
+POINT_COLOR = QColor(0, 230, 255)            # contour points on this slice (cyan)
+POINT_NEAR_COLOR = QColor(0, 230, 255, 90)   # points one slice away
+CROSSHAIR_COLOR = QColor(80, 200, 80, 170)
+LABEL_COLOR = QColor(255, 255, 120)
+VIEW_COLORS = {"axial": QColor(220, 60, 60), "coronal": QColor(60, 170, 60),
+               "sagittal": QColor(230, 200, 40)}
+
+TOOLS = ("navigate", "draw", "window")
+DRAW_SPACING_MM = 1.5
+
+
+class SliceView(QWidget):
+    """A slice of the current image on one world-aligned frame; see the module docstring."""
+
+    hovered = Signal(object)          # world point (3,) under the cursor, or None
+    activated = Signal(str)           # this view got the user's attention (frame name)
+    message = Signal(str)
+
+    def __init__(self, state: SegmentationState, frame_name: str, parent: QWidget | None = None):
+        super().__init__(parent)
+        if frame_name not in FRAME_NAMES:
+            raise ValueError(f"unknown view '{frame_name}', expected one of {FRAME_NAMES}")
+        self.state = state
+        self.frame_name = frame_name
+        self.frame = FRAMES[frame_name]
+        self.frame_index = FRAME_NAMES.index(frame_name)
+        self.tool = "navigate"
+        self.zoom = 1.0                       # relative to "fit the image in the widget"
+        self.center: np.ndarray | None = None  # (U, V) at the widget centre, None = image centre
+        self._slice: SliceImage | None = None
+        self._qimage: QImage | None = None
+        self._segments_uv: np.ndarray | None = None
+        self._drag: dict | None = None
+        self.setMinimumSize(160, 160)
+        self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
+        self.setMouseTracking(True)
+        self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
+        self.setAttribute(Qt.WidgetAttribute.WA_OpaquePaintEvent)
+        state.image_changed.connect(self._on_image)
+        state.crosshair_changed.connect(self._on_crosshair)
+        state.window_changed.connect(self._on_window)
+        state.surface_changed.connect(self._on_surface)
+        state.model_changed.connect(self._on_surface)
+        state.points_changed.connect(self.update)
+        if state.volume is not None:
+            self._on_image()
+
+    # -- data ------------------------------------------------------------------------------
+    @property
+    def depth(self) -> float:
+        return float(self.frame.depth(self.state.crosshair))
+
+    def _on_image(self) -> None:
+        self.zoom, self.center = 1.0, None
+        self._resample()
+        self._on_surface()
+
+    def _on_crosshair(self) -> None:
+        if self._slice is None or abs(self._slice.depth - self.depth) > 1e-6:
+            self._resample()
+            self._recompute_contours()
+        self.update()
+
+    def _on_window(self) -> None:
+        self._rebuild_image()
+        self.update()
+
+    def _on_surface(self) -> None:
+        self._recompute_contours()
+        self.update()
+
+    def _resample(self) -> None:
+        if self.state.sampler is None:
+            self._slice, self._qimage = None, None
+            return
+        self._slice = self.state.sampler.sample(self.frame, self.depth)
+        self._rebuild_image()
+
+    def _rebuild_image(self) -> None:
+        if self._slice is None:
+            return
+        grey = window_to_uint8(self._slice.data, self.state.window, self.state.level)
+        grey = np.ascontiguousarray(grey)
+        h, w = grey.shape
+        image = QImage(grey.data, w, h, w, QImage.Format.Format_Grayscale8)
+        self._qimage = image.copy()          # own the pixels (grey goes out of scope)
+
+    def _recompute_contours(self) -> None:
+        vertices = self.state.surface_vertices()
+        if vertices is None:
+            self._segments_uv = None
+            return
+        n = np.asarray(self.frame.n)
+        segments = intersect_plane(vertices, self.state.model.faces, self.depth * n, n)
+        self._segments_uv = (segments @ self.frame.axes[:2].T) if len(segments) else None
+
+    # -- view transform ----------------------------------------------------------------------
+    def _base(self) -> tuple[float, np.ndarray]:
+        """Scale (px/mm) and centre (U, V) of the current view."""
+        if self._slice is None:
+            return 1.0, np.zeros(2)
+        left, right, top, bottom = self._slice.extent()
+        fit = min(self.width() / max(right - left, 1e-6), self.height() / max(top - bottom, 1e-6))
+        center = self.center if self.center is not None else np.array([(left + right) / 2, (top + bottom) / 2])
+        return fit * 0.98 * self.zoom, center
+
+    def plane_to_screen(self, uv: np.ndarray) -> np.ndarray:
+        """In-plane (U, V) mm (..., 2) -> widget pixel coordinates (x, y) (..., 2)."""
+        scale, center = self._base()
+        uv = np.asarray(uv, dtype=np.float64)
+        x = self.width() / 2 + (uv[..., 0] - center[0]) * scale
+        y = self.height() / 2 - (uv[..., 1] - center[1]) * scale
+        return np.stack([x, y], axis=-1)
+
+    def screen_to_plane(self, xy: np.ndarray) -> np.ndarray:
+        scale, center = self._base()
+        xy = np.asarray(xy, dtype=np.float64)
+        u = center[0] + (xy[..., 0] - self.width() / 2) / scale
+        v = center[1] - (xy[..., 1] - self.height() / 2) / scale
+        return np.stack([u, v], axis=-1)
+
+    def screen_to_world(self, x: float, y: float) -> np.ndarray:
+        """World point (3,) on this slice under widget pixel (x, y)."""
+        u, v = self.screen_to_plane(np.array([x, y], dtype=np.float64))
+        return self.frame.to_world(np.array([u, v, self.depth]))
+
+    def world_to_screen(self, xyz: np.ndarray) -> np.ndarray:
+        """Widget pixel (x, y) of world point(s) (..., 3) projected on this slice."""
+        return self.plane_to_screen(self.frame.to_plane(xyz)[..., :2])
+
+    def reset_view(self) -> None:
+        self.zoom, self.center = 1.0, None
+        self.update()
+
+    # -- painting ----------------------------------------------------------------------------
+    def paintEvent(self, event) -> None:  # noqa: N802 - Qt API
+        painter = QPainter(self)
+        painter.fillRect(self.rect(), QColor(0, 0, 0))
+        if self._slice is None or self._qimage is None:
+            painter.setPen(QColor(160, 160, 160))
+            painter.drawText(self.rect(), Qt.AlignmentFlag.AlignCenter, "No image")
+            painter.end()
+            return
+        left, right, top, bottom = self._slice.extent()
+        (x0, y0), (x1, y1) = self.plane_to_screen(np.array([[left, top], [right, bottom]]))
+        painter.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform, False)
+        painter.drawImage(QRectF(x0, y0, x1 - x0, y1 - y0), self._qimage)
+        painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
+        self._paint_crosshair(painter)
+        self._paint_contours(painter)
+        self._paint_points(painter)
+        self._paint_labels(painter)
+        painter.end()
+
+    def _paint_crosshair(self, painter: QPainter) -> None:
+        x, y = self.world_to_screen(self.state.crosshair)
+        pen = QPen(CROSSHAIR_COLOR, 1, Qt.PenStyle.DashLine)
+        painter.setPen(pen)
+        gap = 8
+        painter.drawLine(QPointF(0, y), QPointF(x - gap, y))
+        painter.drawLine(QPointF(x + gap, y), QPointF(self.width(), y))
+        painter.drawLine(QPointF(x, 0), QPointF(x, y - gap))
+        painter.drawLine(QPointF(x, y + gap), QPointF(x, self.height()))
+
+    def _paint_contours(self, painter: QPainter) -> None:
+        if self._segments_uv is None:
+            return
+        xy = self.plane_to_screen(self._segments_uv).reshape(-1, 4)
+        painter.setPen(QPen(CONTOUR_COLOR, 2))
+        painter.drawLines([QLineF(a, b, c, d) for a, b, c, d in xy.tolist()])
+
+    def _paint_points(self, painter: QPainter) -> None:
+        pts = self.state.points
+        if len(pts) == 0:
+            return
+        step = self._step()
+        depth_gap = np.abs(pts.depth - self.depth)
+        same = pts.frame == self.frame_index
+        here = same & (depth_gap <= step / 2)
+        near = ~here & (np.abs(self.frame.depth(pts.xyz) - self.depth) <= 1.5 * step)
+        xy = self.world_to_screen(pts.xyz)
+        painter.setPen(Qt.PenStyle.NoPen)
+        painter.setBrush(POINT_NEAR_COLOR)
+        for x, y in xy[near]:
+            painter.drawEllipse(QPointF(x, y), 3, 3)
+        if here.any():
+            idx = np.flatnonzero(here)
+            painter.setPen(QPen(POINT_COLOR, 1))
+            painter.drawPolyline([QPointF(x, y) for x, y in xy[idx]])
+            painter.setPen(QPen(QColor(0, 0, 0), 1))
+            painter.setBrush(POINT_COLOR)
+            for x, y in xy[idx]:
+                painter.drawEllipse(QPointF(x, y), 4, 4)
+        painter.setBrush(Qt.BrushStyle.NoBrush)
+
+    def _paint_labels(self, painter: QPainter) -> None:
+        labels = self.frame.edge_labels()
+        font = QFont(self.font())
+        font.setPointSize(13)
+        font.setBold(True)
+        painter.setFont(font)
+        painter.setPen(LABEL_COLOR)
+        w, h, m = self.width(), self.height(), 6
+        flags = Qt.AlignmentFlag
+        painter.drawText(QRectF(m, 0, 30, h), flags.AlignLeft | flags.AlignVCenter, labels["left"])
+        painter.drawText(QRectF(w - 30 - m, 0, 30, h), flags.AlignRight | flags.AlignVCenter, labels["right"])
+        painter.drawText(QRectF(0, m, w, 24), flags.AlignHCenter | flags.AlignTop, labels["top"])
+        painter.drawText(QRectF(0, h - 24 - m, w, 24), flags.AlignHCenter | flags.AlignBottom, labels["bottom"])
+        font.setPointSize(9)
+        font.setBold(False)
+        painter.setFont(font)
+        painter.setPen(VIEW_COLORS[self.frame_name])
+        axis = "xyz"[int(np.argmax(np.abs(self.frame.n)))]
+        lo, hi = self.state.sampler.depth_range(self.frame)
+        index = int(round((self.depth - lo) / self._step())) + 1
+        total = int(round((hi - lo) / self._step())) + 1
+        painter.drawText(QRectF(m, m, w, 20), flags.AlignLeft | flags.AlignTop,
+                         f"{self.frame_name.capitalize()}  {axis} = {self.depth:.1f} mm  ({index}/{total})")
+        painter.setPen(QColor(150, 150, 150))
+        painter.drawText(QRectF(0, 0, w - m, h - m), flags.AlignRight | flags.AlignBottom,
+                         f"W {self.state.window:.0f}  L {self.state.level:.0f}")
+        if self.hasFocus():
+            painter.setPen(QPen(VIEW_COLORS[self.frame_name], 2))
+            painter.drawRect(QRectF(1, 1, w - 2, h - 2))
+
+    def _step(self) -> float:
+        return self.state.sampler.step(self.frame) if self.state.sampler else 1.0
+
+    # -- interaction -------------------------------------------------------------------------
+    def set_tool(self, tool: str) -> None:
+        if tool not in TOOLS:
+            raise ValueError(f"unknown tool '{tool}', expected one of {TOOLS}")
+        self.tool = tool
+        self.setCursor(Qt.CursorShape.CrossCursor if tool == "draw" else Qt.CursorShape.ArrowCursor)
+
+    def _event_xy(self, event) -> tuple[float, float]:
+        p = event.position()
+        return float(p.x()), float(p.y())
+
+    def mousePressEvent(self, event) -> None:  # noqa: N802
+        if self._slice is None:
+            return
+        self.activated.emit(self.frame_name)
+        x, y = self._event_xy(event)
+        button, mods = event.button(), event.modifiers()
+        if button == Qt.MouseButton.LeftButton:
+            if mods & Qt.KeyboardModifier.ShiftModifier or self.tool == "window":
+                self._drag = {"kind": "window", "xy": (x, y), "wl": (self.state.window, self.state.level)}
+            elif self.tool == "draw":
+                if mods & Qt.KeyboardModifier.ControlModifier:
+                    self.delete_point_near(x, y)
+                else:
+                    self._drag = {"kind": "draw", "last": self.add_point_at(x, y, checkpoint=True)}
+            else:
+                self._drag = {"kind": "navigate"}
+                self.state.set_crosshair(self.screen_to_world(x, y))
+        elif button == Qt.MouseButton.RightButton:
+            self._drag = {"kind": "zoom", "xy": (x, y), "zoom": self.zoom}
+        elif button == Qt.MouseButton.MiddleButton:
+            self._drag = {"kind": "pan", "xy": (x, y), "center": self._base()[1].copy()}
+
+    def mouseMoveEvent(self, event) -> None:  # noqa: N802
+        x, y = self._event_xy(event)
+        if self._slice is not None:
+            self.hovered.emit(self.screen_to_world(x, y))
+        drag = self._drag
+        if drag is None:
+            return
+        kind = drag["kind"]
+        if kind == "navigate":
+            self.state.set_crosshair(self.screen_to_world(x, y))
+        elif kind == "draw":
+            world = self.screen_to_world(x, y)
+            if drag["last"] is None or np.linalg.norm(world - drag["last"]) >= DRAW_SPACING_MM:
+                drag["last"] = self.add_point_at(x, y, checkpoint=drag["last"] is None)
+        elif kind == "window":
+            dx, dy = x - drag["xy"][0], y - drag["xy"][1]
+            window0, level0 = drag["wl"]
+            span = max(self.state.data_range[1] - self.state.data_range[0], 1e-6)
+            self.state.set_window(max(window0 + dx * span / 400, span / 1000), level0 - dy * span / 400)
+        elif kind == "zoom":
+            dy = y - drag["xy"][1]
+            self.zoom = float(np.clip(drag["zoom"] * np.exp(-dy / 150), 0.2, 40))
+            self.update()
+        elif kind == "pan":
+            scale, _ = self._base()
+            dx, dy = x - drag["xy"][0], y - drag["xy"][1]
+            self.center = drag["center"] - np.array([dx, -dy]) / scale
+            self.update()
+
+    def mouseReleaseEvent(self, event) -> None:  # noqa: N802
+        self._drag = None
+
+    def leaveEvent(self, event) -> None:  # noqa: N802
+        self.hovered.emit(None)
+
+    def wheelEvent(self, event) -> None:  # noqa: N802
+        delta = event.angleDelta().y()
+        if delta == 0:
+            return
+        if event.modifiers() & Qt.KeyboardModifier.ControlModifier:
+            self.zoom = float(np.clip(self.zoom * (1.15 if delta > 0 else 1 / 1.15), 0.2, 40))
+            self.update()
+        else:
+            self.state.step_slice(self.frame_name, 1 if delta > 0 else -1)
+
+    def keyPressEvent(self, event) -> None:  # noqa: N802
+        key = event.key()
+        if key in (Qt.Key.Key_PageUp, Qt.Key.Key_Up):
+            self.state.step_slice(self.frame_name, 1)
+        elif key in (Qt.Key.Key_PageDown, Qt.Key.Key_Down):
+            self.state.step_slice(self.frame_name, -1)
+        else:
+            super().keyPressEvent(event)
+
+    def focusInEvent(self, event) -> None:  # noqa: N802
+        self.activated.emit(self.frame_name)
+        self.update()
+        super().focusInEvent(event)
+
+    def focusOutEvent(self, event) -> None:  # noqa: N802
+        self.update()
+        super().focusOutEvent(event)
+
+    # -- drawing -------------------------------------------------------------------------------
+    def add_point_at(self, x: float, y: float, checkpoint: bool = True) -> np.ndarray | None:
+        """Add a contour point on this slice under widget pixel (x, y); returns it (world)."""
+        world = self.screen_to_world(x, y)
+        if self.state.volume is not None:
+            lo, hi = self.state.volume.world_bounds()
+            if np.any(world < lo - 1e-6) or np.any(world > hi + 1e-6):
+                self.message.emit("Point outside the image: not added")
+                return None
+        self.state.add_point(world, self.frame_name, self.depth, checkpoint=checkpoint)
+        return world
+
+    def point_near(self, x: float, y: float, radius_px: float = 8.0) -> int | None:
+        """Index of the contour point on this slice nearest to pixel (x, y), within the radius."""
+        pts = self.state.points
+        if len(pts) == 0:
+            return None
+        here = np.flatnonzero(pts.on_slice(self.frame_index, self.depth, self._step() / 2))
+        if here.size == 0:
+            return None
+        d = np.linalg.norm(self.world_to_screen(pts.xyz[here]) - [x, y], axis=1)
+        best = int(np.argmin(d))
+        return int(here[best]) if d[best] <= radius_px else None
+
+    def delete_point_near(self, x: float, y: float) -> bool:
+        index = self.point_near(x, y)
+        if index is None:
+            return False
+        self.state.remove_point(index)
+        return True

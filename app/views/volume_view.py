@@ -1,0 +1,161 @@
+"""The 3D view: the model surface (semi-transparent), contour points and the three slice planes.
+
+A pyvistaqt ``QtInteractor`` (VTK in a QOpenGLWidget; needs a real OpenGL context, e.g. Xvfb
+with the xcb platform when headless). The three orthogonal slices through the crosshair are
+drawn as textured planes, as in 3D Slicer's 3D view. Updates from the state are coalesced by a
+short single-shot timer so that scrolling or refits never queue several renders.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyvista as pv
+from PySide6.QtCore import QTimer
+from PySide6.QtWidgets import QVBoxLayout, QWidget
+from pyvistaqt import QtInteractor
+
+from app.convert import points_polydata, surface_polydata
+from app.state import FRAME_NAMES, SegmentationState
+from core.planes import FRAMES, window_to_uint8
+
+SURFACE_COLOR = (1.0, 0.67, 0.0)
+POINT_COLOR = (0.0, 0.9, 1.0)
+
+
+class VolumeView(QWidget):
+    """3D view bound to a :class:`SegmentationState`."""
+
+    def __init__(self, state: SegmentationState, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.state = state
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        self.plotter = QtInteractor(self, auto_update=False)
+        layout.addWidget(self.plotter.interactor)
+        self.plotter.set_background((0.08, 0.08, 0.12), top=(0.25, 0.27, 0.33))
+        self.plotter.add_axes(xlabel="R", ylabel="A", zlabel="S", line_width=2)
+        self._surface_actor = None
+        self._surface_mesh: pv.PolyData | None = None
+        self._points_actor = None
+        self._plane_actors: dict[str, object] = {}
+        self._plane_meshes: dict[str, pv.PolyData] = {}
+        self._dirty: set[str] = set()
+        self._camera_set = False
+        self._timer = QTimer(self)
+        self._timer.setSingleShot(True)
+        self._timer.setInterval(30)
+        self._timer.timeout.connect(self._flush)
+        state.image_changed.connect(lambda: self._mark("planes", "camera"))
+        state.crosshair_changed.connect(lambda: self._mark("planes"))
+        state.window_changed.connect(lambda: self._mark("planes"))
+        state.model_changed.connect(lambda: self._mark("surface", "camera"))
+        state.surface_changed.connect(lambda: self._mark("surface"))
+        state.points_changed.connect(lambda: self._mark("points"))
+        self._mark("planes", "surface", "points", "camera")
+
+    def _mark(self, *what: str) -> None:
+        self._dirty.update(what)
+        if not self._timer.isActive():
+            self._timer.start()
+
+    def flush(self) -> None:
+        """Apply pending updates and render now (tests, screenshots)."""
+        self._timer.stop()
+        self._flush()
+
+    def _flush(self) -> None:
+        dirty, self._dirty = self._dirty, set()
+        if getattr(self.plotter, "_closed", False):
+            return
+        if "planes" in dirty:
+            self._update_planes()
+        if "surface" in dirty:
+            self._update_surface()
+        if "points" in dirty:
+            self._update_points()
+        if "camera" in dirty or not self._camera_set:
+            self.reset_camera()
+        self.plotter.render()
+
+    def _update_planes(self) -> None:
+        state = self.state
+        if state.sampler is None:
+            return
+        for name in FRAME_NAMES:
+            frame = FRAMES[name]
+            sl = state.sampler.sample(frame, frame.depth(state.crosshair))
+            grey = window_to_uint8(sl.data, state.window, state.level)
+            left, right, top, bottom = sl.extent()
+            corners_uv = np.array([[left, bottom], [right, bottom], [right, top], [left, top]])
+            corners = frame.to_world(np.column_stack([corners_uv, np.full(4, sl.depth)]))
+            mesh = self._plane_meshes.get(name)
+            if mesh is None:
+                mesh = pv.PolyData(corners, faces=np.array([4, 0, 1, 2, 3]))
+                mesh.active_texture_coordinates = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float32)
+                self._plane_meshes[name] = mesh
+            else:
+                mesh.points = corners
+            # texture rows go bottom-up: flip the top-down slice image
+            texture = pv.Texture(np.ascontiguousarray(grey[::-1]))
+            texture.interpolate = True
+            actor = self._plane_actors.get(name)
+            if actor is None:
+                self._plane_actors[name] = self.plotter.add_mesh(
+                    mesh, texture=texture, lighting=False, opacity=0.75, name=f"plane-{name}",
+                    reset_camera=False)
+            else:
+                actor.texture = texture
+
+    def _update_surface(self) -> None:
+        vertices = self.state.surface_vertices()
+        if vertices is None:
+            if self._surface_actor is not None:
+                self.plotter.remove_actor(self._surface_actor)
+                self._surface_actor, self._surface_mesh = None, None
+            return
+        if self._surface_mesh is not None and self._surface_mesh.n_points == len(vertices):
+            self._surface_mesh.points = vertices
+            self._surface_mesh.compute_normals(inplace=True, cell_normals=False, split_vertices=False)
+            return
+        self._surface_mesh = surface_polydata(vertices, self.state.model.faces)
+        self._surface_actor = self.plotter.add_mesh(
+            self._surface_mesh, color=SURFACE_COLOR, opacity=0.65, smooth_shading=True,
+            name="surface", reset_camera=False, specular=0.3)
+
+    def _update_points(self) -> None:
+        pts = self.state.points
+        if len(pts) == 0:
+            if self._points_actor is not None:
+                self.plotter.remove_actor(self._points_actor)
+                self._points_actor = None
+            return
+        self._points_actor = self.plotter.add_mesh(
+            points_polydata(pts.xyz), color=POINT_COLOR, point_size=9,
+            render_points_as_spheres=True, name="points", reset_camera=False)
+
+    def reset_camera(self) -> None:
+        """Look at the model (or the image) from anterior-left-superior."""
+        vertices = self.state.surface_vertices()
+        if vertices is not None:
+            center = vertices.mean(axis=0)
+            radius = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+            distance = max(radius * 4.0, 170.0)
+        elif self.state.volume is not None:
+            lo, hi = self.state.volume.world_bounds()
+            center, distance = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) * 1.6
+        else:
+            return
+        direction = np.array([-0.55, 0.75, 0.45])
+        direction /= np.linalg.norm(direction)
+        self.plotter.camera_position = [tuple(center + distance * direction), tuple(center), (0, 0, 1)]
+        self.plotter.reset_camera_clipping_range()
+        self._camera_set = True
+
+    def screenshot(self) -> np.ndarray:
+        self.flush()
+        return self.plotter.screenshot(return_img=True)
+
+    def close(self) -> bool:  # noqa: D102
+        self._timer.stop()
+        self.plotter.close()
+        return super().close()
