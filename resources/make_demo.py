@@ -1,0 +1,683 @@
+"""Regenerate SSM Studio's demo data (a real MRI template and a synthetic caudate population).
+
+What is real and what is synthetic
+----------------------------------
+- Real: the T1-weighted MNI ICBM152 2009a nonlinear symmetric template and its grey- and
+  white-matter probability maps (copied from the nilearn wheel, see ``MNI_ICBM152_NOTICE.txt``),
+  and the *base shape*: the left caudate nucleus extracted from the grey-matter map (threshold
+  inside a box around the caudate, one binary opening, the component holding a seed point,
+  marching cubes, uniform remeshing to ~2,000 vertices).
+- Synthetic: the training population. Each shape is the base shape plus a weighted sum of M
+  planted *local* deformations (smooth bumps along the surface normal with known, disjoint
+  supports), then a random similarity pose (scale, rotation, translation), then an independent
+  remeshing (its own vertex count and vertex order). Every planted quantity is stored in
+  ``demo/ground_truth.npz`` (+ a JSON summary) so that correspondence, alignment and
+  factorisation can be scored against the truth.
+
+Generative model (shape k, base vertices x_i with outward unit normals n_i, i = 0..N-1)::
+
+    w_m(i)   = (1 - (d_m(i) / r_m)^2)^3  if d_m(i) < r_m else 0      # bump kernel, C2
+    d_m      = normalise(sum_i w_m(i) n_i)                             # bump direction
+    F_m[i]   = a_m * w_m(i) * d_m                                      # factor m, (N, 3)
+    y_k      = x + sum_m c_km F_m                                      # deformed base
+    z_k      = s_k R_k (y_k - c) + c + t_k = P_k @ [y_k; 1]            # posed, world RAS mm
+    mesh k   = uniform remeshing of the surface (z_k, base faces)
+
+with d_m(i) the graph-geodesic distance (Dijkstra along mesh edges) from the bump's centre
+vertex, n_i the outward vertex normals, c the base centroid, c_km ~ N(0, 1) clipped to
+[-2.5, 2.5]. Each remeshed vertex lies on the surface z_k (its triangle and barycentric
+coordinates are stored). ``corresponded_shapes[k]``
+is z_k: the true homologue of base vertex i in mesh k is ``corresponded_shapes[k, i]``.
+
+Run from the repository: ``python resources/make_demo.py`` (fixed seed, ~20 s). nilearn (the
+``demo`` extra) is only needed when the template files are missing from ``resources/``;
+pyacvd (also in the ``demo`` extra) does the uniform remeshing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import importlib.util
+import shutil
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from scipy import ndimage
+from scipy.sparse.csgraph import dijkstra
+
+RESOURCES = Path(__file__).resolve().parent
+if str(RESOURCES.parent) not in sys.path:  # run as a script from anywhere in the repository
+    sys.path.insert(0, str(RESOURCES.parent))
+
+from core import mesh as meshops  # noqa: E402
+from core.io import (PointSet, TriMesh, atomic_path, atomic_write_json, load_volume,  # noqa: E402
+                     save_mesh, save_model, save_points)
+from core.shape_model import ShapeModel  # noqa: E402
+from core.slicing import polylines, sample_polyline  # noqa: E402
+
+DEMO = RESOURCES / "demo"
+MESH_DIR = DEMO / "meshes"
+STRUCTURE = "left caudate nucleus"
+
+# Template files: name in resources/ -> name in nilearn/datasets/data/
+TEMPLATE_FILES = {
+    "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz": "mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz",
+    "mni_icbm152_gm_tal_nlin_sym_09a.nii.gz": "mni_icbm152_gm_tal_nlin_sym_09a_converted.nii.gz",
+    "mni_icbm152_wm_tal_nlin_sym_09a.nii.gz": "mni_icbm152_wm_tal_nlin_sym_09a_converted.nii.gz",
+}
+T1_FILE = RESOURCES / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
+GM_FILE = RESOURCES / "mni_icbm152_gm_tal_nlin_sym_09a.nii.gz"
+
+# Extraction of the base shape from the grey-matter probability map (MNI world mm).
+BOX_MIN = (-22.0, -30.0, -2.0)
+BOX_MAX = (-7.0, 28.0, 28.0)
+SEED_POINT = (-13.0, 12.0, 10.0)
+GM_THRESHOLD = 0.6
+MASK_SMOOTHING_MM = 0.7      # Gaussian sigma on the binary mask before marching cubes
+MC_UPSAMPLE = 2              # marching cubes on a 0.5 mm grid
+N_BASE_VERTICES = 2000
+
+# Population.
+SEED = 20240611
+N_SHAPES = 24
+N_FACTORS = 6
+BUMP_RADIUS_MM = 7.0          # support radius r_m (graph-geodesic)
+BUMP_AMPLITUDE_MAX_MM = 2.0   # a_m: displacement at the centre per unit coefficient
+COEF_CLIP = 2.5               # coefficients ~ N(0, 1) clipped to +-2.5
+LIPSCHITZ_MAX = 0.8           # COEF_CLIP * a_m * max|grad w_m| <= 0.8: no folding
+MAX_FACE_TURN_DEG = 75.0      # safety checks of each bump at +-COEF_CLIP
+MIN_THICKNESS_RATIO = 0.4
+MIN_SHAPE_THICKNESS_RATIO = 0.15  # final check of every generated shape (bumps combined)
+MIN_CENTRE_THICKNESS_MM = 7.0
+SCALE_SD = 0.025              # global scale s_k ~ 1 + N(0, 0.025^2), clipped to +-5 %
+SCALE_CLIP = 0.05
+ROTATION_SD_DEG = 3.0
+ROTATION_CLIP_DEG = 6.0
+TRANSLATION_SD_MM = 1.5
+TRANSLATION_CLIP_MM = 4.0
+VERTEX_COUNT_RANGE = (1800, 2300)
+CONTOUR_SPACING_MM = 2.0
+
+
+# --------------------------------------------------------------------------------------
+# Template files
+# --------------------------------------------------------------------------------------
+
+
+def _nilearn_data_dir() -> Path | None:
+    """nilearn's packaged data folder, found without importing nilearn (None if absent)."""
+    spec = importlib.util.find_spec("nilearn")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    folder = Path(list(spec.submodule_search_locations)[0]) / "datasets" / "data"
+    return folder if folder.is_dir() else None
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def copy_template() -> dict[str, str]:
+    """Copy the template files from nilearn's wheel into resources/ when missing or changed.
+
+    Returns {file name: sha256}. Works without nilearn when the files are already there.
+    """
+    source_dir = _nilearn_data_dir()
+    hashes = {}
+    for name, source_name in TEMPLATE_FILES.items():
+        target = RESOURCES / name
+        source = source_dir / source_name if source_dir is not None else None
+        if source is not None and source.exists():
+            if not target.exists() or _sha256(target) != _sha256(source):
+                with atomic_path(target) as tmp:
+                    shutil.copyfile(source, tmp)
+                print(f"copied {source} -> {target.relative_to(RESOURCES.parent)}")
+        elif not target.exists():
+            raise SystemExit(f"{target} is missing and nilearn is not installed: "
+                             "pip install -e '.[demo]' and run again")
+        hashes[name] = _sha256(target)
+    return hashes
+
+
+# --------------------------------------------------------------------------------------
+# Base shape (real: from the template's grey-matter map)
+# --------------------------------------------------------------------------------------
+
+
+def _to_polydata(vertices: np.ndarray, faces: np.ndarray):
+    return TriMesh(vertices, faces).to_polydata()
+
+
+def _uniform_remesh(poly, n_vertices: int):
+    """Uniform (ACVD, Valette & Chassery 2004) remeshing of a triangulated surface to about
+    ``n_vertices`` vertices; cluster centroids are *not* moved (we project them ourselves)."""
+    import pyacvd
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        clustering = pyacvd.Clustering(poly)
+        clustering.cluster(n_vertices)
+        return clustering.create_mesh(moveclus=False, flipnorm=True, clean=True)
+
+
+def extract_base_shape() -> tuple[TriMesh, dict]:
+    """The left caudate from the GM probability map as a closed mesh in world RAS mm.
+
+    Returns the mesh (~N_BASE_VERTICES vertices, outward-oriented, one component) and a dict
+    describing the extraction (voxel count, voxel volume, parameters).
+    """
+    import pyvista as pv
+
+    gm = load_volume(GM_FILE)
+    prob = gm.data.astype(np.float32) / 255.0
+    lo = np.rint(gm.world_to_voxel(np.array(BOX_MIN))).astype(int)
+    hi = np.rint(gm.world_to_voxel(np.array(BOX_MAX))).astype(int) + 1
+    box = prob[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    labels, _ = ndimage.label(ndimage.binary_opening(box > GM_THRESHOLD))
+    seed = tuple(np.rint(gm.world_to_voxel(np.array(SEED_POINT))).astype(int) - lo)
+    if labels[seed] == 0:
+        raise RuntimeError(f"seed {SEED_POINT} is not in grey matter > {GM_THRESHOLD}")
+    component = ndimage.binary_fill_holes(labels == labels[seed])
+
+    pad = 3
+    field = ndimage.gaussian_filter(np.pad(component.astype(np.float32), pad), MASK_SMOOTHING_MM)
+    field = ndimage.zoom(field, MC_UPSAMPLE, order=1)
+    spacing = gm.spacing / MC_UPSAMPLE
+    if gm.is_oblique:
+        raise RuntimeError("the template is expected to be axis-aligned")
+    grid = pv.ImageData(dimensions=field.shape, spacing=tuple(spacing),
+                        origin=tuple(gm.voxel_to_world(lo - pad)))
+    grid.point_data["mask"] = field.ravel(order="F")
+    iso = grid.contour([0.5], scalars="mask", method="flying_edges").clean().triangulate()
+    remeshed = _uniform_remesh(iso, N_BASE_VERTICES)
+    # Put the (area-weighted cluster centroid) vertices back on the iso-surface.
+    iso_mesh = TriMesh.from_polydata(iso)
+    _, _, points, _ = closest_points_on_surface(iso_mesh.vertices, iso_mesh.faces,
+                                                np.asarray(remeshed.points))
+    base = TriMesh(points, TriMesh.from_polydata(remeshed).faces, "caudate_base")
+    _check_surface(base, "base shape")
+    info = {
+        "template_voxels": int(component.sum()),
+        "template_voxel_volume_cm3": float(component.sum() * np.prod(gm.spacing) / 1000.0),
+        "box_min_mm": BOX_MIN, "box_max_mm": BOX_MAX, "seed_mm": SEED_POINT,
+        "gm_threshold": GM_THRESHOLD, "mask_smoothing_mm": MASK_SMOOTHING_MM,
+        "marching_cubes_spacing_mm": float(spacing[0]),
+    }
+    return base, info
+
+
+def _check_surface(mesh: TriMesh, what: str) -> None:
+    """Raise if ``mesh`` is not a closed, consistently outward-oriented, single surface."""
+    f = mesh.faces
+    if not meshops.is_closed(f):
+        raise RuntimeError(f"{what}: surface is not closed")
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    if len(np.unique(directed, axis=0)) != len(directed):
+        raise RuntimeError(f"{what}: faces are not consistently oriented")
+    if meshops.n_components(f, mesh.n_vertices) != 1:
+        raise RuntimeError(f"{what}: more than one connected piece")
+    if len(np.unique(f)) != mesh.n_vertices:
+        raise RuntimeError(f"{what}: unused vertices")
+    if meshops.volume(mesh.vertices, f) <= 0:
+        raise RuntimeError(f"{what}: faces point inwards")
+
+
+# --------------------------------------------------------------------------------------
+# Geometry helpers
+# --------------------------------------------------------------------------------------
+
+
+def closest_points_on_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Closest point on the triangle surface (vertices, faces) for each query point (P, 3).
+
+    Returns (triangle index (P,), barycentric coordinates (P, 3), closest points (P, 3),
+    distance (P,)); closest = sum_j bary[:, j] * vertices[faces[tri, j]].
+    """
+    import vtk
+
+    poly = _to_polydata(vertices, faces)
+    locator = vtk.vtkStaticCellLocator()
+    locator.SetDataSet(poly)
+    locator.BuildLocator()
+    tri = np.empty(len(points), np.int64)
+    closest = np.empty((len(points), 3))
+    cell_id, sub_id, dist2 = vtk.mutable(0), vtk.mutable(0), vtk.mutable(0.0)
+    out = [0.0, 0.0, 0.0]
+    for p_index, p in enumerate(np.asarray(points, dtype=np.float64)):
+        locator.FindClosestPoint(p.tolist(), out, cell_id, sub_id, dist2)
+        tri[p_index] = int(cell_id)
+        closest[p_index] = out
+    bary = _barycentric(vertices[faces[tri]], closest)
+    closest = np.einsum("pj,pjk->pk", bary, vertices[faces[tri]])
+    dist = np.linalg.norm(closest - points, axis=1)
+    return tri, bary, closest, dist
+
+
+def _barycentric(tri_vertices: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (P, 3) of points (P, 3) in triangles (P, 3, 3), clipped to the
+    triangle and renormalised (the points are closest points, so inside up to round-off)."""
+    a, b, c = tri_vertices[:, 0], tri_vertices[:, 1], tri_vertices[:, 2]
+    v0, v1, v2 = b - a, c - a, points - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    denom = np.maximum(d00 * d11 - d01 * d01, 1e-300)
+    v = (d11 * d20 - d01 * d21) / denom
+    w = (d00 * d21 - d01 * d20) / denom
+    bary = np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, 1.0)
+    return bary / bary.sum(axis=1, keepdims=True)
+
+
+def ray_distances(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray,
+                  directions: np.ndarray, max_distance: float = 100.0) -> np.ndarray:
+    """Distance (P,) from each origin (P, 3) along its unit direction (P, 3) to the first
+    crossing of the surface (inf if none within ``max_distance``); origins on the surface
+    itself are skipped over by 1e-3 mm."""
+    import vtk
+
+    tree = vtk.vtkOBBTree()
+    tree.SetDataSet(_to_polydata(vertices, faces))
+    tree.BuildLocator()
+    hits = vtk.vtkPoints()
+    distance = np.full(len(origins), np.inf)
+    for i, (p, d) in enumerate(zip(origins, directions)):
+        start, end = p + 1e-3 * d, p + max_distance * d
+        if tree.IntersectWithLine(start.tolist(), end.tolist(), hits, None) != 0 \
+                and hits.GetNumberOfPoints():
+            distance[i] = np.linalg.norm(np.array(hits.GetPoint(0)) - p)
+    return distance
+
+
+def inward_thickness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance (N,) from each vertex along its inward normal to the opposite surface (mm)."""
+    normals = meshops.vertex_normals(vertices, faces)
+    return ray_distances(vertices, faces, vertices, -normals)
+
+
+def graph_geodesic(vertices: np.ndarray, faces: np.ndarray, sources: np.ndarray) -> np.ndarray:
+    """Shortest-path distances (S, N) along mesh edges from each source vertex (mm)."""
+    e = meshops.edges(faces)
+    lengths = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
+    graph = meshops.adjacency(faces, len(vertices), weights=lengths)
+    return dijkstra(sp.csr_matrix(graph), directed=False, indices=np.atleast_1d(sources))
+
+
+def bump_kernel(distance: np.ndarray, radius: float) -> np.ndarray:
+    """w = (1 - (d / r)^2)^3 inside the support d < r, 0 outside (C2, compact support)."""
+    t = np.clip(distance / radius, 0.0, 1.0)
+    return (1.0 - t ** 2) ** 3
+
+
+# --------------------------------------------------------------------------------------
+# Synthetic population
+# --------------------------------------------------------------------------------------
+
+
+def plant_factors(base: TriMesh) -> dict:
+    """M local bump factors on the base surface, with disjoint supports.
+
+    Centres are chosen by farthest-point sampling (graph-geodesic) among vertices where the
+    structure is at least MIN_CENTRE_THICKNESS_MM thick, starting from the thickest one. Each
+    bump displaces its support along one direction d_m, the kernel-weighted mean of the
+    outward normals there (so it is a smooth, fold-free displacement field). Its amplitude
+    a_m starts at min(BUMP_AMPLITUDE_MAX_MM, LIPSCHITZ_MAX r / (COEF_CLIP max|w'|)) and
+    shrinks until the bump at coefficient +-COEF_CLIP passes :func:`_bump_is_safe`.
+    """
+    v, f = base.vertices, base.faces
+    normals = meshops.vertex_normals(v, f)
+    thickness = inward_thickness(v, f)
+    eligible = np.flatnonzero(thickness >= MIN_CENTRE_THICKNESS_MM)
+    centres = [int(eligible[np.argmax(thickness[eligible])])]
+    dist_to_centres = graph_geodesic(v, f, np.array(centres))[0]
+    for _ in range(N_FACTORS - 1):
+        candidate = eligible[np.argmax(dist_to_centres[eligible])]
+        centres.append(int(candidate))
+        dist_to_centres = np.minimum(dist_to_centres, graph_geodesic(v, f, np.array([candidate]))[0])
+    centres = np.array(centres)
+    geo = graph_geodesic(v, f, centres)                                  # (M, N)
+    pairwise = geo[:, centres]
+    off_diag = pairwise[~np.eye(N_FACTORS, dtype=bool)]
+    if off_diag.min() <= 2 * BUMP_RADIUS_MM:
+        raise RuntimeError(f"bump centres only {off_diag.min():.1f} mm apart: supports overlap")
+    weights = bump_kernel(geo, BUMP_RADIUS_MM)                           # (M, N)
+    supports = geo < BUMP_RADIUS_MM
+    directions = weights @ normals
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)      # (M, 3)
+    max_slope = 6 / np.sqrt(5) * (4 / 5) ** 2                            # max |d/dt (1-t^2)^3|
+    start = min(BUMP_AMPLITUDE_MAX_MM, LIPSCHITZ_MAX * BUMP_RADIUS_MM / (COEF_CLIP * max_slope))
+    amplitudes = np.empty(N_FACTORS)
+    for m in range(N_FACTORS):
+        amplitude = start
+        while not _bump_is_safe(v, f, weights[m, :, None] * directions[m] * amplitude,
+                                supports[m], thickness):
+            amplitude *= 0.9
+        amplitudes[m] = amplitude
+    factors = amplitudes[:, None, None] * weights[:, :, None] * directions[:, None, :]  # (M, N, 3)
+    return {
+        "centres": centres, "radii": np.full(N_FACTORS, BUMP_RADIUS_MM),
+        "amplitudes": amplitudes, "directions": directions, "factors": factors,
+        "supports": supports, "weights": weights, "thickness_at_centres": thickness[centres],
+        "min_centre_distance_mm": float(off_diag.min()),
+    }
+
+
+def _bump_is_safe(vertices: np.ndarray, faces: np.ndarray, displacement: np.ndarray,
+                  support: np.ndarray, thickness: np.ndarray) -> bool:
+    """Whether base + c * displacement stays a valid surface for c = +-COEF_CLIP: no face
+    turns by more than MAX_FACE_TURN_DEG and the structure keeps at least MIN_THICKNESS_RATIO
+    of its thickness at every vertex of the support (no folding, no self-contact)."""
+    base_normals = meshops.face_normals(vertices, faces)
+    touched = np.any(support[faces], axis=1)
+    idx = np.flatnonzero(support)
+    for coef in (-COEF_CLIP, COEF_CLIP):
+        moved = vertices + coef * displacement
+        turn = np.einsum("ij,ij->i", meshops.face_normals(moved, faces)[touched], base_normals[touched])
+        if turn.min() < np.cos(np.deg2rad(MAX_FACE_TURN_DEG)):
+            return False
+        normals = meshops.vertex_normals(moved, faces)[idx]
+        left = ray_distances(moved, faces, moved[idx], -normals)
+        if np.any(left < MIN_THICKNESS_RATIO * np.minimum(thickness[idx], 20.0)):
+            return False
+    return True
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' rotation matrix (3, 3) about the unit ``axis`` by ``angle`` radians."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def random_pose(rng: np.random.Generator, centre: np.ndarray) -> dict:
+    """A similarity z = s R (y - centre) + centre + t as a 4x4 matrix, with its parts."""
+    scale = 1.0 + np.clip(rng.normal(0.0, SCALE_SD), -SCALE_CLIP, SCALE_CLIP)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle_deg = np.clip(rng.normal(0.0, ROTATION_SD_DEG), -ROTATION_CLIP_DEG, ROTATION_CLIP_DEG)
+    translation = np.clip(rng.normal(0.0, TRANSLATION_SD_MM, size=3),
+                          -TRANSLATION_CLIP_MM, TRANSLATION_CLIP_MM)
+    linear = scale * _rotation(axis, np.deg2rad(angle_deg))
+    matrix = np.eye(4)
+    matrix[:3, :3] = linear
+    matrix[:3, 3] = centre + translation - linear @ centre
+    return {"matrix": matrix, "scale": float(scale), "axis": axis, "angle_deg": float(angle_deg),
+            "translation": translation}
+
+
+def apply_transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a homogeneous 4x4 (column-vector convention) to points (N, 3)."""
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def remesh_shape(vertices: np.ndarray, faces: np.ndarray, n_target: int,
+                 rng: np.random.Generator) -> tuple[TriMesh, np.ndarray, np.ndarray]:
+    """A new uniform triangulation of the surface (vertices, faces) with ~n_target vertices,
+    its vertices lying on that surface, in a random vertex and face order.
+
+    Returns (mesh, triangle index (n,), barycentric coordinates (n, 3)) where vertex j of the
+    new mesh is sum_l bary[j, l] * vertices[faces[tri[j], l]].
+    """
+    dense = _to_polydata(vertices, faces).subdivide(1, subfilter="linear")
+    # The clustering is seeded by vertex order: a random order gives an independent sampling.
+    order = rng.permutation(dense.n_points)
+    dense_mesh = TriMesh.from_polydata(dense)
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(len(order))
+    shuffled = _to_polydata(dense_mesh.vertices[order], inverse[dense_mesh.faces])
+    for attempt in range(5):
+        new = TriMesh.from_polydata(_uniform_remesh(shuffled, n_target + attempt))
+        try:
+            _check_surface(new, "remeshed shape")
+            break
+        except RuntimeError:
+            continue
+    else:
+        raise RuntimeError("could not remesh a shape into a closed manifold surface")
+    tri, bary, on_surface, _ = closest_points_on_surface(vertices, faces, new.vertices)
+    perm = rng.permutation(new.n_vertices)              # new index j <- old index perm[j]
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    new_faces = inv[new.faces][rng.permutation(len(new.faces))]
+    new_faces = np.stack([np.roll(row, shift) for row, shift in
+                          zip(new_faces, rng.integers(0, 3, len(new_faces)))])
+    mesh = TriMesh(on_surface[perm], new_faces)
+    _check_surface(mesh, "remeshed shape")
+    return mesh, tri[perm], bary[perm]
+
+
+def contour_points(vertices: np.ndarray, faces: np.ndarray) -> tuple[PointSet, list[dict]]:
+    """Points every CONTOUR_SPACING_MM along the outline of the surface in three orthogonal
+    slices (sagittal, coronal, axial) through its centroid, with in-plane outward normals
+    (what a user drawing contours in those slices would give)."""
+    centre = vertices.mean(axis=0)
+    points, normals, planes = [], [], []
+    for axis_index, plane_name in enumerate(("sagittal", "coronal", "axial")):
+        normal = np.eye(3)[axis_index]
+        origin = np.round(centre)              # slices at whole-mm positions, like voxel slices
+        lines = polylines(vertices, faces, origin, normal)
+        pts, tangents = sample_polyline(lines[0], spacing=CONTOUR_SPACING_MM)
+        # Contours run counter-clockwise seen from the tip of ``normal``: outward = t x n.
+        outward = np.cross(tangents, normal)
+        outward /= np.linalg.norm(outward, axis=1, keepdims=True)
+        points.append(pts)
+        normals.append(outward)
+        planes.append({"plane": plane_name, "normal": normal, "origin": origin,
+                       "n_points": len(pts)})
+    return PointSet(np.vstack(points), np.vstack(normals)), planes
+
+
+def pca_stand_in_model(shapes: np.ndarray, faces: np.ndarray, names: list[str]) -> ShapeModel:
+    """PCA of the ground-truth corresponded shapes (K, N, 3), kept to 99.9 % of variance.
+
+    A stand-in for the GUI until the project's pipeline builds the model from the meshes.
+    """
+    k = len(shapes)
+    mean = shapes.mean(axis=0)
+    centred = (shapes - mean).reshape(k, -1)
+    _, singular, vt = np.linalg.svd(centred, full_matrices=False)
+    variances = singular ** 2 / (k - 1)
+    keep = int(np.searchsorted(np.cumsum(variances) / variances.sum(), 0.999) + 1)
+    keep = min(keep, k - 1)
+    modes = vt[:keep]
+    signs = np.sign(modes[np.arange(keep), np.abs(modes).argmax(axis=1)])
+    modes = modes * signs[:, None]
+    return ShapeModel(mean=mean, factors=modes.reshape(keep, -1, 3), coef_var=variances[:keep],
+                      faces=faces, world_transform=np.eye(4), method="pca",
+                      params={"variance_kept": 0.999}, source_meshes=names,
+                      info={"built_from": "ground-truth correspondences (stand-in until the "
+                                          "pipeline builds it)",
+                            "structure": STRUCTURE})
+
+
+def build_with_pipeline(mesh_paths: list[Path]) -> ShapeModel | None:
+    """Build demo/model.npz with the project's own pipeline when core.pipeline exists."""
+    try:
+        from core.pipeline import build_model
+    except ImportError:
+        return None
+    return build_model(mesh_paths)
+
+
+# --------------------------------------------------------------------------------------
+# Main
+# --------------------------------------------------------------------------------------
+
+
+def make_demo(seed: int = SEED, use_pipeline: bool = True) -> dict:
+    """Regenerate everything under resources/ (template copies, demo/ folder); returns the
+    JSON summary that is also written to demo/ground_truth.json."""
+    t_start = time.perf_counter()
+    hashes = copy_template()
+    rng = np.random.default_rng(seed)
+
+    base, extraction = extract_base_shape()
+    base_volume = meshops.volume(base.vertices, base.faces)
+    print(f"base shape: {base.n_vertices} vertices, {len(base.faces)} triangles, "
+          f"{base_volume / 1000:.2f} cm^3 (template mask {extraction['template_voxel_volume_cm3']:.2f} cm^3)")
+
+    planted = plant_factors(base)
+    factors = planted["factors"]
+    print("planted factors: amplitude (mm/unit coef) "
+          + ", ".join(f"{a:.2f}" for a in planted["amplitudes"])
+          + f"; support radius {BUMP_RADIUS_MM} mm; support sizes "
+          + ", ".join(str(int(s)) for s in planted["supports"].sum(axis=1)))
+
+    centre = base.vertices.mean(axis=0)
+    n_total = N_SHAPES + 1                      # the last one is held out (contour points)
+    coefficients = np.clip(rng.standard_normal((n_total, N_FACTORS)), -COEF_CLIP, COEF_CLIP)
+    poses = [random_pose(rng, centre) for _ in range(n_total)]
+    deformed = base.vertices[None] + np.einsum("km,mnd->knd", coefficients, factors)
+    posed = np.stack([apply_transform(p["matrix"], y) for p, y in zip(poses, deformed)])
+    base_thickness = np.minimum(inward_thickness(base.vertices, base.faces), 20.0)
+    base_face_normals = meshops.face_normals(base.vertices, base.faces)
+    for k, shape in enumerate(deformed):
+        _check_surface(TriMesh(shape, base.faces), f"deformed shape {k}")
+        turn = np.einsum("ij,ij->i", meshops.face_normals(shape, base.faces), base_face_normals)
+        left = inward_thickness(shape, base.faces) / base_thickness
+        if turn.min() < np.cos(np.deg2rad(MAX_FACE_TURN_DEG)) or left.min() < MIN_SHAPE_THICKNESS_RATIO:
+            raise RuntimeError(f"deformed shape {k} folds or nearly touches itself "
+                               f"(min face cosine {turn.min():.2f}, thickness ratio {left.min():.2f})")
+
+    counts = rng.choice(np.arange(VERTEX_COUNT_RANGE[0], VERTEX_COUNT_RANGE[1] + 1),
+                        size=N_SHAPES, replace=False)
+    MESH_DIR.mkdir(parents=True, exist_ok=True)
+    for old in MESH_DIR.glob("caudate_*.vtk"):
+        old.unlink()
+    names, meshes, tris, barys = [], [], [], []
+    for k in range(N_SHAPES):
+        mesh, tri, bary = remesh_shape(posed[k], base.faces, int(counts[k]), rng)
+        name = f"caudate_{k:02d}.vtk"
+        mesh.name = name
+        save_mesh(MESH_DIR / name, mesh)
+        names.append(name)
+        meshes.append(mesh)
+        tris.append(tri)
+        barys.append(bary)
+    vertex_counts = np.array([m.n_vertices for m in meshes])
+    if len(np.unique(vertex_counts)) != N_SHAPES:
+        raise RuntimeError(f"vertex counts are not all distinct: {sorted(vertex_counts)}")
+    print(f"population: {N_SHAPES} meshes, {vertex_counts.min()}..{vertex_counts.max()} vertices")
+
+    # Correspondence of every remeshed vertex to the base topology (concatenated, with offsets).
+    offsets = np.concatenate([[0], np.cumsum(vertex_counts)])
+    remesh_tri = np.concatenate(tris)
+    remesh_bary = np.concatenate(barys)
+    nearest_corner = np.argmax(remesh_bary, axis=1)
+    remesh_nearest_vertex = base.faces[remesh_tri, nearest_corner]
+
+    save_mesh(DEMO / "caudate_base.vtk", base)
+    heldout = TriMesh(posed[N_SHAPES], base.faces, "heldout_caudate.vtk")
+    save_mesh(DEMO / "heldout_caudate.vtk", heldout)
+    contour, planes = contour_points(heldout.vertices, heldout.faces)
+    save_points(DEMO / "contour_points.csv", contour)
+    print(f"contour points: {len(contour)} on the held-out shape in "
+          + ", ".join(f"{p['plane']} ({p['n_points']})" for p in planes))
+
+    matrices = np.stack([p["matrix"] for p in poses])
+    arrays = {
+        "base_vertices": base.vertices, "base_faces": base.faces,
+        "factors": factors, "supports": planted["supports"], "bump_weights": planted["weights"],
+        "factor_centres": planted["centres"], "factor_radii": planted["radii"],
+        "factor_amplitudes": planted["amplitudes"],
+        "factor_directions": planted["directions"],
+        "coefficients": coefficients[:N_SHAPES], "poses": matrices[:N_SHAPES],
+        "scales": np.array([p["scale"] for p in poses[:N_SHAPES]]),
+        "translations": np.stack([p["translation"] for p in poses[:N_SHAPES]]),
+        "pose_centre": centre,
+        "corresponded_shapes": posed[:N_SHAPES],
+        "mesh_names": np.array(names), "mesh_vertex_counts": vertex_counts,
+        "remesh_offsets": offsets, "remesh_triangles": remesh_tri,
+        "remesh_barycentric": remesh_bary, "remesh_nearest_base_vertex": remesh_nearest_vertex,
+        "heldout_coefficients": coefficients[N_SHAPES], "heldout_pose": matrices[N_SHAPES],
+        "heldout_shape": posed[N_SHAPES],
+    }
+    with atomic_path(DEMO / "ground_truth.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+    model = None
+    if use_pipeline:
+        model = build_with_pipeline([MESH_DIR / n for n in names])
+    model_source = "core.pipeline.build_model" if model is not None else "pca stand-in"
+    if model is None:
+        model = pca_stand_in_model(posed[:N_SHAPES], base.faces, names)
+    save_model(DEMO / "model.npz", model)
+    print(f"model: {model_source}, {model.n_factors} factors, {model.n_vertices} vertices")
+
+    summary = {
+        "structure": STRUCTURE,
+        "seed": seed,
+        "real": {
+            "image": T1_FILE.name,
+            "grey_matter_map": GM_FILE.name,
+            "template": "MNI ICBM152 2009a nonlinear symmetric (nilearn's uint8 copy)",
+            "template_sha256": hashes,
+            "base_shape": "demo/caudate_base.vtk, extracted from the grey-matter map",
+            "extraction": extraction,
+            "base_n_vertices": base.n_vertices, "base_n_faces": int(len(base.faces)),
+            "base_volume_cm3": base_volume / 1000.0,
+            "base_centroid_mm": centre,
+        },
+        "synthetic": {
+            "n_shapes": N_SHAPES,
+            "factors": [
+                {"index": m, "centre_vertex": int(planted["centres"][m]),
+                 "centre_mm": base.vertices[planted["centres"][m]],
+                 "support_radius_mm": BUMP_RADIUS_MM,
+                 "amplitude_mm_per_unit_coefficient": float(planted["amplitudes"][m]),
+                 "direction": planted["directions"][m],
+                 "support_n_vertices": int(planted["supports"][m].sum()),
+                 "local_thickness_mm": float(planted["thickness_at_centres"][m])}
+                for m in range(N_FACTORS)],
+            "min_distance_between_bump_centres_mm": planted["min_centre_distance_mm"],
+            "coefficient_distribution": f"N(0, 1) clipped to +-{COEF_CLIP}",
+            "shapes": [
+                {"mesh": names[k], "n_vertices": int(vertex_counts[k]),
+                 "coefficients": coefficients[k], "scale": poses[k]["scale"],
+                 "rotation_axis": poses[k]["axis"], "rotation_deg": poses[k]["angle_deg"],
+                 "translation_mm": poses[k]["translation"], "pose": poses[k]["matrix"]}
+                for k in range(N_SHAPES)],
+            "heldout": {"mesh": "heldout_caudate.vtk", "coefficients": coefficients[N_SHAPES],
+                        "pose": poses[N_SHAPES]["matrix"], "contour_planes": planes},
+        },
+        "conventions": {
+            "coordinates": "world RAS mm of the template (MNI space)",
+            "factor": "factors[m, i] = a_m * w_m(i) * d_m, w_m = (1-(d/r)^2)^3 on graph-geodesic "
+                      "distance d < r from the centre vertex (supports[m] = d < r), d_m the "
+                      "w-weighted mean outward normal of the support (factor_directions[m])",
+            "deformed": "y_k = base_vertices + sum_m coefficients[k, m] * factors[m]",
+            "pose": "corresponded_shapes[k] = y_k @ poses[k][:3, :3].T + poses[k][:3, 3]; "
+                    "poses[k] = translate(pose_centre + t_k) . s_k R_k . translate(-pose_centre)",
+            "remesh_correspondence": "vertex j of meshes/<mesh_names[k]> is row r = "
+                                     "remesh_offsets[k] + j: it equals sum_l remesh_barycentric[r, l] "
+                                     "* corresponded_shapes[k, base_faces[remesh_triangles[r], l]] "
+                                     "(exactly, up to round-off)",
+            "homologue": "the true homologue of base vertex i in mesh k is corresponded_shapes[k, i]",
+        },
+        "model": {"file": "model.npz", "built_by": model_source},
+        "runtime_s": round(time.perf_counter() - t_start, 1),
+    }
+    atomic_write_json(DEMO / "ground_truth.json", summary)
+    print(f"done in {summary['runtime_s']} s")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seed", type=int, default=SEED, help=f"random seed (default {SEED})")
+    parser.add_argument("--no-pipeline", action="store_true",
+                        help="write the PCA stand-in model even if core.pipeline exists")
+    args = parser.parse_args(argv)
+    make_demo(seed=args.seed, use_pipeline=not args.no_pipeline)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
