@@ -577,6 +577,9 @@ class MainWindow(QMainWindow):
         result, edit_time = value
         if self.state.model is None or np.shape(result.coef) != (self.state.model.n_factors,):
             return
+        if not (np.all(np.isfinite(result.vertices)) and np.all(np.isfinite(result.pose))):
+            self._on_refit_failed("the fit diverged (non-finite result); previous fit kept", generation)
+            return
         self.last_fit = result
         self.state.set_surface(result.coef, result.pose, result.vertices)
         elapsed = time.perf_counter() - edit_time

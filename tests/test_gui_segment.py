@@ -1,0 +1,294 @@
+"""The segmentation workspace driven like a user: clicks, keys, sliders, refits, undo/redo.
+
+Runs under pytest-xvfb (QT_QPA_PLATFORM=xcb). Most tests build the window without the 3D
+view (it adds nothing to what they check and costs start-up time); the screenshot tests in
+test_gui_screenshot.py cover it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("PySide6")
+pytestmark = pytest.mark.gui
+
+from PySide6.QtCore import QPoint, Qt  # noqa: E402
+from PySide6.QtTest import QTest  # noqa: E402
+
+from app import demo  # noqa: E402
+from app.window import MainWindow  # noqa: E402
+from core.io import load_model  # noqa: E402
+from core.planes import window_to_uint8  # noqa: E402
+from core.reconstruction import surface_distance  # noqa: E402
+from core.slicing import polylines, sample_polyline  # noqa: E402
+
+NO_MOD = Qt.KeyboardModifier.NoModifier
+LEFT = Qt.MouseButton.LeftButton
+
+
+def _need_demo():
+    if demo.demo_image() is None or demo.demo_model() is None:
+        pytest.skip("demo image or model missing from resources/")
+
+
+@pytest.fixture
+def window(qtbot, tmp_path, monkeypatch):
+    _need_demo()
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
+    win = MainWindow(with_3d=False, recovery=False)
+    qtbot.addWidget(win)
+    win.resize(1300, 900)
+    win.load_demo()
+    win.show()
+    qtbot.waitExposed(win)
+    yield win
+    win.runner.cancel()
+    win.runner.wait()
+    win.close()
+
+
+def click(view, xy, modifier=NO_MOD, button=LEFT):
+    QTest.mouseClick(view, button, modifier, QPoint(int(round(xy[0])), int(round(xy[1]))))
+
+
+def test_demo_loads_image_and_model_at_crosshair(window):
+    state = window.state
+    assert state.volume is not None and state.model is not None
+    centroid = state.surface_vertices().mean(axis=0)
+    # the crosshair starts on the model (snapped to the nearest voxel centre, 1 mm grid)
+    assert np.all(np.abs(state.crosshair - centroid) <= 0.5 + 1e-9)
+    for name, view in window.workspace.views.items():
+        assert view._segments_uv is not None and len(view._segments_uv) > 10, name
+
+
+def test_click_in_axial_view_lands_on_the_voxel_displayed_there(window, qtbot):
+    view = window.workspace.views["axial"]
+    window.set_tool("draw")
+    volume = window.state.volume
+    center_ijk = np.rint(volume.world_to_voxel(window.state.crosshair)).astype(int)
+    # far from the model outline and off the crosshair lines (overlays would change the pixel)
+    targets = [center_ijk + d for d in ([30, 25, 0], [-35, -21, 0], [27, -40, 0], [-31, 33, 0])]
+    image = view.grab().toImage()
+    ratio = image.width() / view.width()
+    scale = view._base()[0]
+    for n, ijk in enumerate(targets, start=1):
+        world = volume.voxel_to_world(ijk)
+        x, y = view.world_to_screen(world)
+        # what is painted at that pixel is the windowed intensity of that voxel
+        grey = image.pixelColor(int(round(x * ratio)), int(round(y * ratio))).red()
+        expected = window_to_uint8(np.array([volume.data[tuple(ijk)]]), window.state.window,
+                                   window.state.level)[0]
+        assert abs(int(grey) - int(expected)) <= 2
+        click(view, (x, y))
+        assert len(window.state.points) == n
+        placed = window.state.points.xyz[-1]
+        assert placed[2] == pytest.approx(world[2], abs=1e-9)      # on the slice
+        assert np.linalg.norm(placed - world) <= 0.75 / scale + 1e-9  # within a pixel
+    # radiological convention: screen left is patient right (+x), screen up is anterior (+y)
+    xs = view.world_to_screen(window.state.points.xyz)
+    order = np.argsort(xs[:, 0])
+    assert np.all(np.diff(window.state.points.xyz[order, 0]) < 0)
+    assert np.all(np.diff(window.state.points.xyz[np.argsort(xs[:, 1]), 1]) < 0)
+
+
+def test_navigate_click_moves_the_other_views(window):
+    axial = window.workspace.views["axial"]
+    coronal = window.workspace.views["coronal"]
+    sagittal = window.workspace.views["sagittal"]
+    target = window.state.crosshair + np.array([-10.0, 15.0, 0.0])
+    click(axial, axial.world_to_screen(target))
+    assert window.state.crosshair == pytest.approx(target, abs=0.5)
+    assert coronal.depth == pytest.approx(window.state.crosshair[1])
+    assert sagittal.depth == pytest.approx(window.state.crosshair[0])
+    assert coronal._slice.depth == pytest.approx(coronal.depth)
+
+
+def test_page_keys_and_wheel_step_slices(window, qtbot):
+    axial = window.workspace.views["axial"]
+    axial.setFocus()
+    z0 = window.state.crosshair[2]
+    QTest.keyClick(axial, Qt.Key.Key_PageUp)
+    assert window.state.crosshair[2] == pytest.approx(z0 + 1.0)
+    QTest.keyClick(axial, Qt.Key.Key_PageDown)
+    QTest.keyClick(axial, Qt.Key.Key_PageDown)
+    assert window.state.crosshair[2] == pytest.approx(z0 - 1.0)
+    sagittal = window.workspace.views["sagittal"]
+    x0 = window.state.crosshair[0]
+    window.state.step_slice("sagittal", 3)
+    assert sagittal.depth == pytest.approx(x0 + 3.0)
+
+
+def _truth_points(model, coef, shift, frames=(("axial", 0.0), ("axial", 4.0), ("coronal", 0.0),
+                                              ("coronal", -8.0), ("sagittal", 0.0)), spacing=3.0):
+    """Contour points of a known instance on slices through its centre, snapped to voxel planes."""
+    truth = model.world_instance(coef) + shift
+    centre = np.rint(truth.mean(axis=0))
+    out = []
+    for name, offset in frames:
+        axis = {"sagittal": 0, "coronal": 1, "axial": 2}[name]
+        normal = np.eye(3)[axis]
+        origin = centre + offset * normal
+        lines = polylines(truth, model.faces, origin, normal)
+        pts, _ = sample_polyline(lines[0], spacing=spacing)
+        out.append((name, origin[axis], pts))
+    return truth, out
+
+
+def test_refit_moves_the_surface_towards_clicked_points(window, qtbot):
+    model = window.state.model
+    rng = np.random.default_rng(3)
+    coef = 1.5 * rng.standard_normal(model.n_factors) * np.sqrt(model.coef_var)
+    truth, slices = _truth_points(model, coef, shift=np.array([1.5, -2.0, 1.0]))
+    faces = model.faces
+    before = surface_distance(truth, window.state.surface_vertices(), faces).mean()
+    window.set_tool("draw")
+    clicked = 0
+    for name, depth, pts in slices:
+        window.state.set_crosshair(np.where(np.eye(3)[{"sagittal": 0, "coronal": 1, "axial": 2}[name]] > 0,
+                                            depth, window.state.crosshair))
+        view = window.workspace.views[name]
+        assert view.depth == pytest.approx(depth)
+        for p in pts:
+            click(view, view.world_to_screen(p))
+            clicked += 1
+    assert len(window.state.points) == clicked
+    with qtbot.waitSignal(window.refit_applied, timeout=20000):
+        pass
+    window.wait_for_refit(20000)
+    # distance from the true surface's vertices to the fitted surface (sliding along the
+    # surface is free for a fit to contour points, so vertex-to-vertex distances are not used)
+    after = surface_distance(truth, window.state.surface_vertices(), faces).mean()
+    assert after < 0.6 * before and after < 1.5, (before, after)
+    assert window.state.fit_info.residual_mm < 1.0
+    assert window.state.fit_info.n_iter > 0
+    # the contour overlay follows the fit: the axial cross-section is now near the truth's
+    axial = window.workspace.views["axial"]
+    seg = axial._segments_uv.reshape(-1, 2)
+    assert axial.depth == pytest.approx(slices[1][1])
+    truth_uv = axial.frame.to_plane(slices[1][2])[:, :2]
+    d = np.linalg.norm(seg[:, None, :] - truth_uv[None], axis=2).min(axis=0)
+    assert np.median(d) < 1.5
+
+
+def test_undo_redo_with_keyboard_shortcuts(window, qtbot):
+    view = window.workspace.views["coronal"]
+    window.set_tool("draw")
+    c = window.state.crosshair
+    for dx in (0.0, 4.0, 8.0):
+        click(view, view.world_to_screen(c + [dx, 0, 0]))
+    assert len(window.state.points) == 3
+    with qtbot.waitActive(window):
+        window.activateWindow()
+    view.setFocus()
+    QTest.keyClick(view, Qt.Key.Key_Z, Qt.KeyboardModifier.ControlModifier)
+    assert len(window.state.points) == 2
+    QTest.keyClick(view, Qt.Key.Key_Z, Qt.KeyboardModifier.ControlModifier)
+    assert len(window.state.points) == 1
+    QTest.keyClick(view, Qt.Key.Key_Z,
+                   Qt.KeyboardModifier.ControlModifier | Qt.KeyboardModifier.ShiftModifier)
+    assert len(window.state.points) == 2
+    assert window.state.points.xyz[-1] == pytest.approx(window.state.crosshair + [4, 0, 0], abs=1.0)
+    window.wait_for_refit()
+
+
+def test_drag_adds_spaced_points_as_one_undo_step(window):
+    view = window.workspace.views["axial"]
+    window.set_tool("draw")
+    c = window.state.crosshair
+    start = view.world_to_screen(c)
+    end = view.world_to_screen(c + [-12.0, 0, 0])
+    QTest.mousePress(view, LEFT, NO_MOD, QPoint(*np.rint(start).astype(int)))
+    for t in np.linspace(0, 1, 30):
+        xy = (1 - t) * start + t * end
+        QTest.mouseMove(view, QPoint(*np.rint(xy).astype(int)))
+    QTest.mouseRelease(view, LEFT, NO_MOD, QPoint(*np.rint(end).astype(int)))
+    n = len(window.state.points)
+    assert 6 <= n <= 10          # 12 mm at >= 1.5 mm spacing
+    gaps = np.linalg.norm(np.diff(window.state.points.xyz, axis=0), axis=1)
+    assert np.all(gaps >= 1.5 - 1e-9)
+    normals = window.state.points.normals()
+    assert np.allclose(np.abs(normals[:, 1]), 1.0, atol=0.05)   # perpendicular to a left-right stroke
+    window.undo()
+    assert len(window.state.points) == 0
+    window.wait_for_refit()
+
+
+def test_delete_point_and_clear_slice(window):
+    view = window.workspace.views["axial"]
+    window.set_tool("draw")
+    c = window.state.crosshair
+    for dx in (0.0, 5.0, 10.0):
+        click(view, view.world_to_screen(c + [dx, 0, 0]))
+    click(view, view.world_to_screen(c + [5.0, 0, 0]), Qt.KeyboardModifier.ControlModifier)
+    assert len(window.state.points) == 2
+    assert not np.any(np.isclose(window.state.points.xyz[:, 0], c[0] + 5.0, atol=0.6))
+    window.state.step_slice("axial", 2)
+    click(view, view.world_to_screen(window.state.crosshair))
+    assert len(window.state.points) == 3
+    window.active_view = "axial"
+    window.clear_active_slice()
+    assert len(window.state.points) == 2
+    window.state.step_slice("axial", -2)
+    window.clear_active_slice()
+    assert len(window.state.points) == 0
+    window.undo()
+    assert len(window.state.points) == 2
+    window.wait_for_refit()
+
+
+def test_factor_slider_sets_coefficient_in_sd_units(window):
+    panel = window.factors_panel
+    model = window.state.model
+    assert len(panel.sliders) == model.n_factors
+    panel.set_factor_sd(0, 2.0)
+    expected = model.world_instance(np.r_[2.0 * np.sqrt(model.coef_var[0]), np.zeros(model.n_factors - 1)])
+    assert np.allclose(window.state.surface_vertices(), expected)
+    assert panel.value_labels[0].text() == "+2.00"
+    window.undo()
+    assert np.allclose(window.state.coef, 0.0)
+    assert panel.sliders[0].value() == 0
+
+
+def test_place_here_moves_model_centre_to_crosshair(window):
+    target = window.state.crosshair + np.array([20.0, -10.0, 5.0])
+    window.state.set_crosshair(target)
+    window.place_here()
+    assert window.state.surface_vertices().mean(axis=0) == pytest.approx(window.state.crosshair, abs=1e-6)
+    window.undo()
+    assert window.state.surface_vertices().mean(axis=0) == pytest.approx(
+        window.state.model.world_instance().mean(axis=0), abs=1e-6)
+
+
+def test_bad_model_file_is_reported_not_raised(window, tmp_path):
+    bad = tmp_path / "broken.npz"
+    bad.write_bytes(b"this is not a zip file")
+    window.open_path(bad)
+    message = window.statusBar().currentMessage()
+    assert "broken.npz" in message and "Traceback" not in message
+    assert window.state.model is not None       # the previous model is kept
+
+
+def test_fit_error_keeps_the_surface_and_shows_the_message(window, qtbot):
+    before = window.state.surface_vertices().copy()
+    window.fit_panel.set_settings(pose="similarity")
+    window.set_tool("draw")
+    view = window.workspace.views["axial"]
+    click(view, view.world_to_screen(window.state.crosshair))   # one point: too few for a similarity
+    window.wait_for_refit()
+    assert window.state.fit_info.message
+    assert np.allclose(window.state.surface_vertices(), before)
+
+
+def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
+    from core.io import save_model
+    from core.simulated_user import pca_model, synthetic_shapes
+
+    shapes, faces = synthetic_shapes(6, subdivisions=2, seed=1)
+    model = pca_model(shapes + window.state.crosshair, faces, n_factors=3)
+    path = tmp_path / "other.npz"
+    save_model(path, model)
+    window.load_model(path)
+    assert window.state.model.n_vertices == load_model(path).n_vertices
+    assert len(window.factors_panel.sliders) == 3
