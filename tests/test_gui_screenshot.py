@@ -1,0 +1,88 @@
+"""Rendered window: not blank, the model's contour colour in every slice view, 3D view drawn."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("PySide6")
+pytestmark = pytest.mark.gui
+
+from PySide6.QtCore import QPoint  # noqa: E402
+from PySide6.QtGui import QImage  # noqa: E402
+
+from app import demo  # noqa: E402
+from app.views.slice_view import CONTOUR_COLOR  # noqa: E402
+from app.window import MainWindow, run_gui  # noqa: E402
+
+
+def _need_demo():
+    if demo.demo_image() is None or demo.demo_model() is None:
+        pytest.skip("demo image or model missing from resources/")
+
+
+def _rgb(image: QImage) -> np.ndarray:
+    image = image.convertToFormat(QImage.Format.Format_RGB888)
+    w, h, bpl = image.width(), image.height(), image.bytesPerLine()
+    buf = np.frombuffer(image.constBits(), dtype=np.uint8, count=bpl * h).reshape(h, bpl)
+    return buf[:, : 3 * w].reshape(h, w, 3).copy()
+
+
+def _contour_pixels(rgb: np.ndarray) -> int:
+    target = np.array([CONTOUR_COLOR.red(), CONTOUR_COLOR.green(), CONTOUR_COLOR.blue()])
+    return int(np.sum(np.all(np.abs(rgb.astype(int) - target) <= [12, 25, 30], axis=-1)))
+
+
+def test_window_screenshot_shows_contours_in_each_slice_view(qtbot, tmp_path, monkeypatch):
+    _need_demo()
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    window = MainWindow(recovery=False)
+    qtbot.addWidget(window)
+    window.resize(1400, 900)
+    window.load_demo()
+    window.show()
+    qtbot.waitExposed(window)
+    path = tmp_path / "window.png"
+    window.save_screenshot(path)
+    rgb = _rgb(QImage(str(path)))
+    assert rgb.std() > 30                                # not blank
+    ratio = rgb.shape[1] / window.width()
+    regions = dict(window.workspace.views)
+    regions["3d"] = window.workspace.volume_view
+    crops = {}
+    for name, widget in regions.items():
+        top_left = widget.mapTo(window, QPoint(0, 0))
+        x0, y0 = int(top_left.x() * ratio), int(top_left.y() * ratio)
+        x1, y1 = x0 + int(widget.width() * ratio), y0 + int(widget.height() * ratio)
+        crops[name] = rgb[y0:y1, x0:x1]
+    for name in ("axial", "coronal", "sagittal"):
+        crop = crops[name]
+        assert crop.std() > 30, name
+        assert _contour_pixels(crop) > 40, name
+    # the 3D view rendered the slice planes (grey texture) and the orange-tinted surface
+    crop3d = crops["3d"].astype(int)
+    assert crop3d.std() > 15
+    orange = (crop3d[..., 0] > crop3d[..., 2] + 60) & (crop3d[..., 1] > crop3d[..., 2] + 20)
+    assert orange.sum() > 100
+    window.close()
+
+
+def test_screenshot_command_writes_a_png(tmp_path, monkeypatch, qapp):
+    _need_demo()
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    path = tmp_path / "shot.png"
+    assert run_gui(screenshot=str(path)) == 0
+    rgb = _rgb(QImage(str(path)))
+    assert rgb.shape[0] > 500 and rgb.shape[1] > 800
+    assert rgb.std() > 30
+    assert _contour_pixels(rgb) > 150
+
+
+def test_bad_image_on_the_command_line_exits_with_message(tmp_path, capsys, qapp, monkeypatch):
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    bad = tmp_path / "scan.nii.gz"
+    bad.write_bytes(b"not a nifti file at all, just text")
+    assert run_gui(image=str(bad), screenshot=str(tmp_path / "x.png")) == 2
+    err = capsys.readouterr().err
+    assert "scan.nii.gz" in err and "Traceback" not in err
+    assert not (tmp_path / "x.png").exists()
