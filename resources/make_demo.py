@@ -61,7 +61,6 @@ from core.shape_model import ShapeModel  # noqa: E402
 from core.slicing import polylines, sample_polyline  # noqa: E402
 
 DEMO = RESOURCES / "demo"
-MESH_DIR = DEMO / "meshes"
 STRUCTURE = "left caudate nucleus"
 
 # Template files: name in resources/ -> name in nilearn/datasets/data/
@@ -510,10 +509,14 @@ def build_with_pipeline(mesh_paths: list[Path]) -> ShapeModel | None:
 # --------------------------------------------------------------------------------------
 
 
-def make_demo(seed: int = SEED, use_pipeline: bool = True) -> dict:
-    """Regenerate everything under resources/ (template copies, demo/ folder); returns the
-    JSON summary that is also written to demo/ground_truth.json."""
+def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO) -> dict:
+    """Regenerate the template copies in resources/ and everything in ``demo_dir``; returns
+    the JSON summary that is also written to ``demo_dir``/ground_truth.json."""
+    if importlib.util.find_spec("pyacvd") is None:
+        raise SystemExit("make_demo.py needs pyacvd for the remeshing: pip install -e '.[demo]'")
     t_start = time.perf_counter()
+    demo_dir = Path(demo_dir)
+    mesh_dir = demo_dir / "meshes"
     hashes = copy_template()
     rng = np.random.default_rng(seed)
 
@@ -547,15 +550,15 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True) -> dict:
 
     counts = rng.choice(np.arange(VERTEX_COUNT_RANGE[0], VERTEX_COUNT_RANGE[1] + 1),
                         size=N_SHAPES, replace=False)
-    MESH_DIR.mkdir(parents=True, exist_ok=True)
-    for old in MESH_DIR.glob("caudate_*.vtk"):
+    mesh_dir.mkdir(parents=True, exist_ok=True)
+    for old in mesh_dir.glob("caudate_*.vtk"):
         old.unlink()
     names, meshes, tris, barys = [], [], [], []
     for k in range(N_SHAPES):
         mesh, tri, bary = remesh_shape(posed[k], base.faces, int(counts[k]), rng)
         name = f"caudate_{k:02d}.vtk"
         mesh.name = name
-        save_mesh(MESH_DIR / name, mesh)
+        save_mesh(mesh_dir / name, mesh)
         names.append(name)
         meshes.append(mesh)
         tris.append(tri)
@@ -572,11 +575,11 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True) -> dict:
     nearest_corner = np.argmax(remesh_bary, axis=1)
     remesh_nearest_vertex = base.faces[remesh_tri, nearest_corner]
 
-    save_mesh(DEMO / "caudate_base.vtk", base)
+    save_mesh(demo_dir / "caudate_base.vtk", base)
     heldout = TriMesh(posed[N_SHAPES], base.faces, "heldout_caudate.vtk")
-    save_mesh(DEMO / "heldout_caudate.vtk", heldout)
+    save_mesh(demo_dir / "heldout_caudate.vtk", heldout)
     contour, planes = contour_points(heldout.vertices, heldout.faces)
-    save_points(DEMO / "contour_points.csv", contour)
+    save_points(demo_dir / "contour_points.csv", contour)
     print(f"contour points: {len(contour)} on the held-out shape in "
           + ", ".join(f"{p['plane']} ({p['n_points']})" for p in planes))
 
@@ -598,17 +601,17 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True) -> dict:
         "heldout_coefficients": coefficients[N_SHAPES], "heldout_pose": matrices[N_SHAPES],
         "heldout_shape": posed[N_SHAPES],
     }
-    with atomic_path(DEMO / "ground_truth.npz") as tmp:
+    with atomic_path(demo_dir / "ground_truth.npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
 
     model = None
     if use_pipeline:
-        model = build_with_pipeline([MESH_DIR / n for n in names])
+        model = build_with_pipeline([mesh_dir / n for n in names])
     model_source = "core.pipeline.build_model" if model is not None else "pca stand-in"
     if model is None:
         model = pca_stand_in_model(posed[:N_SHAPES], base.faces, names)
-    save_model(DEMO / "model.npz", model)
+    save_model(demo_dir / "model.npz", model)
     print(f"model: {model_source}, {model.n_factors} factors, {model.n_vertices} vertices")
 
     summary = {
@@ -662,10 +665,9 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True) -> dict:
             "homologue": "the true homologue of base vertex i in mesh k is corresponded_shapes[k, i]",
         },
         "model": {"file": "model.npz", "built_by": model_source},
-        "runtime_s": round(time.perf_counter() - t_start, 1),
     }
-    atomic_write_json(DEMO / "ground_truth.json", summary)
-    print(f"done in {summary['runtime_s']} s")
+    atomic_write_json(demo_dir / "ground_truth.json", summary)
+    print(f"done in {time.perf_counter() - t_start:.1f} s")
     return summary
 
 
@@ -674,8 +676,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=SEED, help=f"random seed (default {SEED})")
     parser.add_argument("--no-pipeline", action="store_true",
                         help="write the PCA stand-in model even if core.pipeline exists")
+    parser.add_argument("--output", type=Path, default=DEMO,
+                        help="folder for the generated demo files (default resources/demo)")
     args = parser.parse_args(argv)
-    make_demo(seed=args.seed, use_pipeline=not args.no_pipeline)
+    make_demo(seed=args.seed, use_pipeline=not args.no_pipeline, demo_dir=args.output)
     return 0
 
 
