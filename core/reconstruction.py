@@ -311,6 +311,18 @@ class _ModelCache:
         self.inv_var = 1.0 / model.coef_var
         self.faces = model.faces
         self.table = _vertex_face_table(model.faces, model.n_vertices)
+        # Same table padded with the index F of an extra all-zero face normal (no repeats).
+        pad = np.full(self.table.shape, len(model.faces), dtype=np.int64)
+        idx = model.faces.reshape(-1)
+        order = np.argsort(idx, kind="stable")
+        counts = np.bincount(idx, minlength=model.n_vertices)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        pad[idx[order], np.arange(len(idx)) - starts[idx[order]]] = np.repeat(
+            np.arange(len(model.faces)), 3)[order]
+        self.table_pad = pad
+        from core.mesh import mean_edge_length
+
+        self.edge_length = mean_edge_length(self.mean, model.faces)
 
     def shape(self, coef: np.ndarray) -> np.ndarray:
         if len(coef) == 0:
@@ -349,9 +361,9 @@ def _procrustes(wj: np.ndarray, ybar: np.ndarray, z: np.ndarray,
 def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None = None, *,
                method: str = "gmm-aniso", pose: str = "similarity", prior_weight: float = 1.0,
                init: FitResult | None = None, max_iter: int = 100, tol: float = 1e-5,
-               xtol: float = 1e-3, outlier_weight: float = 0.01, anisotropy: float = 10.0,
-               normal_weight: float = 2.0, n_neighbors: int = 8, min_sigma: float = 0.3,
-               max_distance_factor: float = 1.0,
+               xtol: float = 1e-2, outlier_weight: float = 0.0, anisotropy: float = 10.0,
+               normal_weight: float = 2.0, n_neighbors: int = 6, max_neighbors: int = 48, min_sigma: float = 0.3,
+               max_distance_factor: float = 1.0, pose_first: bool = False,
                callback: Callable[[int, float], None] | None = None) -> FitResult:
     """Fit ``model`` to user points by EM on the model-centred Gaussian mixture.
 
@@ -379,10 +391,13 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         eta >= 1, normal / tangential precision ratio of the anisotropic components.
     normal_weight : float
         kappa >= 0, weight of the user-normal agreement exp(kappa (u . n - 1)).
-    n_neighbors : int
-        K, model vertices considered per user point in the E-step.
+    n_neighbors, max_neighbors : int
+        K, model vertices considered per user point in the E-step: at least ``n_neighbors``,
+        more while s2 is large (about those within 1.5 sigma), at most ``max_neighbors``.
     min_sigma : float
         Floor of the GMM standard deviation (mm), about the expected point noise.
+    pose_first : bool
+        On a cold start, run pose-only EM to convergence before fitting the shape.
     max_distance_factor : float
         Points farther than this many model diagonals from the model's box are refused.
     callback : callable(iteration, objective), optional
@@ -434,24 +449,49 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     z = cache.shape(coef)  # base-frame shape (N, 3)
     x = scale * z @ rot.T + trans  # world vertices
     _check_extent(pts, x, max_distance_factor)
+    refresh_dist = 0.25 * cache.edge_length
 
-    def e_step_pairs(x_world: np.ndarray):
-        tree = cKDTree(x_world)
-        _, idx = tree.query(pts, k=k_near)
-        idx = np.asarray(idx).reshape(n_points, k_near)
-        nrm = _vertex_normals_fast(x_world, faces) if (aniso or use_normals) else None
-        return idx, nrm
+    class Pairs:
+        """Candidate pairs (user point, K nearest vertices), refreshed when vertices move."""
 
-    def mahalanobis(x_world: np.ndarray, idx: np.ndarray, nrm: np.ndarray | None) -> np.ndarray:
-        diff = pts[:, None, :] - x_world[idx]  # (P, K, 3)
+        def __init__(self, x_world: np.ndarray, k: int):
+            self.k = k
+            _, near = cKDTree(x_world).query(pts, k=k)
+            near = np.asarray(near).reshape(n_points, k)
+            self.verts, inv = np.unique(near, return_inverse=True)  # V candidate vertices
+            self.inv = inv.reshape(n_points, k)  # (P, K) into verts
+            self.x_ref = x_world[self.verts]
+            self.phi = cache.factors[:, self.verts, :]  # (M, V, 3)
+            self.mean = cache.mean[self.verts]
+            self.rows = np.repeat(pts, k, axis=0)  # (P K, 3)
+
+    def normals_at(verts: np.ndarray, x_world: np.ndarray) -> np.ndarray:
+        v0, v1, v2 = (x_world[faces[:, c]] for c in range(3))
+        fn = np.vstack([np.cross(v1 - v0, v2 - v0), np.zeros((1, 3))])  # + zero pad face
+        n = fn[cache.table_pad[verts]].sum(axis=1)
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+    def mahalanobis(pairs: Pairs, xv: np.ndarray, nv: np.ndarray | None) -> np.ndarray:
+        diff = pts[:, None, :] - xv[pairs.inv]  # (P, K, 3)
         d = np.einsum("pkc,pkc->pk", diff, diff)
         if aniso:
-            along = np.einsum("pkc,pkc->pk", diff, nrm[idx])
+            along = np.einsum("pkc,pkc->pk", diff, nv[pairs.inv])
             d = d + (eta - 1.0) * along**2
         return d
 
-    idx, nrm = e_step_pairs(x)
-    d = mahalanobis(x, idx, nrm)
+    need_normals = aniso or use_normals
+
+    def neighbours_for(sigma2: float) -> int:
+        """K grows with s2 (about the vertices within 1.5 sigma), so a coarse start sees far."""
+        if icp:
+            return 1
+        wanted = int(np.ceil(8.0 * sigma2 / cache.edge_length**2))
+        return int(min(max(k_near, wanted), max_neighbors, n_vertices))
+
+    pairs = Pairs(x, k_near)
+    xv = x[pairs.verts]
+    nv = normals_at(pairs.verts, x) if need_normals else None
+    d = mahalanobis(pairs, xv, nv)
     dmin = d.min(axis=1)
     if init is None:
         sigma2 = max(float(d.mean()) / 3.0, float(dmin.max()) / 3.0, sigma2_min)
@@ -459,25 +499,34 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         sigma2 = max(float(init.sigma2) if np.isfinite(init.sigma2) else 0.0,
                      float(dmin.max()) / 3.0, sigma2_min)
 
+    if neighbours_for(sigma2) > pairs.k:
+        pairs = Pairs(x, neighbours_for(sigma2))
+        xv = x[pairs.verts]
+        nv = normals_at(pairs.verts, x) if need_normals else None
+        d = mahalanobis(pairs, xv, nv)
+    # Cold start with a pose to fit: pose-only EM first (the shape would otherwise absorb
+    # the misalignment while s2 is large), then pose and shape together.
+    shape_active = not pose_first or init is not None or pose == "none" or n_factors == 0
     log_c = (np.log(n_vertices * w_out / ((1.0 - w_out) * n_points)) if w_out > 0 else -np.inf)
-    normal_term = None
+    log_norm_const = 0.5 * np.log(eta)
     objective: list[float] = []
     converged = False
     stop_reason = f"reached max_iter={max_iter}"
     n_iter = 0
 
-    def energy(d: np.ndarray, sigma2: float, coef: np.ndarray) -> tuple[float, np.ndarray]:
-        """Negative log posterior (Eq. 1) and the responsibilities (Eq. 2)."""
+    def energy(d: np.ndarray, sigma2: float, coef: np.ndarray,
+               nv: np.ndarray | None) -> tuple[float, np.ndarray]:
+        """Negative log posterior (Eq. 1) and the responsibilities (Eq. 2), (P, K)."""
         logits = -d / (2.0 * sigma2)
-        if normal_term is not None:
-            logits = logits + normal_term
+        if use_normals:
+            logits = logits + normal_weight * (
+                np.einsum("pc,pkc->pk", user_normals, nv[pairs.inv]) - 1.0)
         if icp:
             logits = logits[:, :1]
         m = logits.max(axis=1, keepdims=True)
         ex = np.exp(logits - m)
         s = ex.sum(axis=1, keepdims=True)
-        # log g normaliser: sqrt(det W) (2 pi s2)^(-3/2)
-        log_norm = 0.5 * np.log(eta) - 1.5 * np.log(2.0 * np.pi * sigma2)
+        log_norm = log_norm_const - 1.5 * np.log(2.0 * np.pi * sigma2)  # sqrt(det W)(2 pi s2)^-3/2
         comp = np.log(1.0 - w_out) - np.log(n_vertices) + log_norm + m[:, 0] + np.log(s[:, 0])
         if w_out > 0:
             loglik = np.logaddexp(comp, np.log(w_out / n_points))
@@ -486,44 +535,45 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
             loglik = comp
             denom = s
         prior = 0.5 * prior_weight * float(coef @ (cache.inv_var * coef))
-        return float(-loglik.sum() + prior), ex / denom
+        resp = ex / denom
+        resp[resp < 1e-4] = 0.0  # negligible pairs: fewer vertices in the M-step
+        return float(-loglik.sum() + prior), resp
 
     for it in range(max_iter):
-        if use_normals:
-            normal_term = normal_weight * (np.einsum("pc,pkc->pk", user_normals, nrm[idx]) - 1.0)
-        e_value, p = energy(d, sigma2, coef)
+        e_value, p = energy(d, sigma2, coef, nv)
         objective.append(e_value)
         if callback is not None:
             callback(it, e_value)
         if it > 0 and abs(objective[-2] - e_value) <= tol * max(abs(e_value), 1.0):
-            converged, stop_reason = True, f"objective change below tol={tol:g}"
-            break
+            if shape_active:
+                converged, stop_reason = True, f"objective change below tol={tol:g}"
+                break
+            shape_active = True
         n_iter = it + 1
 
-        # Reduce responsibilities to per-vertex sums over the vertices J that have weight.
-        flat_idx = idx[:, : p.shape[1]].reshape(-1)
+        # Per-vertex sums over the candidate vertices: w_j = sum_i p_ij, ybar_j = sum_i p_ij y_i.
+        k_used = p.shape[1]
+        flat_inv = pairs.inv[:, :k_used].reshape(-1)
         flat_p = p.reshape(-1)
-        wj_all = np.bincount(flat_idx, weights=flat_p, minlength=n_vertices)
-        verts = np.flatnonzero(wj_all > 1e-12 * max(wj_all.max(), 1e-300))
-        wj = wj_all[verts]
-        rep_pts = np.repeat(pts, p.shape[1], axis=0)
-        ybar_all = np.stack([np.bincount(flat_idx, weights=flat_p * rep_pts[:, c],
-                                         minlength=n_vertices) for c in range(3)], axis=1)
-        ybar = ybar_all[verts]
-        n_j = nrm[verts] if aniso else None
+        n_cand = len(pairs.verts)
+        wj = np.bincount(flat_inv, weights=flat_p, minlength=n_cand)
+        rows = pairs.rows if k_used == pairs.k else pts
+        weighted_rows = flat_p[:, None] * rows
+        ybar = np.stack([np.bincount(flat_inv, weights=weighted_rows[:, c], minlength=n_cand)
+                         for c in range(3)], axis=1)
+        zv = pairs.mean + np.tensordot(coef, pairs.phi, axes=1) if n_factors else pairs.mean
 
         # M-step, pose (Eq. 3).
         if pose != "none":
-            zj = z[verts]
             if not aniso:
-                scale_new, rot, trans = _procrustes(wj, ybar, zj, with_scale=pose == "similarity")
+                scale_new, rot, trans = _procrustes(wj, ybar, zv, with_scale=pose == "similarity")
                 scale = scale_new if pose == "similarity" else 1.0
             else:
-                xj = scale * zj @ rot.T + trans
+                xj = scale * zv @ rot.T + trans
                 centre = (wj[:, None] * xj).sum(axis=0) / wj.sum()
                 q = xj - centre
-                # Jacobian columns: [q | -[q]_x | I], (|J|, 3, 7)
-                jac = np.zeros((len(verts), 3, 7))
+                # Jacobian of x_j in (dscale, omega, tau): [q | -[q]_x | I], (V, 3, 7)
+                jac = np.zeros((n_cand, 3, 7))
                 jac[:, :, 0] = q
                 jac[:, 0, 2], jac[:, 0, 3] = q[:, 2], -q[:, 1]
                 jac[:, 1, 1], jac[:, 1, 3] = -q[:, 2], q[:, 0]
@@ -532,7 +582,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                 if pose == "rigid":
                     jac = jac[:, :, 1:]
                 resid = ybar - wj[:, None] * xj  # sum_i p_ij (y_i - x_j)
-                wjac = jac + (eta - 1.0) * n_j[:, :, None] * np.einsum("jc,jcq->jq", n_j, jac)[:, None, :]
+                wjac = jac + (eta - 1.0) * nv[:, :, None] * np.einsum("jc,jcq->jq", nv, jac)[:, None, :]
                 lhs = np.einsum("j,jcq,jcr->qr", wj, jac, wjac)
                 rhs = np.einsum("jcq,jc->q", wjac, resid)
                 lhs += 1e-9 * np.trace(lhs) * np.eye(len(lhs))
@@ -546,37 +596,47 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                 trans = grow * rot_d @ (trans - centre) + centre + theta[4:]
 
         # M-step, shape (Eq. 4), in the base frame.
-        if n_factors > 0:
+        if shape_active:
             ybar_b = ((ybar - wj[:, None] * trans) @ rot) / scale  # R^T (ybar - w t) / s
             sigma2_b = sigma2 / scale**2
-            phi = cache.factors[:, verts, :]  # (M, |J|, 3)
-            r = ybar_b - wj[:, None] * cache.mean[verts]
-            sqrt_w = np.sqrt(wj)
-            b = (phi * sqrt_w[None, :, None]).reshape(n_factors, -1)
-            lhs = b @ b.T
+            # only the vertices that carry weight (as s2 shrinks, a few per point)
+            sel = np.flatnonzero(wj > 0.0)
+            w_sel = wj[sel]
+            phi = pairs.phi[:, sel, :]  # (M, J, 3)
+            r = ybar_b[sel] - w_sel[:, None] * pairs.mean[sel]
+            b = phi * np.sqrt(w_sel)[None, :, None]
+            lhs = np.tensordot(b, b, axes=([1, 2], [1, 2]))
             if aniso:
-                n_b = n_j @ rot  # normals in the base frame, R^T n
+                n_b = nv[sel] @ rot  # normals in the base frame, R^T n
                 along = np.einsum("mjc,jc->mj", phi, n_b)
-                c_mat = along * np.sqrt((eta - 1.0) * wj)[None, :]
+                c_mat = along * np.sqrt((eta - 1.0) * w_sel)[None, :]
                 lhs += c_mat @ c_mat.T
                 r = r + (eta - 1.0) * n_b * np.einsum("jc,jc->j", n_b, r)[:, None]
-            rhs = np.einsum("mjc,jc->m", phi, r)
+            rhs = np.tensordot(phi, r, axes=([1, 2], [0, 1]))
             lhs[np.diag_indices(n_factors)] += prior_weight * sigma2_b * cache.inv_var
             coef = np.linalg.solve(lhs, rhs)
 
-        # New vertices, E-step pairs for the next iteration, variance update.
-        z = cache.shape(coef)
-        x_new = scale * z @ rot.T + trans
+        # New vertices; variance update on the same pairs (Eq. 4 of s2); refresh pairs if moved.
+        x_new = scale * cache.shape(coef) @ rot.T + trans
         moved = float(np.sqrt(((x_new - x) ** 2).sum(axis=1).max()))
         x = x_new
-        d_same = mahalanobis(x, idx, nrm)[:, : p.shape[1]]
-        sigma2 = max(float((p * d_same).sum()) / (3.0 * max(p.sum(), 1e-300)), sigma2_min)
-        idx, nrm = e_step_pairs(x)
-        d = mahalanobis(x, idx, nrm)
-        if moved < xtol:
-            if use_normals:
-                normal_term = normal_weight * (np.einsum("pc,pkc->pk", user_normals, nrm[idx]) - 1.0)
-            objective.append(energy(d, sigma2, coef)[0])
+        xv = x[pairs.verts]
+        nv = normals_at(pairs.verts, x) if need_normals else None
+        d = mahalanobis(pairs, xv, nv)
+        sigma2 = max(float((p * d[:, :k_used]).sum()) / (3.0 * max(p.sum(), 1e-300)), sigma2_min)
+        k_wanted = neighbours_for(sigma2)
+        if (icp or np.sqrt(((xv - pairs.x_ref) ** 2).sum(axis=1).max()) > refresh_dist
+                or not pairs.k / 1.5 <= k_wanted <= pairs.k * 1.5):
+            pairs = Pairs(x, k_wanted)
+            xv = x[pairs.verts]
+            nv = normals_at(pairs.verts, x) if need_normals else None
+            d = mahalanobis(pairs, xv, nv)
+        if moved < xtol and abs(objective[-1] - (e_next := energy(d, sigma2, coef, nv)[0])) <= (
+                100 * tol * max(abs(e_next), 1.0)):
+            if not shape_active:
+                shape_active = True
+                continue
+            objective.append(e_next)
             converged, stop_reason = True, f"largest vertex move below xtol={xtol:g} mm"
             break
 
