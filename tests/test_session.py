@@ -1,0 +1,329 @@
+"""Tests for core.session: session files (relative paths, versions, bad files) and recovery."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core import session as sessions
+from core.io import DataFileError
+from core.session import Session
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def state_dir(tmp_path, monkeypatch) -> Path:
+    """Every test gets its own recovery folder."""
+    folder = tmp_path / "state"
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(folder))
+    return folder
+
+
+def full_session(folder: Path, n_points: int = 40) -> Session:
+    rng = np.random.default_rng(3)
+    points = rng.normal(scale=20.0, size=(n_points, 3)) + [10.0, -15.0, 4.0]
+    normals = rng.normal(size=(n_points, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    planes = [("axial", "coronal", "sagittal")[i % 3] for i in range(n_points)]
+    depths = [points[i, {"sagittal": 0, "coronal": 1, "axial": 2}[p]] for i, p in enumerate(planes)]
+    pose = np.eye(4)
+    pose[:3, :3] = 1.1 * np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    pose[:3, 3] = [1.5, -2.25, 3.125]
+    return Session(image_path=folder / "scans" / "t1.nii.gz", model_path=folder / "stn.npz",
+                   points=points, normals=normals, point_slices=list(zip(planes, depths)),
+                   coef=rng.normal(size=7), pose=pose, fit_method="gmm-aniso",
+                   prior_weight=0.25, fit={"pose": "similarity"}, window=(812.5, 301.0),
+                   crosshair=[1.0, 2.0, 3.0], info={"note": "left STN"})
+
+
+def assert_same(a: Session, b: Session) -> None:
+    for name in ("points", "normals", "coef", "pose", "crosshair"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.point_slices == b.point_slices
+    assert a.window == b.window
+    assert a.fit == b.fit
+
+
+# --------------------------------------------------------------------------------------
+# Session files
+# --------------------------------------------------------------------------------------
+
+
+def test_round_trip_relative_paths_survive_moving_the_folder(tmp_path):
+    project = tmp_path / "case01"
+    (project / "scans").mkdir(parents=True)
+    (project / "scans" / "t1.nii.gz").write_bytes(b"image")
+    (project / "stn.npz").write_bytes(b"model")
+    session = full_session(project)
+    sessions.save_session(project / "sessions" / "left.json", session)
+
+    doc = json.loads((project / "sessions" / "left.json").read_text())
+    assert doc["format"] == "ssm-studio-session"
+    assert doc["format_version"] == 1
+    assert doc["image"] == "../scans/t1.nii.gz"
+    assert doc["model"] == "../stn.npz"
+    assert doc["fit"] == {"pose": "similarity", "method": "gmm-aniso", "prior_weight": 0.25}
+    assert doc["point_slices"][0] == ["axial", session.point_slices[0][1]]
+
+    moved = tmp_path / "archive" / "case01-copy"
+    moved.parent.mkdir()
+    shutil.move(str(project), str(moved))
+    back = sessions.load_session(moved / "sessions" / "left.json")
+    assert back.image_path == moved / "scans" / "t1.nii.gz"
+    assert back.model_path == moved / "stn.npz"
+    assert back.image_path.read_bytes() == b"image"
+    assert back.missing_files() == []
+    assert_same(back, session)  # floats are written exactly (shortest repr)
+    assert back.fit_method == "gmm-aniso"
+    assert back.prior_weight == 0.25
+    assert back.info["note"] == "left STN"
+
+
+def test_paths_outside_the_folder_and_missing_files(tmp_path):
+    session = Session(image="/somewhere/else/scan.nii", points=np.zeros((0, 3)))
+    sessions.save_session(tmp_path / "s.json", session)
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert doc["model"] is None
+    back = sessions.load_session(tmp_path / "s.json")
+    assert back.image_path == Path("/somewhere/else/scan.nii")
+    assert back.model_path is None
+    assert back.missing_files() == [Path("/somewhere/else/scan.nii")]
+    assert back.n_points == 0 and back.points.shape == (0, 3)
+    assert back.point_slices is None and back.coef is None and back.pose is None
+
+
+def test_gui_style_constructor_and_axis_numbers():
+    session = Session(image="scan.nii", model="m.npz", points=[[1, 2, 3], [4, 5, 6]],
+                      point_slices=[["axial", 3.0], [0, 4.0]], window=[100, 50],
+                      fit={"method": "icp", "prior_weight": 2})
+    assert session.image == "scan.nii" and session.model == "m.npz"
+    assert session.point_slices == [("axial", 3.0), ("sagittal", 4.0)]
+    np.testing.assert_array_equal(session.point_axes, [2, 0])
+    np.testing.assert_array_equal(session.point_depths, [3.0, 4.0])
+    assert session.window == (100.0, 50.0)
+    assert session.fit_method == "icp" and session.prior_weight == 2.0
+
+
+@pytest.mark.parametrize("kwargs, phrase", [
+    ({"points": np.zeros((3, 2))}, "points must be (P, 3)"),
+    ({"points": np.zeros((3, 3)), "normals": np.zeros((2, 3))}, "normals must be (3, 3)"),
+    ({"points": np.zeros((2, 3)), "point_slices": [("axial", 1.0)]}, "one entry per point (2)"),
+    ({"points": np.zeros((1, 3)), "point_slices": [("oblique", 1.0)]}, "unknown plane 'oblique'"),
+    ({"pose": np.eye(3)}, "pose must be 4x4"),
+    ({"pose": np.zeros((4, 4))}, "invertible"),
+    ({"points": [[0.0, np.nan, 1.0]]}, "points contain NaN"),
+    ({"coef": ["a", "b"]}, "coef must be numbers"),
+    ({"crosshair": [1.0, 2.0]}, "crosshair must be (3,)"),
+    ({"window": [1.0, 2.0, 3.0]}, "window must be [width, level]"),
+])
+def test_invalid_sessions_are_refused(kwargs, phrase):
+    with pytest.raises(ValueError) as info:
+        Session(**kwargs)
+    assert phrase in str(info.value)
+
+
+def _valid_doc() -> dict:
+    return {"format": "ssm-studio-session", "format_version": 1, "image": "a.nii",
+            "model": None, "points": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], "normals": None,
+            "point_slices": [["axial", 3.0], ["axial", 6.0]], "coef": [0.5, -1.0],
+            "pose": np.eye(4).tolist(), "fit": {"method": "gmm-iso"}, "window": [10, 5],
+            "crosshair": [0, 0, 0], "info": {}}
+
+
+def _doc_with(**changes) -> dict:
+    doc = _valid_doc()
+    doc.update(changes)
+    return doc
+
+
+BAD_SESSION_FILES = [
+    ("missing.json", None, "file not found"),
+    ("empty.json", b"", "file is empty"),
+    ("cut.json", json.dumps(_valid_doc())[:70].encode(), "not valid JSON"),
+    ("binary.json", b"\x89PNG\r\n\x1a\n\x00\x00\xff", "not UTF-8 text"),
+    ("list.json", b"[1, 2, 3]", "the JSON is not an object"),
+    ("other.json", json.dumps({"format": "slicer-scene"}).encode(), "not an SSM Studio session"),
+    ("future.json", json.dumps(_doc_with(format_version=7)).encode(),
+     "session format version 7 is newer than this SSM Studio reads (version 1)"),
+    ("noversion.json", json.dumps(_doc_with(format_version=None)).encode(),
+     "no valid format_version"),
+    ("points.json", json.dumps(_doc_with(points=[[1, 2], [3, 4]])).encode(),
+     "points must be (P, 3)"),
+    ("slices.json", json.dumps(_doc_with(point_slices=[["axial", 1.0]])).encode(),
+     "point_slices must have one entry per point"),
+    ("plane.json", json.dumps(_doc_with(point_slices=[["diagonal", 1], ["axial", 2]])).encode(),
+     "unknown plane 'diagonal'"),
+    ("pose.json", json.dumps(_doc_with(pose=[[1, 0], [0, 1]])).encode(), "pose must be 4x4"),
+    ("coef.json", json.dumps(_doc_with(coef=["x", 1])).encode(), "coef must be numbers"),
+    ("nan.json", b'{"format": "ssm-studio-session", "format_version": 1, '
+                 b'"points": [[NaN, 0, 0]]}', "points contain NaN"),
+    ("image.json", json.dumps(_doc_with(image=42)).encode(), "'image' must be a file path"),
+    ("fit.json", json.dumps(_doc_with(fit=[1, 2])).encode(), "'fit' must be a JSON object"),
+    ("packed.json", json.dumps(_doc_with(points={"dtype": "<f8", "shape": [2, 3],
+                                                  "base64": "!!"})).encode(),
+     "points is not a valid packed array"),
+]
+
+
+@pytest.mark.parametrize("name, content, phrase", BAD_SESSION_FILES,
+                         ids=[b[0] for b in BAD_SESSION_FILES])
+def test_bad_session_files(tmp_path, name, content, phrase):
+    path = tmp_path / name
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(DataFileError) as info:
+        sessions.load_session(path)
+    assert str(path) in str(info.value)
+    assert phrase in str(info.value), str(info.value)
+
+
+def test_packed_arrays_are_read_in_session_files(tmp_path):
+    points = np.random.default_rng(0).normal(size=(5, 3))
+    doc = _doc_with(points=sessions._packed(points), point_slices=None)
+    (tmp_path / "p.json").write_text(json.dumps(doc))
+    np.testing.assert_array_equal(sessions.load_session(tmp_path / "p.json").points, points)
+
+
+def test_failed_save_keeps_previous_session(tmp_path, monkeypatch):
+    target = tmp_path / "s.json"
+    sessions.save_session(target, Session(points=[[1.0, 2.0, 3.0]]))
+    before = target.read_bytes()
+    bad = Session(points=[[1.0, 2.0, 3.0]])
+    bad.points = np.array([[np.nan, 0.0, 0.0]])  # broken after construction
+    with pytest.raises(DataFileError, match="cannot save an invalid session"):
+        sessions.save_session(target, bad)
+
+    def failing_dumps(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(sessions.json, "dumps", failing_dumps)
+    with pytest.raises(OSError):
+        sessions.save_session(target, Session(points=[[4.0, 5.0, 6.0]]))
+    assert target.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.json"]
+
+
+# --------------------------------------------------------------------------------------
+# Recovery
+# --------------------------------------------------------------------------------------
+
+
+def _crashing_run(state: Path, script: str) -> int:
+    """Run ``script`` in a new Python process that ends without a clean exit; its pid."""
+    code = ("import os, numpy as np\nfrom core import session as s\n" + script +
+            "\nos._exit(3)\n")
+    env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state))
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, timeout=60,
+                          capture_output=True, text=True)
+    assert proc.returncode == 3, proc.stderr
+    return int(proc.stdout.strip().splitlines()[-1])
+
+
+def test_state_dir_defaults(monkeypatch, tmp_path):
+    monkeypatch.delenv("SSM_STUDIO_STATE_DIR")
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    assert sessions.state_dir() == tmp_path / "xdg" / "ssm-studio"
+    monkeypatch.delenv("XDG_STATE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert sessions.state_dir() == tmp_path / "home" / ".local" / "state" / "ssm-studio"
+
+
+def test_recovery_lifecycle_in_one_run(state_dir, tmp_path):
+    assert sessions.read_recovery() is None
+    assert not sessions.previous_run_crashed()
+    session = full_session(tmp_path)
+    path = sessions.write_recovery(session)
+    assert path.parent == state_dir and str(os.getpid()) in path.name
+    assert sessions.recovery_path() == path
+    session.points = session.points + 1.0
+    second = sessions.write_recovery(session)
+    assert second != path and sessions.recovery_path() == second  # the two slots alternate
+    # this run's own autosave is never offered as "left by a crash"
+    assert sessions.read_recovery() is None
+    assert not sessions.previous_run_crashed()
+    sessions.clear_recovery()
+    assert list(state_dir.iterdir()) == []
+
+
+def test_crash_leaves_a_recovery_that_is_offered_once(state_dir, tmp_path):
+    pid = _crashing_run(state_dir, f"""
+pts = np.arange(1500, dtype=float).reshape(500, 3) / 7
+sess = s.Session(image={str(tmp_path / 'scan.nii.gz')!r}, points=pts,
+                 point_slices=[("axial", float(z)) for z in pts[:, 2]], coef=[0.1, -0.2],
+                 pose=np.eye(4), window=(400.0, 40.0), fit={{"method": "gmm-iso"}})
+s.write_recovery(sess)
+sess.points = pts + 1.0
+s.write_recovery(sess)
+print(os.getpid())""")
+    assert pid != os.getpid()
+    assert sessions.previous_run_crashed()
+    assert all(str(pid) in p.name for p in sessions.orphaned_recovery_files())
+
+    recovered = sessions.read_recovery()
+    expected = np.arange(1500, dtype=float).reshape(500, 3) / 7 + 1.0  # the newer autosave
+    np.testing.assert_array_equal(recovered.points, expected)
+    assert recovered.image_path == tmp_path / "scan.nii.gz"
+    assert recovered.point_slices[10] == ("axial", (np.arange(1500).reshape(500, 3)[10, 2]) / 7)
+    np.testing.assert_array_equal(recovered.coef, [0.1, -0.2])
+    assert recovered.window == (400.0, 40.0) and recovered.fit_method == "gmm-iso"
+
+    # claimed: now this process's file, not offered again, removed by a clean exit
+    assert not sessions.previous_run_crashed()
+    assert sessions.read_recovery() is None
+    assert all(str(os.getpid()) in p.name for p in state_dir.iterdir())
+    sessions.write_recovery(recovered)  # this run goes on autosaving
+    sessions.clear_recovery()
+    assert list(state_dir.iterdir()) == []
+
+
+def test_running_instance_files_are_not_offered(state_dir, tmp_path):
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        own = sessions.write_recovery(Session(points=[[1.0, 2.0, 3.0]]))
+        os.replace(own, state_dir / f"recovery-{other.pid}-a.json")
+        assert not sessions.previous_run_crashed()
+        assert sessions.read_recovery() is None
+    finally:
+        other.kill()
+        other.wait()
+    assert sessions.previous_run_crashed()  # that instance has gone without cleaning up
+    np.testing.assert_array_equal(sessions.read_recovery().points, [[1.0, 2.0, 3.0]])
+
+
+def test_newest_damaged_slot_falls_back_to_the_older(state_dir):
+    pid = _crashing_run(state_dir, """
+s.write_recovery(s.Session(points=[[1.0, 1.0, 1.0]]))
+newest = s.write_recovery(s.Session(points=[[2.0, 2.0, 2.0]]))
+newest.write_text(newest.read_text()[:100])   # the crash hit in the middle of a write
+print(os.getpid())""")
+    recovered = sessions.read_recovery()
+    np.testing.assert_array_equal(recovered.points, [[1.0, 1.0, 1.0]])
+    assert not any(str(pid) in p.name for p in state_dir.iterdir())
+
+
+def test_damaged_recovery_gives_clear_error_and_is_cleared(state_dir):
+    state_dir.mkdir()
+    (state_dir / "recovery-999999999-a.json").write_text('{"format": "ssm-studio-sess')
+    assert sessions.previous_run_crashed()
+    with pytest.raises(DataFileError) as info:
+        sessions.read_recovery()
+    assert "recovery-" in str(info.value) and "not valid JSON" in str(info.value)
+    sessions.clear_recovery()
+    assert list(state_dir.iterdir()) == []
+    assert sessions.read_recovery() is None
+
+
+def test_recovery_stores_absolute_paths(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    path = sessions.write_recovery(Session(image="scan.nii", model=Path("models") / "m.npz"))
+    doc = json.loads(path.read_text())
+    assert doc["image"] == str(tmp_path / "scan.nii")
+    assert doc["model"] == str(tmp_path / "models" / "m.npz")
