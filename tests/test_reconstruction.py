@@ -178,3 +178,28 @@ def test_closest_point_on_triangle_matches_brute_force():
     exact = np.linalg.norm(got - q, axis=1)
     assert np.all(exact <= brute + 1e-9)
     assert np.allclose(exact, brute, atol=0.02 * np.linalg.norm(b - a, axis=1).max())
+
+
+def test_fit_cli_writes_mesh_and_json(tmp_path, family):
+    import json
+
+    from core.cli import main
+    from core.io import load_mesh, save_model, save_points
+
+    shapes, faces, model = family
+    save_model(tmp_path / "model.npz", model)
+    user = simulate_user(shapes[0], faces, 5, rng=np.random.default_rng(3))
+    save_points(tmp_path / "pts.csv", user.points, user.normals)
+    rc = main(["fit", "--model", str(tmp_path / "model.npz"), "--points", str(tmp_path / "pts.csv"),
+               "--method", "gmm-aniso", "--out", str(tmp_path / "fitted.vtk"),
+               "--json", str(tmp_path / "result.json")])
+    assert rc == 0
+    mesh = load_mesh(tmp_path / "fitted.vtk")
+    assert mesh.vertices.shape == shapes[0].shape
+    assert _mean_surface_distance(mesh.vertices, shapes[0], faces) < 0.3
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert len(result["coef"]) == model.n_factors and np.shape(result["pose"]) == (4, 4)
+    assert result["n_iter"] >= 1 and result["residual_mm"] < 0.5 and result["stop_reason"]
+    (tmp_path / "nan.csv").write_text("x,y,z\n1,2,nan\n")
+    assert main(["fit", "--model", str(tmp_path / "model.npz"), "--points",
+                 str(tmp_path / "nan.csv"), "--out", str(tmp_path / "x.vtk")]) == 2
