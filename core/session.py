@@ -6,7 +6,8 @@ fitted coefficients and pose, the fit settings, window/level and the crosshair. 
 small JSON file (issue 7, item 6) written atomically by :func:`save_session`. Image and model
 paths are stored relative to the session file's folder, so a folder holding a session with
 its data can be moved or copied elsewhere and still opens; a path on another drive (Windows)
-is stored absolute. :func:`load_session` resolves the paths, checks the format name and
+is stored absolute. The absolute paths are recorded too, as a fallback for a session file
+moved on its own. :func:`load_session` resolves the paths, checks the format name and
 version and every array's shape, and raises :class:`core.io.DataFileError` naming the file
 and the problem.
 
@@ -28,6 +29,8 @@ The JSON layout (``format_version`` 1)::
       "format": "ssm-studio-session", "format_version": 1,
       "image": "scans/t1.nii.gz",          # relative to the session file's folder, or absolute
       "model": "../models/stn-lsf.npz",    # or null
+      "image_absolute": "/data/case01/scans/t1.nii.gz",  # where they were at saving: used
+      "model_absolute": "/data/models/stn-lsf.npz",      # when the relative path is missing
       "points": [[x, y, z], ...],          # (P, 3) world RAS mm
       "normals": [[nx, ny, nz], ...],      # (P, 3) or null
       "point_slices": [["axial", 12.5], ...],  # per point: plane and its depth (mm), or null
@@ -276,6 +279,18 @@ def _resolve(stored: Any, base: Path | None, source: Path, key: str) -> Path | N
     return Path(os.path.normpath(path))
 
 
+def _located(doc: dict[str, Any], key: str, base: Path | None, source: Path) -> Path | None:
+    """The file ``doc[key]`` refers to: relative to the session's folder first; if that is
+    missing but the absolute path recorded at saving exists (the session file alone was
+    moved), that one."""
+    relative = _resolve(doc.get(key), base, source, key)
+    absolute = _resolve(doc.get(f"{key}_absolute"), None, source, f"{key}_absolute")
+    if relative is not None and not relative.exists() and absolute is not None and \
+            absolute.exists():
+        return absolute
+    return relative if relative is not None else absolute
+
+
 def _packed(a: np.ndarray, dtype: str = "<f8") -> dict[str, Any]:
     """An array as {"dtype", "shape", "base64"}: exact and fast (used by the recovery file)."""
     a = np.ascontiguousarray(a, dtype=dtype)
@@ -332,6 +347,8 @@ def _to_document(session: Session, base: Path | None, packed: bool = False) -> d
         "format_version": SESSION_FORMAT_VERSION,
         "image": _relative(session.image_path, base),
         "model": _relative(session.model_path, base),
+        "image_absolute": _relative(session.image_path, None),
+        "model_absolute": _relative(session.model_path, None),
         "points": array(session.points),
         "normals": array(session.normals),
         "point_slices": slice_doc,
@@ -372,8 +389,8 @@ def _from_document(doc: Any, source: Path, base: Path | None) -> Session:
             slices = list(zip(np.asarray(planes).tolist(), np.asarray(depths).tolist()))
         points = _unpacked(doc.get("points"), "points")
         return Session(
-            image_path=_resolve(doc.get("image"), base, source, "image"),
-            model_path=_resolve(doc.get("model"), base, source, "model"),
+            image_path=_located(doc, "image", base, source),
+            model_path=_located(doc, "model", base, source),
             points=points if points is not None else np.zeros((0, 3)),
             normals=_unpacked(doc.get("normals"), "normals"), point_slices=slices,
             coef=_unpacked(doc.get("coef"), "coef"), pose=_unpacked(doc.get("pose"), "pose"),
@@ -391,9 +408,20 @@ def save_session(path: str | os.PathLike, session: Session) -> None:
         doc = _to_document(session, path.parent)
     except ValueError as exc:
         raise DataFileError(path, f"cannot save an invalid session: {exc}") from None
-    text = json.dumps(doc, indent=1)
     with atomic_path(path) as tmp:
-        tmp.write_text(text + "\n", encoding="utf-8")
+        tmp.write_text(_readable_json(doc), encoding="utf-8")
+
+
+def _readable_json(doc: dict[str, Any]) -> str:
+    """One key per line; tables (lists of lists, e.g. points) one row per line."""
+    lines = []
+    for key, value in doc.items():
+        if isinstance(value, list) and value and all(isinstance(row, list) for row in value):
+            text = "[\n    " + ",\n    ".join(json.dumps(row) for row in value) + "\n  ]"
+        else:
+            text = json.dumps(value)
+        lines.append(f"  {json.dumps(key)}: {text}")
+    return "{\n" + ",\n".join(lines) + "\n}\n"
 
 
 def _read_document(path: Path) -> Any:

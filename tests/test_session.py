@@ -87,6 +87,18 @@ def test_round_trip_relative_paths_survive_moving_the_folder(tmp_path):
     assert back.info["note"] == "left STN"
 
 
+def test_session_file_moved_alone_finds_data_by_absolute_path(tmp_path):
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "scan.nii").write_bytes(b"image")
+    sessions.save_session(tmp_path / "work" / "s.json", Session(image=tmp_path / "data" / "scan.nii"))
+    assert json.loads((tmp_path / "work" / "s.json").read_text())["image"] == "../data/scan.nii"
+    (tmp_path / "elsewhere" / "deeper").mkdir(parents=True)
+    os.replace(tmp_path / "work" / "s.json", tmp_path / "elsewhere" / "deeper" / "s.json")
+    back = sessions.load_session(tmp_path / "elsewhere" / "deeper" / "s.json")
+    assert back.image_path == tmp_path / "data" / "scan.nii"
+    assert back.missing_files() == []
+
+
 def test_paths_outside_the_folder_and_missing_files(tmp_path):
     session = Session(image="/somewhere/else/scan.nii", points=np.zeros((0, 3)))
     sessions.save_session(tmp_path / "s.json", session)
