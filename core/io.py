@@ -4,8 +4,10 @@ One place for I/O so that coordinates and errors are handled the same way everyw
 
 - volumes: NIfTI-1/2 (.nii, .nii.gz) through nibabel, kept with nibabel's best voxel->world
   affine (sform if set, else qform; RAS, mm), oblique affines included;
-- meshes: .vtk .vtp .stl .ply .obj through pyvista/VTK, GIfTI surfaces (.gii) through nibabel,
-  always triangulated on load, as :class:`TriMesh` (vertices/faces numpy arrays);
+- meshes: .vtk .vtp .stl through VTK readers (their error output captured, never printed),
+  .ply and .obj through numpy readers of our own, GIfTI surfaces (.gii) through nibabel;
+  always triangulated on load, as :class:`TriMesh` (vertices/faces numpy arrays), written
+  through pyvista;
 - point sets: CSV (header line, ``x,y,z`` or ``x,y,z,nx,ny,nz``, world RAS mm) and 3D Slicer
   markups JSON (.mrk.json; LPS or RAS on read, LPS on write as Slicer does);
 - shape models: the versioned ``.npz`` format documented in :func:`save_model`.
@@ -74,6 +76,8 @@ def _require_file(path: str | os.PathLike) -> Path:
         raise DataFileError(path, "is a folder, not a file")
     if path.stat().st_size == 0:
         raise DataFileError(path, "file is empty (0 bytes)")
+    if not os.access(path, os.R_OK):
+        raise DataFileError(path, "permission denied (the file is not readable)")
     return path
 
 
@@ -328,8 +332,11 @@ def load_volume(path: str | os.PathLike) -> Volume:
     if dtype.kind not in "iufb":
         raise DataFileError(path, f"unsupported voxel type {dtype} (RGB or complex images "
                                   "cannot be segmented)")
+    proxy = img.dataobj
+    scaled = getattr(proxy, "slope", 1.0) != 1.0 or getattr(proxy, "inter", 0.0) != 0.0
     try:
-        data = np.asanyarray(img.dataobj)  # applies scl_slope / scl_inter when set
+        # scl_slope / scl_inter applied when set (as float32: half of nibabel's float64)
+        data = img.get_fdata(dtype=np.float32) if scaled else np.asanyarray(proxy)
     except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
         raise DataFileError(path, f"truncated or corrupt gzip data ({_why(exc, path)})") from None
     except (OSError, ValueError) as exc:

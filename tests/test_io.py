@@ -516,7 +516,17 @@ def test_volume_scaling_and_single_volume_4d(tmp_path):
     nib.save(img, str(tmp_path / "scaled.nii"))
     vol = io.load_volume(tmp_path / "scaled.nii")
     assert vol.shape == (3, 4, 5)
+    assert vol.data.dtype == np.float32
     np.testing.assert_allclose(vol.data, raw[..., 0] * 0.5 + 10.0)
+
+
+def test_volume_nan_voxels_become_zero(tmp_path):
+    data = np.ones((3, 3, 3), np.float32)
+    data[1, 1, 1] = np.nan
+    data[0, 0, 0] = np.inf
+    vol = io.load_volume(_save_raw_nifti(tmp_path / "holes.nii", data))
+    assert vol.data[1, 1, 1] == 0.0 and vol.data[0, 0, 0] == 0.0
+    assert vol.data.sum() == 25.0
 
 
 def test_volume_nifti2_and_big_endian(tmp_path):
