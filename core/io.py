@@ -1164,13 +1164,20 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
         Not found, not an npz, missing header or arrays, unknown format or version,
         inconsistent shapes, non-finite values.
     """
+    import zipfile
+
     path = _require_file(path)
+    with open(path, "rb") as fh:
+        if fh.read(4) != b"PK\x03\x04":
+            raise DataFileError(path, "not a shape model file (not an .npz archive)")
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    except Exception as exc:
-        raise DataFileError(path, f"not a shape model file (could not read as .npz: "
-                                  f"{type(exc).__name__})") from None
+    except (zipfile.BadZipFile, EOFError, zlib.error, OSError) as exc:
+        raise DataFileError(path, f"not a shape model file: truncated or corrupt .npz archive "
+                                  f"({_why(exc, path)})") from None
+    except ValueError as exc:  # object arrays (pickles) are refused, or a malformed array
+        raise DataFileError(path, f"not a shape model file ({_why(exc, path)})") from None
     if "header" not in arrays:
         raise DataFileError(path, "not a shape model file (no header)")
     try:

@@ -376,6 +376,11 @@ def _bad_model_truncated(tmp: Path) -> Path:
     return tmp / "cut.npz"
 
 
+def _bad_model_pickle(tmp: Path) -> Path:
+    np.savez(tmp / "pickled.npz", header=np.array([{"format": "x"}], dtype=object))
+    return tmp / "pickled.npz"
+
+
 def _bad_model_header_json(tmp: Path) -> Path:
     np.savez(tmp / "header.npz", header=np.array("{format: nope"), mean=np.zeros((4, 3)))
     return tmp / "header.npz"
@@ -436,8 +441,9 @@ BAD_INPUTS = [
     (_bad_model_count, io.load_model, ["n_vertices=5"]),
     (_bad_model_plain_npz, io.load_model, ["not a shape model file (no header)"]),
     (_bad_model_other_format, io.load_model, ["not an SSM Studio model"]),
-    (_bad_model_garbage, io.load_model, ["could not read as .npz"]),
-    (_bad_model_truncated, io.load_model, ["not a shape model file"]),
+    (_bad_model_garbage, io.load_model, ["not an .npz archive"]),
+    (_bad_model_truncated, io.load_model, ["truncated or corrupt .npz archive"]),
+    (_bad_model_pickle, io.load_model, ["not a shape model file", "allow_pickle"]),
     (_bad_model_header_json, io.load_model, ["header is not valid JSON"]),
 ]
 
