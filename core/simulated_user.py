@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.shape_model import ShapeModel
-from core.slicing import polylines
+from core.slicing import polylines, sample_polyline
 
 AXES = {"sagittal": np.array([1.0, 0.0, 0.0]), "coronal": np.array([0.0, 1.0, 0.0]),
         "axial": np.array([0.0, 0.0, 1.0])}
@@ -41,12 +41,16 @@ class UserPoints:
         Index of the slice plane each point was drawn in.
     planes : list of (origin (3,), normal (3,))
         The slice planes.
+    loop : (P,) int ndarray
+        Index of the closed contour (loop) each point belongs to; the points of one loop are
+        consecutive and in drawing order.
     """
 
     points: np.ndarray
     normals: np.ndarray
     contour: np.ndarray
     planes: list[tuple[np.ndarray, np.ndarray]]
+    loop: np.ndarray | None = None
 
 
 def slice_planes(vertices: np.ndarray, k: int, orientations: str = "mixed",
@@ -88,22 +92,24 @@ def slice_planes(vertices: np.ndarray, k: int, orientations: str = "mixed",
 
 def simulate_user(vertices: np.ndarray, faces: np.ndarray, k: int, *, orientations: str = "mixed",
                   spacing: float = 2.0, noise: float = 0.3, margin: float = 0.15,
-                  rng: np.random.Generator | None = None) -> UserPoints:
+                  rng: np.random.Generator | None = None,
+                  planes: list[tuple[np.ndarray, np.ndarray]] | None = None) -> UserPoints:
     """Contour points of the true surface (vertices (N, 3), faces (F, 3)) in k slices.
 
     ``spacing``: mm between points along a contour; ``noise``: in-plane Gaussian standard
-    deviation (mm) per coordinate. Returns :class:`UserPoints`.
+    deviation (mm) per coordinate; ``planes``: explicit (origin, normal) slice planes instead
+    of :func:`slice_planes` (``k`` and ``orientations`` are then ignored).
+    Returns :class:`UserPoints`.
     """
     rng = np.random.default_rng() if rng is None else rng
-    planes = slice_planes(vertices, k, orientations, margin=margin, rng=rng)
-    all_pts, all_nrm, all_id = [], [], []
+    if planes is None:
+        planes = slice_planes(vertices, k, orientations, margin=margin, rng=rng)
+    all_pts, all_nrm, all_id, all_loop = [], [], [], []
     for plane_id, (origin, normal) in enumerate(planes):
         for line in polylines(vertices, faces, origin, normal):
             if not line.closed or line.length < 2 * spacing:
                 continue
             count = max(3, int(round(line.length / spacing)))
-            from core.slicing import sample_polyline
-
             pts, _ = sample_polyline(line, count=count, offset=rng.uniform())
             jitter = rng.normal(scale=noise, size=pts.shape)
             jitter -= np.outer(jitter @ normal, normal)  # stay in the slice
@@ -114,9 +120,12 @@ def simulate_user(vertices: np.ndarray, faces: np.ndarray, k: int, *, orientatio
             all_pts.append(pts)
             all_nrm.append(nrm)
             all_id.append(np.full(len(pts), plane_id))
+            all_loop.append(np.full(len(pts), len(all_loop)))
     if not all_pts:
-        return UserPoints(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), planes)
-    return UserPoints(np.vstack(all_pts), np.vstack(all_nrm), np.concatenate(all_id), planes)
+        return UserPoints(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), planes,
+                          np.zeros(0, np.int64))
+    return UserPoints(np.vstack(all_pts), np.vstack(all_nrm), np.concatenate(all_id), planes,
+                      np.concatenate(all_loop))
 
 
 # --------------------------------------------------------------------------------------
