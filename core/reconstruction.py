@@ -461,7 +461,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
             self.verts, inv = np.unique(near, return_inverse=True)  # V candidate vertices
             self.inv = inv.reshape(n_points, k)  # (P, K) into verts
             self.x_ref = x_world[self.verts]
-            self.phi = cache.factors[:, self.verts, :]  # (M, V, 3)
+            self.phi = np.take(cache.factors, self.verts, axis=1)  # (M, V, 3), C-contiguous
             self.mean = cache.mean[self.verts]
             self.rows = np.repeat(pts, k, axis=0)  # (P K, 3)
 
@@ -496,8 +496,11 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     if init is None:
         sigma2 = max(float(d.mean()) / 3.0, float(dmin.max()) / 3.0, sigma2_min)
     else:
-        sigma2 = max(float(init.sigma2) if np.isfinite(init.sigma2) else 0.0,
-                     float(dmin.max()) / 3.0, sigma2_min)
+        # Warm start: keep the previous variance. With an outlier term, raise it to cover the
+        # farthest point (a newly placed point is not an outlier); without one, every point
+        # keeps its full weight whatever s2 is.
+        previous = float(init.sigma2) if np.isfinite(init.sigma2) and init.sigma2 > 0 else float(d.mean()) / 3.0
+        sigma2 = max(previous, float(dmin.max()) / 3.0 if outlier_weight > 0 else 0.0, sigma2_min)
 
     if neighbours_for(sigma2) > pairs.k:
         pairs = Pairs(x, neighbours_for(sigma2))
@@ -561,7 +564,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         weighted_rows = flat_p[:, None] * rows
         ybar = np.stack([np.bincount(flat_inv, weights=weighted_rows[:, c], minlength=n_cand)
                          for c in range(3)], axis=1)
-        zv = pairs.mean + np.tensordot(coef, pairs.phi, axes=1) if n_factors else pairs.mean
+        zv = (pairs.mean + (coef @ pairs.phi.reshape(n_factors, -1)).reshape(-1, 3)
+              if n_factors else pairs.mean)
 
         # M-step, pose (Eq. 3).
         if pose != "none":
@@ -583,8 +587,9 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                     jac = jac[:, :, 1:]
                 resid = ybar - wj[:, None] * xj  # sum_i p_ij (y_i - x_j)
                 wjac = jac + (eta - 1.0) * nv[:, :, None] * np.einsum("jc,jcq->jq", nv, jac)[:, None, :]
-                lhs = np.einsum("j,jcq,jcr->qr", wj, jac, wjac)
-                rhs = np.einsum("jcq,jc->q", wjac, resid)
+                n_par = jac.shape[2]
+                lhs = (jac * wj[:, None, None]).reshape(-1, n_par).T @ wjac.reshape(-1, n_par)
+                rhs = wjac.reshape(-1, n_par).T @ resid.reshape(-1)
                 lhs += 1e-9 * np.trace(lhs) * np.eye(len(lhs))
                 theta = np.linalg.solve(lhs, rhs)
                 if pose == "rigid":
@@ -602,17 +607,17 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
             # only the vertices that carry weight (as s2 shrinks, a few per point)
             sel = np.flatnonzero(wj > 0.0)
             w_sel = wj[sel]
-            phi = pairs.phi[:, sel, :]  # (M, J, 3)
+            phi = np.take(pairs.phi, sel, axis=1)  # (M, J, 3), C-contiguous
             r = ybar_b[sel] - w_sel[:, None] * pairs.mean[sel]
-            b = phi * np.sqrt(w_sel)[None, :, None]
-            lhs = np.tensordot(b, b, axes=([1, 2], [1, 2]))
+            b = (phi * np.sqrt(w_sel)[None, :, None]).reshape(n_factors, -1)
+            lhs = b @ b.T
             if aniso:
                 n_b = nv[sel] @ rot  # normals in the base frame, R^T n
                 along = np.einsum("mjc,jc->mj", phi, n_b)
                 c_mat = along * np.sqrt((eta - 1.0) * w_sel)[None, :]
                 lhs += c_mat @ c_mat.T
                 r = r + (eta - 1.0) * n_b * np.einsum("jc,jc->j", n_b, r)[:, None]
-            rhs = np.tensordot(phi, r, axes=([1, 2], [0, 1]))
+            rhs = phi.reshape(n_factors, -1) @ r.reshape(-1)
             lhs[np.diag_indices(n_factors)] += prior_weight * sigma2_b * cache.inv_var
             coef = np.linalg.solve(lhs, rhs)
 
@@ -643,7 +648,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     pose_delta = np.eye(4)
     pose_delta[:3, :3] = scale * rot
     pose_delta[:3, 3] = trans
-    residual = surface_distance(pts, x, faces, table=cache.table)
+    residual = surface_distance(pts, x, faces, k=3, table=cache.table)
     return FitResult(coef=coef, pose=pose_delta @ cache.t0, vertices=x, objective=objective,
                      n_iter=n_iter, converged=converged, stop_reason=stop_reason,
                      residual_mm=float(residual.mean()), sigma2=float(sigma2), method=method,
