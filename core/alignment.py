@@ -1,0 +1,506 @@
+"""Pose removal for corresponded shapes: Procrustes, GPA and transformation synchronisation.
+
+Three ways to bring K shapes with N homologous vertices each into one common frame:
+
+- :func:`procrustes` / :func:`fit_transform`: the closed-form least-squares transform between
+  two corresponded point sets (Umeyama, "Least-squares estimation of transformation parameters
+  between two point patterns", TPAMI 1991), for every transformation class below;
+- :func:`generalized_procrustes`: iterative generalised Procrustes analysis (GPA, Gower 1975):
+  align every shape to the current mean, recompute the mean, repeat;
+- :func:`synchronize_transforms`: the spectral transformation synchronisation of Bernard et al.,
+  "A Solution for Multi-Alignment by Transformation Synchronisation", CVPR 2015, with the
+  translation handling of the numerically stable variant ("Transitively consistent and unbiased
+  multi-image registration using numerically stable transformation synchronisation", MICCAI
+  workshop on spectral analysis in medical imaging, 2015). All K(K-1) pairwise transforms are
+  made transitively consistent at once, so no shape serves as reference (reference-free GPA).
+
+Conventions (all functions):
+
+- homogeneous 4x4 matrices act on column vectors, ``x' = T @ [x, 1]``; for (N, 3) row arrays
+  that is ``x' = x @ T[:3, :3].T + T[:3, 3]`` (:func:`apply_transform`);
+- ``pairwise[i, j]`` maps shape j onto shape i: ``X_i ~ pairwise[i, j] (X_j)``;
+- an :class:`AlignmentResult`'s ``transforms[k]`` maps input shape k into the common frame:
+  ``aligned[k] = apply_transform(transforms[k], shapes[k])``.
+
+Transformation classes (``transform=``):
+
+=============  ==============================================================================
+``rigid``      rotation + translation, ``det R = +1`` (a proper rotation, no reflection)
+``euclidean``  orthogonal matrix + translation, ``det Q = +-1``: isometries, reflections allowed
+               (the "euclidean" class of the CVPR 2015 paper)
+``similarity`` ``s R`` + translation with s > 0 and ``det R = +1``
+``affine``     any invertible 3x3 matrix + translation
+=============  ==============================================================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.progress import ProgressCallback, report
+
+TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
+METHODS = ("sync", "gpa")
+
+
+@dataclass
+class AlignmentResult:
+    """Shapes brought into a common frame.
+
+    Attributes
+    ----------
+    aligned : (K, N, 3) float
+        The shapes in the common frame.
+    transforms : (K, 4, 4) float
+        ``transforms[k]`` maps input shape k into the common frame (column vectors).
+    mean : (N, 3) float
+        Mean of the aligned shapes.
+    method, transform : str
+        How they were aligned.
+    n_iter_ : int
+        GPA iterations (0 for synchronisation, which is not iterative).
+    converged_ : bool
+        Whether GPA met its tolerance (always True for synchronisation).
+    rmsd_ : (K,) float
+        Root mean square distance of each aligned shape to the mean.
+    """
+
+    aligned: np.ndarray
+    transforms: np.ndarray
+    mean: np.ndarray
+    method: str
+    transform: str
+    n_iter_: int = 0
+    converged_: bool = True
+    rmsd_: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _check_transform(transform: str) -> str:
+    if transform not in TRANSFORMS:
+        raise ValueError(f"transform must be one of {', '.join(TRANSFORMS)}; got {transform!r}")
+    return transform
+
+
+def _check_points(points, name: str = "points") -> np.ndarray:
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must be (N, 3), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contain NaN or infinite coordinates")
+    return arr
+
+
+def _check_shapes(shapes) -> np.ndarray:
+    arr = np.asarray(shapes, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ValueError(f"shapes must be (K, N, 3), got shape {arr.shape}")
+    if arr.shape[0] < 2:
+        raise ValueError(f"at least 2 shapes are needed to align, got {arr.shape[0]}")
+    if arr.shape[1] < 4:
+        raise ValueError(f"each shape needs at least 4 points, got {arr.shape[1]}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("shapes contain NaN or infinite coordinates")
+    return arr
+
+
+def homogeneous(linear: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """4x4 matrix [[A, t], [0, 1]] from a 3x3 ``linear`` part and a 3-vector ``translation``."""
+    t = np.eye(4)
+    t[:3, :3] = linear
+    t[:3, 3] = translation
+    return t
+
+
+def apply_transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 column-vector transform to (N, 3) points (or (..., N, 3) with (..., 4, 4))."""
+    transform = np.asarray(transform, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)
+    return points @ np.swapaxes(transform[..., :3, :3], -1, -2) + transform[..., None, :3, 3]
+
+
+def project_linear(matrix: np.ndarray, transform: str) -> np.ndarray:
+    """Nearest member of a transformation class for 3x3 linear part(s) (..., 3, 3).
+
+    rigid: nearest rotation (SVD, det +1); euclidean: nearest orthogonal matrix (polar factor);
+    similarity: nearest scaled rotation, scale = mean singular value with the sign correction;
+    affine: unchanged.
+    """
+    _check_transform(transform)
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if transform == "affine":
+        return matrix.copy()
+    u, s, vt = np.linalg.svd(matrix)
+    if transform == "euclidean":
+        return u @ vt
+    d = np.ones(s.shape)
+    d[..., -1] = np.sign(np.linalg.det(u @ vt))
+    rotation = (u * d[..., None, :]) @ vt
+    if transform == "rigid":
+        return rotation
+    scale = np.maximum((s * d).sum(axis=-1) / 3.0, 1e-12)
+    return rotation * scale[..., None, None]
+
+
+# ----------------------------------------------------------------------------- Procrustes
+
+def fit_transform(source, target, transform: str = "similarity", *, weights=None) -> np.ndarray:
+    """Least-squares transform (4, 4) of the given class mapping ``source`` onto ``target``.
+
+    Minimises ``sum_i w_i ||T(source_i) - target_i||^2`` in closed form (Umeyama 1991 for the
+    orthogonal classes; weighted linear least squares for affine).
+
+    Parameters
+    ----------
+    source, target : (N, 3) float
+        Corresponded points.
+    transform : {"similarity", "euclidean", "rigid", "affine"}
+    weights : (N,) float, optional
+        Non-negative point weights.
+    """
+    _check_transform(transform)
+    src = _check_points(source, "source")
+    dst = _check_points(target, "target")
+    if src.shape != dst.shape:
+        raise ValueError(f"source and target must have the same shape, got {src.shape} and {dst.shape}")
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
+    if w.shape != (len(src),) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError("weights must be N non-negative numbers with a positive sum")
+    w = w / w.sum()
+    mu_s = w @ src
+    mu_t = w @ dst
+    s0 = src - mu_s
+    t0 = dst - mu_t
+    if transform == "affine":
+        # Weighted normal equations A (S^T W S) = T^T W S
+        cov_ss = (s0 * w[:, None]).T @ s0
+        cov_ts = (t0 * w[:, None]).T @ s0
+        linear = np.linalg.lstsq(cov_ss.T, cov_ts.T, rcond=None)[0].T
+    else:
+        cov = (t0 * w[:, None]).T @ s0  # Umeyama Eq. 38: Sigma_xy
+        u, sing, vt = np.linalg.svd(cov)
+        d = np.ones(3)
+        if transform != "euclidean" and np.linalg.det(u) * np.linalg.det(vt) < 0:
+            d[2] = -1.0  # Umeyama Eq. 39/43: S = diag(1, 1, -1) keeps det R = +1
+        rotation = (u * d) @ vt
+        scale = 1.0
+        if transform == "similarity":
+            var_s = float((w * (s0 ** 2).sum(axis=1)).sum())
+            scale = float((sing * d).sum() / max(var_s, 1e-300))  # Umeyama Eq. 42
+        linear = scale * rotation
+    return homogeneous(linear, mu_t - linear @ mu_s)
+
+
+def procrustes(source, target, *, scaling: bool = True, reflection: bool = False,
+               weights=None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Orthogonal Procrustes (Umeyama) alignment of ``source`` onto ``target``.
+
+    Parameters
+    ----------
+    source, target : (N, 3) float
+        Corresponded points.
+    scaling : bool
+        Estimate an isotropic scale.
+    reflection : bool
+        Allow an improper orthogonal matrix (det -1) when it fits better.
+    weights : (N,) float, optional
+
+    Returns
+    -------
+    T : (4, 4) float
+        Maps source onto target (column vectors).
+    aligned : (N, 3) float
+        The transformed source.
+    rmsd : float
+        Root mean square distance between ``aligned`` and ``target`` (weighted if weights given).
+    """
+    src = _check_points(source, "source")
+    dst = _check_points(target, "target")
+    if scaling:
+        transform = "similarity"
+    else:
+        transform = "euclidean" if reflection else "rigid"
+    if scaling and reflection:
+        t_rot = fit_transform(src, dst, "euclidean", weights=weights)
+        # Scale for the reflection-allowed rotation (Umeyama Eq. 42 with the plain SVD).
+        w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
+        w = w / w.sum()
+        s0 = src - w @ src
+        t0 = dst - w @ dst
+        rot = t_rot[:3, :3]
+        scale = float((w * np.einsum("ij,ij->i", t0, s0 @ rot.T)).sum()
+                      / max((w * (s0 ** 2).sum(axis=1)).sum(), 1e-300))
+        linear = scale * rot
+        T = homogeneous(linear, w @ dst - linear @ (w @ src))
+    else:
+        T = fit_transform(src, dst, transform, weights=weights)
+    aligned = apply_transform(T, src)
+    sq = ((aligned - dst) ** 2).sum(axis=1)
+    if weights is None:
+        rmsd = float(np.sqrt(sq.mean()))
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        rmsd = float(np.sqrt((w * sq).sum() / w.sum()))
+    return T, aligned, rmsd
+
+
+# ----------------------------------------------------------------------------- GPA
+
+def _centroid_size(points: np.ndarray) -> float:
+    return float(np.sqrt(((points - points.mean(axis=0)) ** 2).sum(axis=1).mean()))
+
+
+def generalized_procrustes(shapes, transform: str = "similarity", *, max_iter: int = 100,
+                           tol: float = 1e-7, initial: int | None = None,
+                           progress: ProgressCallback | None = None) -> AlignmentResult:
+    """Iterative generalised Procrustes analysis to an evolving mean.
+
+    Start from shape ``initial`` (default: the shape closest to the centred, unscaled mean),
+    then repeat: fit every shape to the mean with ``transform``, take the new mean, and
+    normalise it back to the pose and size of the previous mean (a similarity fit, which removes
+    the gauge drift of GPA, so the mean keeps the size of the start shape). Stops when the
+    mean moves less than ``tol`` times its size.
+
+    Parameters
+    ----------
+    shapes : (K, N, 3) float
+    transform : {"similarity", "euclidean", "rigid", "affine"}
+
+    Returns
+    -------
+    AlignmentResult
+        With ``n_iter_`` and ``converged_``.
+    """
+    _check_transform(transform)
+    x = _check_shapes(shapes)
+    k = len(x)
+    if initial is None:
+        centred = x - x.mean(axis=1, keepdims=True)
+        initial = int(np.argmin(((centred - centred.mean(axis=0)) ** 2).sum(axis=(1, 2))))
+    mean = x[initial] - x[initial].mean(axis=0)
+    size = _centroid_size(mean)
+    gauge_class = transform if transform in ("rigid", "euclidean") else "similarity"
+    transforms = np.tile(np.eye(4), (k, 1, 1))
+    converged = False
+    n_iter = 0
+    for n_iter in range(1, max_iter + 1):
+        transforms = np.stack([fit_transform(x[i], mean, transform) for i in range(k)])
+        aligned = apply_transform(transforms, x)
+        new_mean = aligned.mean(axis=0)
+        # Gauge: keep the mean at the previous mean's pose and size.
+        gauge = fit_transform(new_mean, mean, gauge_class)
+        new_mean = apply_transform(gauge, new_mean)
+        change = float(np.sqrt(((new_mean - mean) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
+        mean = new_mean
+        report(progress, n_iter / max_iter, f"GPA iteration {n_iter}: mean moved {change:.2e}")
+        if change < tol:
+            converged = True
+            break
+    transforms = np.stack([fit_transform(x[i], mean, transform) for i in range(k)])
+    aligned = apply_transform(transforms, x)
+    mean = aligned.mean(axis=0)
+    rmsd = np.sqrt(((aligned - mean) ** 2).sum(axis=2).mean(axis=1))
+    report(progress, 1.0, "GPA done")
+    return AlignmentResult(aligned, transforms, mean, "gpa", transform, n_iter, converged, rmsd)
+
+
+# ----------------------------------------------------------------------------- synchronisation
+
+def _spectral_linear(pairwise_linear: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Synchronise (K, K, d, d) linear maps L_ij ~ Z_i Z_j^-1; returns (K, d, d) Z_i (any gauge).
+
+    CVPR 2015, Eq. 6-9: with W the block matrix of the L_ij (W_ii = I) and all pairs known,
+    W U = K U for U = [Z_1; ...; Z_K]; U spans the null space of W - K I, found as the d right
+    singular vectors of smallest singular value. With missing pairs the block row i is divided
+    by its number of known pairs (degree), i.e. the null space of D^-1 W - I is used.
+    """
+    k, _, d, _ = pairwise_linear.shape
+    w = np.where(mask[:, :, None, None], pairwise_linear, 0.0)
+    w[np.arange(k), np.arange(k)] = np.eye(d)
+    degree = mask.sum(axis=1) + 1.0 - mask[np.arange(k), np.arange(k)]
+    big = w.transpose(0, 2, 1, 3).reshape(k * d, k * d)
+    big = big / np.repeat(degree, d)[:, None]
+    z = big - np.eye(k * d)  # Eq. 8: Z = W - K I (degree-normalised)
+    _, _, vt = np.linalg.svd(z)
+    u = vt[-d:].T  # (K d, d): null space basis
+    return u.reshape(k, d, d)
+
+
+def synchronize_transforms(pairwise, transform: str = "similarity", *, mask=None,
+                           stable: bool = True) -> np.ndarray:
+    """Transitively consistent absolute transforms from noisy pairwise ones (CVPR 2015).
+
+    Parameters
+    ----------
+    pairwise : (K, K, 4, 4) or (K, K, 3, 3) float
+        ``pairwise[i, j]`` maps shape j onto shape i (column vectors); 3x3 blocks mean linear
+        maps without translation. Diagonal blocks are ignored.
+    transform : {"similarity", "euclidean", "rigid", "affine"}
+        Class the result is projected onto.
+    mask : (K, K) bool, optional
+        Which pairs are known (default: all). The pair graph must be connected.
+    stable : bool
+        Numerically stable variant (MICCAI-SASHIMI 2015): synchronise the linear parts
+        spectrally, then the translations by linear least squares given them, so that large
+        translations cannot swamp the rotations in the spectral problem. With ``False`` the
+        full 4x4 homogeneous blocks go into one spectral problem (the CVPR 2015 formulation),
+        after rescaling translations to unit size.
+
+    Returns
+    -------
+    (K, 4, 4) float
+        ``T[k]`` maps shape k into the common frame, so ``T[i]^-1 T[j] ~ pairwise[i, j]``.
+        Gauge: the linear parts average to the identity (the common frame is the mean frame,
+        not any one shape's) and the translations are the minimum-norm solution.
+    """
+    _check_transform(transform)
+    p = np.asarray(pairwise, dtype=np.float64)
+    if p.ndim != 4 or p.shape[0] != p.shape[1] or p.shape[2] != p.shape[3] or p.shape[2] not in (3, 4):
+        raise ValueError(f"pairwise must be (K, K, 4, 4) or (K, K, 3, 3), got shape {p.shape}")
+    k = p.shape[0]
+    if k < 2:
+        raise ValueError("at least 2 shapes are needed")
+    known = np.ones((k, k), bool) if mask is None else np.asarray(mask, bool).copy()
+    known[np.arange(k), np.arange(k)] = False
+    known &= np.all(np.isfinite(p.reshape(k, k, -1)), axis=2)
+    if known.shape != (k, k):
+        raise ValueError(f"mask must be ({k}, {k})")
+    if p.shape[2] == 3:
+        full = np.tile(np.eye(4), (k, k, 1, 1))
+        full[:, :, :3, :3] = p
+        p = full
+    p = np.where(known[:, :, None, None], p, 0.0)
+    if stable:
+        lin = _spectral_linear(p[:, :, :3, :3], known)
+        lin = _gauge_and_project(lin, transform)
+        # Translations: t_ij = a_i - L_ij a_j with Z_i = [A_i a_i], given synchronised A.
+        ii, jj = np.nonzero(known)
+        rel = lin[ii] @ np.linalg.inv(lin[jj])  # consistent L_ij
+        n_eq = len(ii)
+        a = np.zeros((n_eq, 3, k, 3))
+        a[np.arange(n_eq), :, ii, :] += np.eye(3)
+        a[np.arange(n_eq), :, jj, :] -= rel
+        rhs = p[ii, jj, :3, 3]
+        trans = np.linalg.lstsq(a.reshape(3 * n_eq, 3 * k), rhs.reshape(-1), rcond=None)[0]
+        z = np.tile(np.eye(4), (k, 1, 1))
+        z[:, :3, :3] = lin
+        z[:, :3, 3] = trans.reshape(k, 3)
+    else:
+        # Condition: N Z N^-1 with N = diag(1, 1, 1, s) divides translations by s and keeps
+        # the pairwise maps consistent; undone below.
+        scale = np.sqrt(np.mean(p[known][:, :3, 3] ** 2)) if known.any() else 1.0
+        scale = max(float(scale), 1e-12)
+        cond = np.diag([1.0, 1.0, 1.0, scale])
+        cond_inv = np.diag([1.0, 1.0, 1.0, 1.0 / scale])
+        u = _spectral_linear(cond @ p @ cond_inv, known)
+        # Gauge: U_i = Z_i B for an unknown B; right-multiplying by (mean U)^-1 gives
+        # Z_i (mean Z)^-1, whose last rows stay [0 0 0 1] and whose blocks average to I.
+        z = u @ np.linalg.inv(u.mean(axis=0))
+        z[:, 3, :] = [0.0, 0.0, 0.0, 1.0]
+        z = cond_inv @ z @ cond
+        z[:, :3, :3] = _gauge_and_project(z[:, :3, :3], transform)
+    # Z_i maps the common frame into shape i; the result maps shape i into the common frame.
+    return np.linalg.inv(z)
+
+
+def _gauge_and_project(lin: np.ndarray, transform: str) -> np.ndarray:
+    """Mean-frame gauge (right-multiply by the inverse mean block), then project each block.
+
+    Right-multiplying every block by one matrix keeps them consistent, and the orthogonal
+    polar factor of R_i M is R_i times that of M, so the projection stays consistent too.
+    """
+    lin = lin @ np.linalg.inv(np.mean(lin, axis=0))
+    return project_linear(lin, transform)
+
+
+def reference_transforms(pairwise, reference: int = 0) -> np.ndarray:
+    """The reference-based baseline: shape k is mapped by ``pairwise[reference, k]`` only.
+
+    Returns (K, 4, 4) transforms into the reference's frame (same convention as
+    :func:`synchronize_transforms`); used to show what synchronisation gains.
+    """
+    p = np.asarray(pairwise, dtype=np.float64)
+    if p.shape[2] == 3:
+        full = np.tile(np.eye(4), (p.shape[0], 1, 1))
+        full[:, :3, :3] = p[reference]
+        out = full
+    else:
+        out = p[reference].copy()
+    out[reference] = np.eye(4)
+    return out
+
+
+def pairwise_transforms(shapes, transform: str = "similarity") -> np.ndarray:
+    """All (K, K, 4, 4) least-squares transforms, ``[i, j]`` mapping shape j onto shape i."""
+    x = _check_shapes(shapes)
+    k = len(x)
+    out = np.tile(np.eye(4), (k, k, 1, 1))
+    for i in range(k):
+        for j in range(k):
+            if i != j:
+                out[i, j] = fit_transform(x[j], x[i], transform)
+    return out
+
+
+# ----------------------------------------------------------------------------- front end
+
+def align_shapes(shapes, method: str = "sync", transform: str = "similarity", *,
+                 progress: ProgressCallback | None = None, max_iter: int = 100,
+                 tol: float = 1e-7) -> AlignmentResult:
+    """Remove the pose of K corresponded shapes.
+
+    Parameters
+    ----------
+    shapes : (K, N, 3) float
+        Corresponded shapes (vertex i homologous across shapes).
+    method : {"sync", "gpa"}
+        ``sync``: pairwise least-squares transforms between all shapes, made consistent by
+        :func:`synchronize_transforms` (reference-free, not iterative). ``gpa``: iterative
+        :func:`generalized_procrustes`.
+    transform : {"similarity", "euclidean", "rigid", "affine"}
+
+    Returns
+    -------
+    AlignmentResult
+        ``transforms[k]`` maps shape k into the common frame. The common frame is centred on
+        the mean's centroid; for ``sync`` its scale is the mean input size (similarity/affine).
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    _check_transform(transform)
+    x = _check_shapes(shapes)
+    if method == "gpa":
+        return generalized_procrustes(x, transform, max_iter=max_iter, tol=tol, progress=progress)
+    k = len(x)
+    report(progress, 0.0, "pairwise transforms")
+    # Centre every shape first: the pairwise least-squares fits then have small translations
+    # (exactly zero for the orthogonal classes), which keeps the spectral problem well posed.
+    centroids = x.mean(axis=1)
+    centring = np.tile(np.eye(4), (k, 1, 1))
+    centring[:, :3, 3] = -centroids
+    centred = x - centroids[:, None, :]
+    pairwise = np.tile(np.eye(4), (k, k, 1, 1))
+    for i in range(k):
+        for j in range(k):
+            if i != j:
+                pairwise[i, j] = fit_transform(centred[j], centred[i], transform)
+        report(progress, 0.9 * (i + 1) / k, "pairwise transforms")
+    sync = synchronize_transforms(pairwise, transform)
+    transforms = sync @ centring
+    aligned = apply_transform(transforms, x)
+    # Final gauge: centre the mean; for scaling classes give the mean the mean input size.
+    mean = aligned.mean(axis=0)
+    gauge = np.eye(4)
+    gauge[:3, 3] = -mean.mean(axis=0)
+    if transform in ("similarity", "affine"):
+        target_size = np.mean([_centroid_size(s) for s in x])
+        gauge[:3, :] *= target_size / max(_centroid_size(mean), 1e-300)
+    transforms = gauge @ transforms
+    aligned = apply_transform(transforms, x)
+    mean = aligned.mean(axis=0)
+    rmsd = np.sqrt(((aligned - mean) ** 2).sum(axis=2).mean(axis=1))
+    report(progress, 1.0, "synchronised")
+    return AlignmentResult(aligned, transforms, mean, "sync", transform, 0, True, rmsd)
