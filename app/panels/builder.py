@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from PySide6.QtCore import Qt, Signal
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (
     QAbstractItemView,
@@ -112,6 +112,7 @@ class BuilderPanel(QWidget):
         self._worker_started = 0.0
         self._plan: list[str] = []
         self._closed = False
+        self._meshes_drawn: tuple | None = None
         self.setAcceptDrops(True)
         self._build_widgets()
         self._update_buttons()
@@ -817,7 +818,7 @@ class BuilderPanel(QWidget):
     # ======================================================================================
 
     def _refresh_meshes_view(self, *_: Any) -> None:
-        if self._closed:
+        if self._closed or self.meshes_view.creating:
             return
         if not self.meshes_view.isVisible() and not self.meshes_view.created:
             return
@@ -833,13 +834,19 @@ class BuilderPanel(QWidget):
                 meshes = engine.corresponded_meshes(corr.result)
             elif which == "aligned" and align is not None and corr is not None:
                 meshes = engine.aligned_meshes(corr.result, align.result)
+        signature = (which, layout, tuple(id(m[1]) for m in meshes))
+        if signature == self._meshes_drawn:
+            return  # nothing new to draw (rendering costs ~0.1-1 s with software OpenGL)
+        self._meshes_drawn = signature
         self.meshes_view.show_meshes(meshes, layout=layout)
 
     def showEvent(self, event) -> None:  # noqa: N802 - Qt API
         super().showEvent(event)
+        # Deferred: the first OpenGL view re-creates the native window, which sends show events
+        # again while that view is being built.
         if self.tabs.currentIndex() == 0 and not self.meshes_view.created and \
                 self.state.entries:
-            self._refresh_meshes_view()
+            QTimer.singleShot(0, self._refresh_meshes_view)
 
     # ======================================================================================
     # Closing

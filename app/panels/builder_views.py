@@ -70,10 +70,15 @@ class LazyPlotter(QWidget):
         self._layout.setContentsMargins(0, 0, 0, 0)
         self._plotter = None
         self._closed = False
+        self._creating = False
 
     @property
     def created(self) -> bool:
         return self._plotter is not None
+
+    @property
+    def creating(self) -> bool:
+        return self._creating
 
     @property
     def plotter(self):
@@ -81,11 +86,20 @@ class LazyPlotter(QWidget):
         if self._plotter is None:
             if self._closed:
                 raise RuntimeError("view already closed")
+            if self._creating:
+                raise RuntimeError("3D view requested while it is being created")
             from pyvistaqt import QtInteractor
 
-            self._plotter = QtInteractor(self, auto_update=False)
-            self._plotter.set_background("white")
-            self._layout.addWidget(self._plotter.interactor)
+            # Created without a parent (hidden), so that no show event reaches it before its
+            # construction is complete; then put in the layout.
+            self._creating = True
+            try:
+                plotter = QtInteractor(None, auto_update=False)
+                plotter.set_background("white")
+                self._layout.addWidget(plotter.interactor)
+                self._plotter = plotter
+            finally:
+                self._creating = False
         return self._plotter
 
     def render(self) -> None:
@@ -130,19 +144,21 @@ class MeshesView(LazyPlotter):
                 poly.point_data["value"] = np.asarray(scalars[i], dtype=np.float64)
                 plotter.add_mesh(poly, scalars="value", cmap=cmap, clim=clim,
                                  show_scalar_bar=(i == 0), smooth_shading=True,
-                                 scalar_bar_args={"title": scalar_title, "color": "black"})
+                                 scalar_bar_args={"title": scalar_title, "color": "black"},
+                                 render=False)
             else:
                 plotter.add_mesh(poly, color=_COLOURS[i % len(_COLOURS)], smooth_shading=True,
-                                 opacity=0.45 if layout == "overlay" else 1.0)
+                                 opacity=0.45 if layout == "overlay" else 1.0, render=False)
             if layout == "grid":
                 label_points.append([(v[:, 0].min() + v[:, 0].max()) / 2 + offsets[i, 0],
                                      v[:, 1].max() + offsets[i, 1], v[:, 2].max() + offsets[i, 2]])
         if layout == "grid" and len(names) <= 36:
             plotter.add_point_labels(np.array(label_points), names, font_size=10,
-                                     shape_opacity=0.0, show_points=False, text_color="black")
+                                     shape_opacity=0.0, show_points=False, text_color="black",
+                                     render=False)
         if layout == "grid":
-            plotter.view_xy()
-        plotter.reset_camera()
+            plotter.view_xy(render=False)
+        plotter.reset_camera(render=False)
         plotter.render()
 
 
@@ -208,6 +224,7 @@ class FactorView(QWidget):
         self._factors: np.ndarray | None = None
         self._sd: np.ndarray | None = None
         self._poly = None
+        self.actor = None  # the drawn mean/deformed shape
         self.factor_list.currentRowChanged.connect(self._on_factor_selected)
         self.slider.valueChanged.connect(self._on_slider)
         self.reset_button.clicked.connect(lambda: self.slider.setValue(0))
@@ -295,20 +312,21 @@ class FactorView(QWidget):
         plotter.clear()
         self._poly = polydata(self._mean, self._faces)
         if factor is None:
-            plotter.add_mesh(self._poly, color="lightgray", smooth_shading=True)
+            self.actor = plotter.add_mesh(self._poly, color="lightgray", smooth_shading=True,
+                                          render=False)
         else:
             magnitude = self.magnitudes()[factor]
             self._poly.point_data["mm at 1 SD"] = magnitude
-            plotter.add_mesh(self._poly, scalars="mm at 1 SD", cmap=self.CMAP,
+            self.actor = plotter.add_mesh(self._poly, scalars="mm at 1 SD", cmap=self.CMAP,
                              clim=(0.0, max(float(magnitude.max()), 1e-9)), smooth_shading=True,
                              scalar_bar_args={"title": "mm at 1 SD", "color": "black",
                                               "vertical": True, "position_x": 0.86,
                                               "position_y": 0.06, "height": 0.78,
                                               "width": 0.07, "title_font_size": 14,
-                                              "label_font_size": 12})
+                                              "label_font_size": 12}, render=False)
             plotter.add_mesh(polydata(self._mean, self._faces), style="wireframe",
-                             color="gray", opacity=0.08)
-        plotter.reset_camera()
+                             color="gray", opacity=0.08, render=False)
+        plotter.reset_camera(render=False)
         plotter.render()
 
     def _on_slider(self, value: int) -> None:

@@ -1,0 +1,305 @@
+"""The model-builder panel, driven like a user: load meshes, build, cancel, inspect, save.
+
+Runs under pytest-xvfb (xcb platform, real OpenGL through Mesa). The build uses 5 meshes of
+the demo training set (resources/demo/meshes) to keep the correspondence stage short.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PySide6.QtCore import QMimeData, QPointF, Qt, QTimer, QUrl
+from PySide6.QtGui import QDropEvent
+from PySide6.QtWidgets import QCheckBox, QComboBox, QDoubleSpinBox, QLineEdit, QMainWindow, QSpinBox
+
+from app.panels.builder import BuilderPanel
+from app.panels.builder_forms import ParameterForm, parse_numpydoc_parameters
+import core.correspondence  # noqa: F401 - imported here, not in the timed worker
+from core.io import load_model
+from core.models import LSF, PCA, Varimax
+
+DEMO = Path(__file__).resolve().parents[1] / "resources" / "demo" / "meshes"
+N_TRAIN = 5
+
+
+@pytest.fixture
+def panel(qtbot):
+    window = QMainWindow()
+    panel = BuilderPanel()
+    window.setCentralWidget(panel)
+    window.resize(1200, 800)
+    qtbot.addWidget(window)
+    window.show()
+    qtbot.waitExposed(window)
+    yield panel
+    panel.close_views()
+    window.close()
+
+
+def wait_idle(qtbot, panel, timeout_ms: int) -> None:
+    qtbot.waitUntil(lambda: not panel.is_busy, timeout=timeout_ms)
+
+
+def demo_files(n: int = N_TRAIN) -> list[Path]:
+    files = sorted(DEMO.glob("*.vtk"))
+    if len(files) < n:
+        pytest.skip("demo training set missing (resources/demo/meshes)")
+    return files[:n]
+
+
+class GapMeter:
+    """Longest interval between ticks of a 20 ms GUI-thread timer: the event loop's latency."""
+
+    def __init__(self):
+        self.timer = QTimer()
+        self.timer.setInterval(20)
+        self.timer.timeout.connect(self._tick)
+        self.last = None
+        self.max_gap = 0.0
+
+    def _tick(self):
+        now = time.monotonic()
+        if self.last is not None:
+            self.max_gap = max(self.max_gap, now - self.last)
+        self.last = now
+
+    def __enter__(self):
+        self.timer.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.timer.stop()
+
+
+# ------------------------------------------------------------------------------------------
+# Forms generated from estimator signatures
+# ------------------------------------------------------------------------------------------
+
+
+def test_numpydoc_parameters_are_parsed():
+    doc = """Thing.
+
+    Parameters
+    ----------
+    alpha, beta : float, default 1
+        Two weights
+        on two lines.
+    mode : {'fast', "slow"}, default 'fast'
+
+    Returns
+    -------
+    x : int
+        Not a parameter.
+    """
+    parsed = parse_numpydoc_parameters(doc)
+    assert parsed["alpha"] == ("float, default 1", "Two weights on two lines.")
+    assert parsed["beta"] == parsed["alpha"]
+    assert parsed["mode"][0].startswith("{'fast'")
+    assert "x" not in parsed
+
+
+def test_forms_follow_estimator_signatures(qtbot):
+    for cls in (PCA, LSF, Varimax):
+        form = ParameterForm(cls)
+        qtbot.addWidget(form)
+        # defaults round-trip: the form's values build the same estimator as cls()
+        assert form.values() == cls().get_params()
+    form = ParameterForm(LSF)
+    qtbot.addWidget(form)
+    assert isinstance(form.editor("split"), QCheckBox)
+    assert isinstance(form.editor("max_iter"), QSpinBox)
+    assert isinstance(form.editor("lambda_"), QDoubleSpinBox)
+    assert isinstance(form.editor("graph"), QComboBox)
+    assert [form.editor("graph").itemText(i) for i in range(form.editor("graph").count())] == \
+        ["mesh", "euclidean"]
+    assert isinstance(form.editor("tol"), QLineEdit)  # 1e-5 is shown as typed
+    assert "Outer block-coordinate-descent" in form.editor("max_iter").toolTip()
+    form.editor("max_iter").setValue(7)
+    form.editor("graph").setCurrentText("euclidean")
+    form.editor("tol").setText("1e-3")
+    values = form.values()
+    assert (values["max_iter"], values["graph"], values["tol"]) == (7, "euclidean", 1e-3)
+    form.editor("tol").setText("-2")
+    with pytest.raises(ValueError, match="tol"):
+        form.values()
+    form.reset()
+    assert form.values() == LSF().get_params()
+    # None allowed: the spin box minimum stands for None
+    pca_form = ParameterForm(PCA)
+    qtbot.addWidget(pca_form)
+    assert pca_form.values()["n_factors"] is None
+    pca_form.editor("n_factors").setValue(3)
+    assert pca_form.values()["n_factors"] == 3
+
+
+# ------------------------------------------------------------------------------------------
+# Loading
+# ------------------------------------------------------------------------------------------
+
+
+def test_load_lists_vertex_counts_and_problems(panel, qtbot, tmp_path):
+    files = demo_files(2)
+    bad = tmp_path / "broken.vtk"
+    bad.write_text("this is not a VTK file\n")
+    empty = tmp_path / "notes.stl"
+    empty.write_bytes(b"")
+    panel.add_paths([str(files[0]), str(bad), str(empty)])
+    wait_idle(qtbot, panel, 20000)
+    assert [e.name for e in panel.state.entries] == [files[0].name, "broken.vtk", "notes.stl"]
+    good, broken, blank = (panel.mesh_list.topLevelItem(i) for i in range(3))
+    assert int(good.text(1)) == panel.state.entries[0].mesh.n_vertices > 1000
+    assert broken.text(1) == "" and broken.text(2)  # the problem is shown, nothing aborted
+    assert blank.text(2)
+    assert len(panel.usable_entries()) == 1
+    assert not panel.build_button.isEnabled()  # fewer than 3 usable meshes
+    # drag and drop of a file adds it too
+    mime = QMimeData()
+    mime.setUrls([QUrl.fromLocalFile(str(files[1]))])
+    drop = QDropEvent(QPointF(10, 10), Qt.CopyAction, mime, Qt.LeftButton, Qt.NoModifier)
+    panel.dropEvent(drop)
+    wait_idle(qtbot, panel, 20000)
+    assert [e.name for e in panel.usable_entries()] == [files[0].name, files[1].name]
+    # unticking a mesh leaves it out of training
+    panel.mesh_list.topLevelItem(0).setCheckState(0, Qt.Unchecked)
+    assert [e.name for e in panel.usable_entries()] == [files[1].name]
+
+
+# ------------------------------------------------------------------------------------------
+# Build, inspect, cancel, rebuild, save
+# ------------------------------------------------------------------------------------------
+
+
+def test_build_inspect_cancel_save(panel, qtbot, tmp_path):
+    files = demo_files()
+    panel.add_paths([str(f) for f in files])
+    wait_idle(qtbot, panel, 20000)
+    assert len(panel.usable_entries()) == N_TRAIN
+    panel.n_references.setValue(1)
+    panel.model_method.setCurrentText("pca")
+
+    # --- build through the panel, watching the event loop stay responsive ----------------
+    progress = []
+    panel.progress_bar.valueChanged.connect(progress.append)
+    start = time.monotonic()
+    with GapMeter() as gaps, qtbot.waitSignal(panel.model_built, timeout=180000) as built:
+        qtbot.mouseClick(panel.build_button, Qt.LeftButton)
+        assert not panel.build_button.isEnabled() and panel.cancel_button.isEnabled()
+    build_seconds = time.monotonic() - start
+    wait_idle(qtbot, panel, 5000)
+    model = built.args[0]
+    print(f"\nbuild through the panel ({N_TRAIN} demo meshes, PCA): {build_seconds:.1f} s; "
+          f"longest GUI-thread stall {1000 * gaps.max_gap:.0f} ms")
+    assert gaps.max_gap < 1.0
+    assert max(progress) == 1000 and len(progress) > 3
+    assert model.method == "pca" and model.n_factors == N_TRAIN - 1
+    assert sorted(model.source_meshes) == sorted(f.name for f in files)
+    assert panel.build_button.isEnabled() and not panel.cancel_button.isEnabled()
+    corr = panel.state.stages["correspondence"].result
+    align = panel.state.stages["alignment"].result
+    assert model.n_vertices == corr.meshes[0].n_vertices
+    # the model reproduces the aligned training shapes exactly (K - 1 PCA modes)
+    coef = np.linalg.lstsq(model.basis, (align.aligned - model.mean).reshape(N_TRAIN, -1).T,
+                           rcond=None)[0]
+    recon = model.mean + (model.basis @ coef).T.reshape(align.aligned.shape)
+    assert np.abs(recon - align.aligned).max() < 1e-6
+
+    # --- factor view: colour map and slider ----------------------------------------------
+    panel.tabs.setCurrentWidget(panel.factor_view)
+    view = panel.factor_view
+    assert view.factor_list.count() == model.n_factors
+    np.testing.assert_allclose(view.displayed_points(), model.mean)
+    view.factor_list.setCurrentRow(1)
+    view.slider.setValue(250)  # +2.5 SD
+    expected = model.mean + 2.5 * np.sqrt(model.coef_var[1]) * model.factors[1]
+    np.testing.assert_allclose(view.displayed_points(), expected, atol=1e-9)
+    moved = np.linalg.norm(view.displayed_points() - model.mean, axis=1)
+    assert moved.max() > 0.5  # mm: a visible deformation
+    np.testing.assert_allclose(view.actor.mapper.dataset.points, expected, atol=1e-5)
+    view.slider.setValue(-300)
+    np.testing.assert_allclose(view.displayed_points(),
+                               model.mean - 3 * np.sqrt(model.coef_var[1]) * model.factors[1],
+                               atol=1e-9)
+    magnitude = view.actor.mapper.dataset.point_data["mm at 1 SD"]
+    np.testing.assert_allclose(magnitude, np.sqrt(model.coef_var[1])
+                               * np.linalg.norm(model.factors[1], axis=1))
+
+    # --- samples -----------------------------------------------------------------------------
+    panel.tabs.setCurrentWidget(panel.samples_view)
+    samples = panel.samples_view.samples
+    assert samples is not None and samples.shape == (6, model.n_vertices, 3)
+    coef = np.linalg.lstsq(model.basis, (samples - model.mean).reshape(6, -1).T, rcond=None)[0]
+    np.testing.assert_allclose(model.mean + (model.basis @ coef).T.reshape(samples.shape),
+                               samples, atol=1e-8)  # samples lie in the model's span
+
+    # --- save and reload identical -----------------------------------------------------------
+    path = panel.save_model(tmp_path / "pca_model.npz")
+    loaded = load_model(path)
+    for name in ("mean", "factors", "coef_var", "faces", "world_transform"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(model, name))
+    assert loaded.method == model.method and loaded.source_meshes == model.source_meshes
+    with qtbot.waitSignal(panel.use_for_segmentation, timeout=1000) as used:
+        qtbot.mouseClick(panel.use_button, Qt.LeftButton)
+    assert used.args == [path]
+
+    # --- changing the model parameters reruns only the model stage -----------------------
+    panel.model_method.setCurrentText("lsf")
+    panel.current_form().editor("max_iter").setValue(100000)  # long enough to cancel
+    panel.current_form().editor("tol").setText("0")
+    assert panel.stale_stages() == ["model"]
+    with qtbot.waitSignal(panel.progress_bar.valueChanged, timeout=30000):
+        qtbot.mouseClick(panel.build_button, Qt.LeftButton)
+    qtbot.waitUntil(lambda: panel.progress_bar.value() > 0, timeout=60000)
+    assert panel._worker_stage == "model"
+    qtbot.wait(300)
+    cancel_at = time.monotonic()
+    qtbot.mouseClick(panel.cancel_button, Qt.LeftButton)
+    wait_idle(qtbot, panel, 5000)
+    latency = time.monotonic() - cancel_at
+    print(f"cancel latency during LSF fit: {1000 * latency:.0f} ms")
+    assert latency < 2.0
+    assert "cancelled" in panel.status_label.text()
+    assert panel.progress_bar.format() == "cancelled"
+    assert panel.build_button.isEnabled() and not panel.cancel_button.isEnabled()
+    assert panel.state.stages["correspondence"].result is corr  # earlier stages intact
+    assert panel.state.stages["alignment"].result is align
+    assert panel.state.model is model  # the last complete model is still shown
+    assert panel.stage_labels["model"].text().startswith("out of date")
+
+    # --- a quick method then builds from the cached stages only ----------------------------
+    panel.model_method.setCurrentText("varimax")
+    start = time.monotonic()
+    with qtbot.waitSignal(panel.model_built, timeout=30000) as built:
+        qtbot.mouseClick(panel.build_button, Qt.LeftButton)
+    wait_idle(qtbot, panel, 5000)
+    assert time.monotonic() - start < 10.0
+    assert built.args[0].method == "varimax"
+    assert panel.state.stages["correspondence"].result is corr
+    assert panel.stale_stages() == []
+
+
+def test_cancel_during_correspondence(panel, qtbot):
+    files = demo_files()
+    panel.add_paths([str(f) for f in files])
+    wait_idle(qtbot, panel, 20000)
+    panel.n_references.setValue(2)
+    with GapMeter() as gaps:
+        with qtbot.waitSignal(panel.progress_bar.valueChanged, timeout=30000):
+            qtbot.mouseClick(panel.build_button, Qt.LeftButton)
+        assert panel._worker_stage == "correspondence"
+        qtbot.wait(1500)  # the process pool is registering
+        assert panel.is_busy
+        cancel_at = time.monotonic()
+        qtbot.mouseClick(panel.cancel_button, Qt.LeftButton)
+        wait_idle(qtbot, panel, 5000)
+        latency = time.monotonic() - cancel_at
+    print(f"\ncancel latency during correspondence: {1000 * latency:.0f} ms; "
+          f"longest GUI-thread stall {1000 * gaps.max_gap:.0f} ms")
+    assert latency < 2.0
+    assert gaps.max_gap < 1.0
+    assert "Correspondence cancelled" in panel.status_label.text()
+    assert panel.state.stages == {} and panel.state.model is None
+    assert panel.build_button.isEnabled() and not panel.cancel_button.isEnabled()
+    assert panel.stage_labels["correspondence"].text() == "not run"
