@@ -81,7 +81,8 @@ class FitInfo:
     n_iter: int = 0
     converged: bool = False
     stop_reason: str = ""
-    seconds: float = float("nan")
+    seconds: float = float("nan")          # round trip: edit -> result applied
+    fit_seconds: float = float("nan")      # the fit alone, in the worker
     message: str = ""
 
 

@@ -169,6 +169,8 @@ class MainWindow(QMainWindow):
         self._create_toolbar()
         self._create_side_panel()
 
+        if self.workspace.volume_view is not None:
+            self.workspace.volume_view.defer = lambda: self.runner.is_busy
         self.tabs = QTabWidget()
         self.tabs.setDocumentMode(True)
         self.tabs.addTab(self.workspace, "Segment")
@@ -586,7 +588,7 @@ class MainWindow(QMainWindow):
         self.refit_times.append(elapsed)
         self.state.set_fit_info(FitInfo(residual_mm=float(result.residual_mm), n_iter=int(result.n_iter),
                                         converged=bool(result.converged), stop_reason=result.stop_reason,
-                                        seconds=elapsed))
+                                        seconds=elapsed, fit_seconds=float(result.elapsed_s)))
         self.fit_label.setText(f"residual {result.residual_mm:.2f} mm, {result.n_iter} it, "
                                f"{1000 * elapsed:.0f} ms")
         self.refit_applied.emit(result)

@@ -213,10 +213,12 @@ class SliceSampler:
         n_v = max(int(np.floor((v_hi - v_lo) / step)) + 1, 1)
         us = u_lo + step * np.arange(n_u)
         vs = v_hi - step * np.arange(n_v)
-        # world = U u + V v + depth n, then to voxel indices
-        grid = (us[None, :, None] * axes[0] + vs[:, None, None] * axes[1] + depth * axes[2])
-        ijk = grid.reshape(-1, 3) @ self.inverse[:3, :3].T + self.inverse[:3, 3]
-        values = ndimage.map_coordinates(self.data, ijk.T, order=1, mode="constant", cval=np.nan,
+        # voxel index = inverse(U u + V v + depth n), affine in (U, V): three broadcast planes
+        lin, off = self.inverse[:3, :3], self.inverse[:3, 3]
+        base, along_u, along_v = lin @ (depth * axes[2]) + off, lin @ axes[0], lin @ axes[1]
+        coords = [(base[c] + along_v[c] * vs[:, None] + along_u[c] * us[None, :]).reshape(-1)
+                  for c in range(3)]
+        values = ndimage.map_coordinates(self.data, coords, order=1, mode="constant", cval=np.nan,
                                          prefilter=False, output=np.float32)
         data = values.reshape(n_v, n_u)
         inside = bool(np.any(np.isfinite(data)))

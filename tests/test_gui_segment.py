@@ -154,9 +154,9 @@ def test_refit_moves_the_surface_towards_clicked_points(window, qtbot):
             click(view, view.world_to_screen(p))
             clicked += 1
     assert len(window.state.points) == clicked
-    with qtbot.waitSignal(window.refit_applied, timeout=20000):
-        pass
-    window.wait_for_refit(20000)
+    applied = []
+    window.refit_applied.connect(applied.append)
+    qtbot.waitUntil(lambda: bool(applied) and not window.runner.is_busy, timeout=20000)
     # distance from the true surface's vertices to the fitted surface (sliding along the
     # surface is free for a fit to contour points, so vertex-to-vertex distances are not used)
     after = surface_distance(truth, window.state.surface_vertices(), faces).mean()

@@ -21,13 +21,32 @@ def _square(x, progress=None):
 
 def test_worker_delivers_result_and_progress(qtbot):
     worker = Worker(_square, 7)
-    seen = []
+    seen, results = [], []
     worker.progress.connect(lambda f, m: seen.append((f, m)))
-    with qtbot.waitSignal(worker.succeeded, timeout=5000) as blocker:
+    worker.succeeded.connect(results.append)
+    with qtbot.waitSignal(worker.done, timeout=5000):
         worker.start()
-    assert blocker.args == [49]
+    qtbot.waitUntil(lambda: results == [49], timeout=5000)
     worker.wait()
     assert worker.result == 49 and worker.error is None
+    assert [f for f, _ in seen] == pytest.approx([0, 1 / 3, 2 / 3])
+
+
+def test_many_emits_do_not_exhaust_true(qtbot):
+    """Regression: PySide6 6.12.0 emit() leaks a reference to True per call (app/qtfix.py)."""
+    import sys
+
+    import app  # noqa: F401 - installs the guard
+    from PySide6.QtCore import QObject, Signal
+
+    class Emitter(QObject):
+        ping = Signal()
+
+    emitter = Emitter()
+    emitter.ping.connect(lambda: None)
+    for _ in range(20000):          # more than True's natural reference count
+        emitter.ping.emit()
+    assert sys.getrefcount(True) > 1000
 
 
 def test_worker_reports_value_error_as_one_line(qtbot):

@@ -91,7 +91,8 @@ class FitPanel(QWidget):
             state = "converged" if info.converged else "stopped"
             lines.append(f"{state}: {info.stop_reason}" if info.stop_reason else state)
             if not math.isnan(info.seconds):
-                lines.append(f"round trip {1000 * info.seconds:.0f} ms")
+                lines.append(f"fit {1000 * info.fit_seconds:.0f} ms, "
+                             f"edit to display {1000 * info.seconds:.0f} ms")
         if info.message:
             lines.append(f"<span style='color:#c0392b'>{info.message}</span>")
         if not lines:

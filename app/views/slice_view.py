@@ -29,7 +29,7 @@ from core.slicing import intersect_plane
 CONTOUR_COLOR = QColor(255, 170, 0)          # model cross-section (orange)
 POINT_COLOR = QColor(0, 230, 255)            # contour points on this slice (cyan)
 POINT_NEAR_COLOR = QColor(0, 230, 255, 90)   # points one slice away
-CROSSHAIR_COLOR = QColor(80, 200, 80, 170)
+CROSSHAIR_COLOR = QColor(60, 200, 60, 150)
 LABEL_COLOR = QColor(255, 255, 120)
 VIEW_COLORS = {"axial": QColor(220, 60, 60), "coronal": QColor(60, 170, 60),
                "sagittal": QColor(230, 200, 40)}
@@ -102,6 +102,7 @@ class SliceView(QWidget):
         if self.state.sampler is None:
             self._slice, self._qimage = None, None
             return
+        self._depth_range = self.state.sampler.depth_range(self.frame)
         self._slice = self.state.sampler.sample(self.frame, self.depth)
         self._rebuild_image()
 
@@ -112,7 +113,8 @@ class SliceView(QWidget):
         grey = np.ascontiguousarray(grey)
         h, w = grey.shape
         image = QImage(grey.data, w, h, w, QImage.Format.Format_Grayscale8)
-        self._qimage = image.copy()          # own the pixels (grey goes out of scope)
+        # own the pixels (grey goes out of scope); RGB32 is blitted without per-paint conversion
+        self._qimage = image.convertToFormat(QImage.Format.Format_RGB32)
 
     def _recompute_contours(self) -> None:
         vertices = self.state.surface_vertices()
@@ -174,8 +176,8 @@ class SliceView(QWidget):
         (x0, y0), (x1, y1) = self.plane_to_screen(np.array([[left, top], [right, bottom]]))
         painter.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform, False)
         painter.drawImage(QRectF(x0, y0, x1 - x0, y1 - y0), self._qimage)
-        painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
         self._paint_crosshair(painter)
+        painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
         self._paint_contours(painter)
         self._paint_points(painter)
         self._paint_labels(painter)
@@ -183,13 +185,10 @@ class SliceView(QWidget):
 
     def _paint_crosshair(self, painter: QPainter) -> None:
         x, y = self.world_to_screen(self.state.crosshair)
-        pen = QPen(CROSSHAIR_COLOR, 1, Qt.PenStyle.DashLine)
-        painter.setPen(pen)
+        painter.setPen(QPen(CROSSHAIR_COLOR, 1))
         gap = 8
-        painter.drawLine(QPointF(0, y), QPointF(x - gap, y))
-        painter.drawLine(QPointF(x + gap, y), QPointF(self.width(), y))
-        painter.drawLine(QPointF(x, 0), QPointF(x, y - gap))
-        painter.drawLine(QPointF(x, y + gap), QPointF(x, self.height()))
+        painter.drawLines([QLineF(0, y, x - gap, y), QLineF(x + gap, y, self.width(), y),
+                           QLineF(x, 0, x, y - gap), QLineF(x, y + gap, x, self.height())])
 
     def _paint_contours(self, painter: QPainter) -> None:
         if self._segments_uv is None:
@@ -240,7 +239,7 @@ class SliceView(QWidget):
         painter.setFont(font)
         painter.setPen(VIEW_COLORS[self.frame_name])
         axis = "xyz"[int(np.argmax(np.abs(self.frame.n)))]
-        lo, hi = self.state.sampler.depth_range(self.frame)
+        lo, hi = self._depth_range
         index = int(round((self.depth - lo) / self._step())) + 1
         total = int(round((hi - lo) / self._step())) + 1
         painter.drawText(QRectF(m, m, w, 20), flags.AlignLeft | flags.AlignTop,

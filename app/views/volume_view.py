@@ -8,6 +8,8 @@ short single-shot timer so that scrolling or refits never queue several renders.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pyvista as pv
 from PySide6.QtCore import QTimer
@@ -19,6 +21,7 @@ from app.state import FRAME_NAMES, SegmentationState
 from core.planes import FRAMES, window_to_uint8
 
 SURFACE_COLOR = (1.0, 0.67, 0.0)
+MAX_DEFER_S = 0.5
 POINT_COLOR = (0.0, 0.9, 1.0)
 
 
@@ -37,13 +40,17 @@ class VolumeView(QWidget):
         self._surface_actor = None
         self._surface_mesh: pv.PolyData | None = None
         self._points_actor = None
+        self._points_mesh: pv.PolyData | None = None
+        self._plane_keys: dict[str, tuple] = {}
+        self.defer = lambda: False      # e.g. "a refit is running": postpone non-urgent renders
+        self._pending_since: float | None = None
         self._plane_actors: dict[str, object] = {}
         self._plane_meshes: dict[str, pv.PolyData] = {}
         self._dirty: set[str] = set()
         self._camera_set = False
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
-        self._timer.setInterval(30)
+        self._timer.setInterval(40)
         self._timer.timeout.connect(self._flush)
         state.image_changed.connect(lambda: self._mark("planes", "camera"))
         state.crosshair_changed.connect(lambda: self._mark("planes"))
@@ -54,6 +61,8 @@ class VolumeView(QWidget):
         self._mark("planes", "surface", "points", "camera")
 
     def _mark(self, *what: str) -> None:
+        if self._pending_since is None:
+            self._pending_since = time.perf_counter()
         self._dirty.update(what)
         if not self._timer.isActive():
             self._timer.start()
@@ -61,12 +70,20 @@ class VolumeView(QWidget):
     def flush(self) -> None:
         """Apply pending updates and render now (tests, screenshots)."""
         self._timer.stop()
+        self._pending_since = -1e9          # no deferral
         self._flush()
 
     def _flush(self) -> None:
-        dirty, self._dirty = self._dirty, set()
         if getattr(self.plotter, "_closed", False):
             return
+        # A render on a software GL stack costs tens of ms and holds the GIL: while a refit is
+        # running, wait for its result (at most MAX_DEFER_S) instead of rendering twice.
+        waited = time.perf_counter() - (self._pending_since or time.perf_counter())
+        if self.defer() and waited < MAX_DEFER_S:
+            self._timer.start()
+            return
+        dirty, self._dirty = self._dirty, set()
+        self._pending_since = None
         if "planes" in dirty:
             self._update_planes()
         if "surface" in dirty:
@@ -83,6 +100,10 @@ class VolumeView(QWidget):
             return
         for name in FRAME_NAMES:
             frame = FRAMES[name]
+            key = (frame.depth(state.crosshair), state.window, state.level, id(state.sampler))
+            if self._plane_keys.get(name) == key:
+                continue
+            self._plane_keys[name] = key
             sl = state.sampler.sample(frame, frame.depth(state.crosshair))
             grey = window_to_uint8(sl.data, state.window, state.level)
             left, right, top, bottom = sl.extent()
@@ -127,10 +148,14 @@ class VolumeView(QWidget):
         if len(pts) == 0:
             if self._points_actor is not None:
                 self.plotter.remove_actor(self._points_actor)
-                self._points_actor = None
+                self._points_actor, self._points_mesh = None, None
             return
+        if self._points_actor is not None and self._points_mesh is not None:
+            self._points_mesh.copy_from(points_polydata(pts.xyz))
+            return
+        self._points_mesh = points_polydata(pts.xyz)
         self._points_actor = self.plotter.add_mesh(
-            points_polydata(pts.xyz), color=POINT_COLOR, point_size=9,
+            self._points_mesh, color=POINT_COLOR, point_size=9,
             render_points_as_spheres=True, name="points", reset_camera=False)
 
     def reset_camera(self) -> None:
