@@ -734,47 +734,51 @@ class MainWindow(QMainWindow):
 
     # -- sessions and recovery ----------------------------------------------------------------
     def session_object(self):
-        from core import session as sessions
+        """The current work as a :class:`core.session.Session`."""
+        from core.session import Session
 
         state = self.state
-        return sessions.Session(
-            image=str(state.image_path) if state.image_path else None,
-            model=str(state.model_path) if state.model_path else None,
-            points=state.points.xyz.copy(),
-            point_slices=[[FRAME_NAMES[int(f)], float(d)] for f, d in zip(state.points.frame, state.points.depth)],
+        pts = state.points
+        return Session(
+            image_path=state.image_path, model_path=state.model_path,
+            points=pts.xyz.copy(), normals=np.nan_to_num(pts.normals(), nan=0.0) if len(pts) else None,
+            point_slices=[(FRAME_NAMES[int(f)], float(d)) for f, d in zip(pts.frame, pts.depth)],
             coef=None if state.coef is None else state.coef.copy(),
             pose=None if state.pose is None else state.pose.copy(),
-            crosshair=state.crosshair.copy(),
-            window=[state.window, state.level],
-            fit=self.fit_panel.settings,
+            fit=self.fit_panel.settings, window=(state.window, state.level),
+            crosshair=state.crosshair.copy(), info={"written_by": "ssm-studio"},
         )
 
-    def apply_session(self, session, base: Path | None = None) -> None:
-        if session.image:
-            self.load_image(session.image)
-        if session.model:
-            self.load_model(session.model, coef=session.coef, pose=session.pose)
-        points = Points()
-        slices = getattr(session, "point_slices", None) or []
-        for i, xyz in enumerate(np.asarray(session.points if session.points is not None else [], float).reshape(-1, 3)):
-            if i < len(slices):
-                frame, depth = slices[i]
-            else:
-                frame, depth = "axial", float(xyz[2])
-            points = points.append(xyz, FRAME_NAMES.index(frame), depth)
-        fit = getattr(session, "fit", None) or {}
+    def apply_session(self, session) -> None:
+        """Restore image, model, fit, points, window and crosshair from a Session."""
+        self.runner.cancel()
+        if session.image_path is not None:
+            self.load_image(session.image_path)
+        if session.model_path is not None:
+            self.load_model(session.model_path, coef=session.coef, pose=session.pose)
+        fit = dict(session.fit or {})
         self.fit_panel.blockSignals(True)
         try:
             self.fit_panel.set_settings(fit.get("method"), fit.get("pose"), fit.get("prior_weight"))
         finally:
             self.fit_panel.blockSignals(False)
+        xyz = np.asarray(session.points, dtype=np.float64).reshape(-1, 3)
+        slices = session.point_slices or [("axial", float(p[2])) for p in xyz]
+        points = Points()
+        for p, (frame, depth) in zip(xyz, slices):
+            name = frame if isinstance(frame, str) else ("sagittal", "coronal", "axial")[int(frame)]
+            points = points.append(p, FRAME_NAMES.index(name), float(depth))
         self.state.points = points
-        self.state.points_changed.emit()
-        if getattr(session, "crosshair", None) is not None:
+        self.last_fit = None
+        self.state.points_changed.disconnect(self._on_points_changed)
+        try:
+            self.state.points_changed.emit()    # redraw, but no refit: the stored fit is shown
+        finally:
+            self.state.points_changed.connect(self._on_points_changed)
+        if session.window is not None:
+            self.state.set_window(*session.window)
+        if session.crosshair is not None:
             self.state.set_crosshair(session.crosshair)
-        window = getattr(session, "window", None)
-        if window:
-            self.state.set_window(*window)
         self.state.clear_history()
         self._update_actions()
 
@@ -797,6 +801,9 @@ class MainWindow(QMainWindow):
             if not chosen:
                 return False
             target = Path(chosen)
+        if self.state.image_path is None:
+            self.show_error("nothing to save: open an image first")
+            return False
         ok = self._guarded(lambda: sessions.save_session(target, self.session_object()))
         if ok:
             self.session_path = target
@@ -837,7 +844,7 @@ class MainWindow(QMainWindow):
             def ask(text: str) -> bool:
                 return QMessageBox.question(self, "Recover unsaved work?", text) == \
                     QMessageBox.StandardButton.Yes
-        n_points = 0 if session.points is None else len(np.asarray(session.points).reshape(-1, 3))
+        n_points = len(np.asarray(session.points).reshape(-1, 3))
         text = (f"SSM Studio did not close normally last time. Restore the unsaved session "
                 f"({n_points} contour point(s))?")
         if not ask(text):
