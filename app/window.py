@@ -862,6 +862,14 @@ class MainWindow(QMainWindow):
     def _on_tab(self, index: int) -> None:
         if self.tabs.widget(index) is self._builder_placeholder:
             self.ensure_builder()
+        self._show_segment_controls(self.tabs.currentWidget() is self.workspace)
+
+    def _show_segment_controls(self, visible: bool) -> None:
+        """The side panel and the drawing tools belong to the Segment tab only."""
+        self.side_dock.setVisible(visible)
+        for act in (*self.tool_actions.values(), self.act_undo, self.act_redo, self.act_place,
+                    self.act_reset_views):
+            act.setVisible(visible)
 
     def ensure_builder(self):
         if self.builder is not None:
@@ -879,9 +887,11 @@ class MainWindow(QMainWindow):
         self.tabs.insertTab(index, self.builder, "Build model")
         self.tabs.setCurrentIndex(index)
         self.tabs.blockSignals(False)
+        self._show_segment_controls(self.tabs.currentWidget() is self.workspace)
         return self.builder
 
     def _use_built_model(self, path: str) -> None:
+        """The builder's "Use for segmentation": load that model here and switch tabs."""
         self.tabs.setCurrentWidget(self.workspace)
         self._guarded(lambda: self.load_model(path))
 

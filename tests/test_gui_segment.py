@@ -292,3 +292,20 @@ def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
     window.load_model(path)
     assert window.state.model.n_vertices == load_model(path).n_vertices
     assert len(window.factors_panel.sliders) == 3
+
+
+def test_builder_tab_is_created_lazily_and_hands_over_its_model(window, qtbot, tmp_path):
+    pytest.importorskip("app.panels.builder")
+    from core.io import save_model
+    from core.simulated_user import pca_model, synthetic_shapes
+
+    assert window.builder is None and window.tabs.count() == 2
+    window.tabs.setCurrentIndex(1)
+    assert window.builder is not None and window.tabs.currentWidget() is window.builder
+    assert not window.side_dock.isVisible()
+    shapes, faces = synthetic_shapes(5, subdivisions=2, seed=2)
+    path = tmp_path / "built.npz"
+    save_model(path, pca_model(shapes + window.state.crosshair, faces, n_factors=2))
+    window.builder.use_for_segmentation.emit(str(path))
+    assert window.tabs.currentWidget() is window.workspace and window.side_dock.isVisible()
+    assert window.state.model_path == path and window.state.model.n_factors == 2
