@@ -339,6 +339,19 @@ def _cache(model: ShapeModel) -> _ModelCache:
     return cached
 
 
+def _rotation_log(rot: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) of a rotation matrix (inverse of :func:`_rodrigues`)."""
+    cos = np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)
+    angle = float(np.arccos(cos))
+    skew = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    if angle < 1e-8:
+        return 0.5 * skew
+    if np.pi - angle < 1e-6:  # near 180 degrees: axis from the symmetric part
+        axis = np.sqrt(np.maximum((np.diag(rot) + 1.0) / 2.0, 0.0))
+        return angle * axis
+    return angle / (2.0 * np.sin(angle)) * skew
+
+
 def _procrustes(wj: np.ndarray, ybar: np.ndarray, z: np.ndarray,
                 with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
     """Weighted similarity (Umeyama) with y ~ s R z + t from per-vertex sums (Eq. 3)."""
@@ -364,6 +377,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                xtol: float = 1e-2, outlier_weight: float = 0.0, anisotropy: float = 10.0,
                normal_weight: float = 2.0, n_neighbors: int = 6, max_neighbors: int = 48, min_sigma: float = 0.3,
                max_distance_factor: float = 1.0, pose_first: bool = False,
+               pose_sd: tuple[float, float, float] | None = (10.0, 3.0, 0.1),
                callback: Callable[[int, float], None] | None = None) -> FitResult:
     """Fit ``model`` to user points by EM on the model-centred Gaussian mixture.
 
@@ -396,6 +410,11 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         more while s2 is large (about those within 1.5 sigma), at most ``max_neighbors``.
     min_sigma : float
         Floor of the GMM standard deviation (mm), about the expected point noise.
+    pose_sd : (rotation deg, translation mm, log scale), optional
+        Standard deviations of a Gaussian prior on the fitted pose's deviation from the
+        initial placement (``model.world_transform``): it keeps an underdetermined fit (one
+        or two parallel contours) from sliding or scaling away. GMM methods only (the pose
+        step is then the linearised one, also for ``gmm-iso``).
     pose_first : bool
         On a cold start, run pose-only EM to convergence before fitting the shape.
     max_distance_factor : float
@@ -440,6 +459,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
 
     aniso = method == "gmm-aniso"
     icp = method == "icp"
+    if icp:
+        pose_sd = None  # the ICP baseline keeps its closed-form Procrustes step
     eta = anisotropy if aniso else 1.0
     w_out = 0.0 if icp else outlier_weight
     k_near = 1 if icp else min(n_neighbors, n_vertices)
@@ -509,6 +530,10 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         d = mahalanobis(pairs, xv, nv)
     # Cold start with a pose to fit: pose-only EM first (the shape would otherwise absorb
     # the misalignment while s2 is large), then pose and shape together.
+    centre0 = cache.mean.mean(axis=0)
+    if pose_sd is not None:
+        rot_sd, trans_sd, log_scale_sd = (float(v) for v in pose_sd)
+        pose_precision = 1.0 / np.array([log_scale_sd] + [np.deg2rad(rot_sd)] * 3 + [trans_sd] * 3) ** 2
     shape_active = not pose_first or init is not None or pose == "none" or n_factors == 0
     log_c = (np.log(n_vertices * w_out / ((1.0 - w_out) * n_points)) if w_out > 0 else -np.inf)
     log_norm_const = 0.5 * np.log(eta)
@@ -569,7 +594,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
 
         # M-step, pose (Eq. 3).
         if pose != "none":
-            if not aniso:
+            if not aniso and pose_sd is None:
                 scale_new, rot, trans = _procrustes(wj, ybar, zv, with_scale=pose == "similarity")
                 scale = scale_new if pose == "similarity" else 1.0
             else:
@@ -586,10 +611,33 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                 if pose == "rigid":
                     jac = jac[:, :, 1:]
                 resid = ybar - wj[:, None] * xj  # sum_i p_ij (y_i - x_j)
-                wjac = jac + (eta - 1.0) * nv[:, :, None] * np.einsum("jc,jcq->jq", nv, jac)[:, None, :]
+                if aniso:
+                    wjac = jac + (eta - 1.0) * nv[:, :, None] * np.einsum("jc,jcq->jq", nv, jac)[:, None, :]
+                else:
+                    wjac = jac
                 n_par = jac.shape[2]
                 lhs = (jac * wj[:, None, None]).reshape(-1, n_par).T @ wjac.reshape(-1, n_par)
                 rhs = wjac.reshape(-1, n_par).T @ resid.reshape(-1)
+                if pose_sd is not None:
+                    # Gaussian prior on the deviation from the initial placement: log scale,
+                    # rotation vector, and the displacement of the model's centre (Eq. 6),
+                    # linearised like the data term and weighted by s2 (the data term's 1/s2).
+                    q0 = scale * rot @ centre0 + trans - centre
+                    jac_p = np.zeros((7, 7))
+                    jac_p[0, 0] = 1.0
+                    jac_p[1:4, 1:4] = np.eye(3)
+                    jac_p[4:, 0] = q0
+                    jac_p[4:, 1:4] = -np.array([[0, -q0[2], q0[1]], [q0[2], 0, -q0[0]], [-q0[1], q0[0], 0]])
+                    jac_p[4:, 4:] = np.eye(3)
+                    r0 = np.concatenate([[np.log(scale)], _rotation_log(rot),
+                                         scale * rot @ centre0 + trans - centre0])
+                    if pose == "rigid":
+                        jac_p = jac_p[1:, 1:]
+                        r0, prec = r0[1:], pose_precision[1:]
+                    else:
+                        prec = pose_precision
+                    lhs += sigma2 * (jac_p.T * prec) @ jac_p
+                    rhs -= sigma2 * (jac_p.T * prec) @ r0
                 lhs += 1e-9 * np.trace(lhs) * np.eye(len(lhs))
                 theta = np.linalg.solve(lhs, rhs)
                 if pose == "rigid":
