@@ -8,6 +8,7 @@ the model x_j(a) = mean_j + Phi_j a (N vertices, M factors), EM minimises the ne
 posterior
 
     E(a, T, s2) = - sum_i log( (1 - w)/N sum_j g_j(y_i) + w/P ) + (lambda/2) a^T diag(var)^-1 a
+                  [+ (1/2) |dev(T)|^2_pose_precision, the optional pose prior, Eq. 6]
 
     g_j(y) = sqrt(det W_j) (2 pi s2)^(-3/2) exp(-(y - T x_j)^T W_j (y - T x_j) / (2 s2))  # Eq. 1
 
@@ -22,8 +23,11 @@ where w is the uniform outlier weight and W_j the precision of component j:
 
 E-step (Eq. 2): p_ij = g_j(y_i) / (sum_k g_k(y_i) + c), c = (N w) / (P (1 - w)).
 The sum over j is truncated to the K nearest model vertices of each user point (a
-``scipy.spatial.cKDTree`` on the current vertices), so one iteration costs O((N + P K) log N)
-instead of O(N P).
+``scipy.spatial.cKDTree`` on the current vertices; K grows while s2 is large, about the
+vertices within 1.5 sigma, up to ``max_neighbors``), so one iteration costs
+O((N + P K) log N) instead of O(N P). The candidate pairs are reused until some vertex has
+moved a quarter of the mean edge length (every iteration for ICP); responsibilities below
+1e-4 are dropped.
 
 User normals (optional, e.g. contour tangent x slice normal, pointing outwards) multiply the
 E-step weight by exp(kappa (u_i . n_j - 1)): a point is unlikely to belong to a part of the
@@ -34,10 +38,14 @@ M-step, with the responsibilities fixed, reduced to per-vertex sums w_j = sum_i 
 ybar_j = sum_i p_ij y_i (so it costs O(|J| M^2) for the |J| vertices with weight):
 
 - pose: for W_j = I the weighted Procrustes problem has the closed form of Umeyama (SVD of
-  the weighted cross-covariance, Eq. 3); for anisotropic W_j there is none, and we take one
-  Gauss-Newton step of the point-to-plane-like energy in the similarity parameters (scale,
-  small rotation via Rodrigues, translation), linearised at the current pose (documented
-  generalised EM: the energy decreases, the step is not the exact minimiser);
+  the weighted cross-covariance, Eq. 3; used by ICP, and by gmm-iso without a pose prior);
+  for anisotropic W_j there is none, and we take one Gauss-Newton step of the
+  point-to-plane-like energy in the similarity parameters (scale, small rotation via
+  Rodrigues, translation), linearised at the current pose (a generalised EM step: the
+  energy decreases, the step is not the exact minimiser). With ``pose_sd`` (default 10 deg,
+  3 mm, 0.1 in log scale) a Gaussian prior on the deviation from the initial placement is
+  added to that step (Eq. 6): it only matters in directions the points leave free (one
+  or two parallel contours), where it keeps the model from sliding or scaling away;
 - shape (Eq. 4): with the points mapped to the model frame, y'_i = R^T (y_i - t) / s and
   s2' = s2 / s^2,
       (sum_j w_j Phi_j^T W'_j Phi_j + lambda s2' diag(1/var)) a = sum_j Phi_j^T W'_j (ybar'_j - w_j mean_j)
@@ -47,9 +55,14 @@ ybar_j = sum_i p_ij y_i (so it costs O(|J| M^2) for the |J| vertices with weight
   the fit over-fits the few points).
 
 Convergence: relative change of E below ``tol``, or the largest vertex displacement in one
-iteration below ``xtol`` mm. A warm start (``init``: a previous :class:`FitResult`) starts from
-its pose, coefficients and variance, raised to cover every current point's distance to the
-previous surface (so a newly added point is not taken for an outlier).
+iteration below ``xtol`` mm (with a small change of E). A warm start (``init``: a previous
+:class:`FitResult`) starts from its pose, coefficients and variance; with an outlier term the
+variance is raised to cover every point's distance to the previous surface (so a newly
+placed point is not taken for an outlier). The default ``outlier_weight`` is 0: the user's
+clicks are deliberate, and without an outlier term no point can lose its weight; set it > 0
+for imported point clouds. ``pose_first`` (cold start only) fits the pose alone before the
+shape, which helps for large initial misalignments of dense data and hurts on sparse
+contours (so it is off by default).
 
 The reported ``pose`` is the full model frame -> world transform: ``D @ model.world_transform``
 with D the fitted world similarity (identity for ``pose="none"``).
@@ -85,7 +98,8 @@ class FitResult:
     vertices : (N, 3) float ndarray
         Fitted surface in world coordinates (mm).
     objective : list of float
-        Negative log posterior E (Eq. 1) at the start of each iteration, and after the last.
+        Negative log posterior E (Eq. 1, plus the pose prior of Eq. 6 when used) at the start
+        of each iteration, and after the last.
     n_iter : int
         EM iterations run.
     converged : bool
@@ -563,6 +577,10 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
             loglik = comp
             denom = s
         prior = 0.5 * prior_weight * float(coef @ (cache.inv_var * coef))
+        if pose_sd is not None and pose != "none":  # Eq. 6, the pose prior
+            dev = np.concatenate([[np.log(scale)], _rotation_log(rot),
+                                  scale * rot @ centre0 + trans - centre0])
+            prior += 0.5 * float((pose_precision * dev**2).sum())
         resp = ex / denom
         resp[resp < 1e-4] = 0.0  # negligible pairs: fewer vertices in the M-step
         return float(-loglik.sum() + prior), resp
