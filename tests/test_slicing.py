@@ -78,3 +78,28 @@ def test_sample_polyline_equal_steps(cube):
     assert np.all(step <= 0.5 + 1e-9) and np.median(step) == pytest.approx(0.5)
     assert np.allclose(np.linalg.norm(tangents, axis=1), 1.0)
     assert np.allclose(tangents[:, 2], 0.0)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.3])
+def test_simulated_user_draws_in_plane_contours_with_outward_normals(sphere, noise):
+    from core.simulated_user import simulate_user
+
+    v, f = sphere
+    user = simulate_user(v, f, 6, orientations="mixed", spacing=1.0, noise=noise,
+                         rng=np.random.default_rng(0))
+    assert len(user.planes) == 6 and set(np.unique(user.contour)) == set(range(6))
+    normals_of_plane = np.array([n for _, n in user.planes])
+    origins = np.array([o for o, _ in user.planes])
+    # every point lies exactly in its slice plane (noise is in-plane)
+    offset = np.einsum("ij,ij->i", user.points - origins[user.contour], normals_of_plane[user.contour])
+    assert np.abs(offset).max() < 1e-9
+    # on the sphere (up to chord error and noise); about 1 point per mm of contour
+    r = np.linalg.norm(user.points, axis=1)
+    assert np.abs(r - 2.0).max() < 0.02 + 4 * noise
+    # unit, in-plane, outward normals: the in-plane radial direction
+    assert np.allclose(np.linalg.norm(user.normals, axis=1), 1.0)
+    assert np.abs(np.einsum("ij,ij->i", user.normals, normals_of_plane[user.contour])).max() < 1e-9
+    radial = user.points - origins[user.contour]
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    agreement = np.einsum("ij,ij->i", user.normals, radial)
+    assert np.median(agreement) > (0.999 if noise == 0 else 0.8) and agreement.min() > (0.99 if noise == 0 else -0.5)
