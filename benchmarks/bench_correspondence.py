@@ -60,16 +60,20 @@ def _sphere_mesh(n_points: int, rotation: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def bean(u: np.ndarray) -> np.ndarray:
-    """Base shape: a bent, tapered ellipsoid (caudate-like, ~36 x 16 x 12 mm) from unit vectors."""
+    """Base shape from unit vectors: a bent, tapered ellipsoid with a one-sided bulge.
+
+    About 36 x 20 x 15 mm, caudate-like, and without rotational symmetry, so that its pose
+    is well defined.
+    """
     x = 18.0 * u[:, 0]
     taper = 1.0 - 0.25 * u[:, 0]
-    y = 8.0 * u[:, 1] * taper + 0.02 * x ** 2
-    z = 6.0 * u[:, 2] * taper
+    y = 8.0 * u[:, 1] * taper + 0.035 * x ** 2
+    z = 6.0 * u[:, 2] * taper + 3.0 * np.exp(-((x - 5.0) ** 2) / 50.0) * (1.0 + u[:, 1]) / 2.0
     return np.column_stack([x, y, z])
 
 
-def smooth_deformation(rng: np.random.Generator, n_bumps: int = 6, amplitude: float = 2.0,
-                       width: float = 8.0):
+def smooth_deformation(rng: np.random.Generator, n_bumps: int = 6, amplitude: float = 1.5,
+                       width: float = 9.0):
     """A random smooth displacement field of R^3 (Gaussian RBFs) plus anisotropic scaling."""
     centres = bean(rng.normal(size=(n_bumps, 3)) / 1.7)
     vectors = rng.normal(size=(n_bumps, 3)) * amplitude

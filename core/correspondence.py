@@ -74,10 +74,12 @@ DEFAULT_CPD_PARAMS = {
     "lam": 2.0,               # motion coherence regularisation (lambda)
     "tolerance": 1e-5,        # relative change of the CPD objective to stop at
     "max_iterations": 100,    # nonrigid CPD iterations
-    "rigid_iterations": 40,   # rigid CPD iterations (per start)
-    "rigid_points": 600,      # subsample size for the rigid pose
-    "low_rank": 150,          # rank of the kernel approximation (None: exact)
-    "pose_starts": "auto",    # "auto" (identity, then principal axes if poor), "identity", "pca"
+    "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
+    "rigid_points": 500,      # subsample size for the rigid pose
+    "cpd_points": 1000,       # subsample size for nonrigid CPD (None: all points); the fitted
+                              # displacement field then moves every reference vertex
+    "low_rank": 80,           # rank of the kernel approximation (None: exact)
+    "pose_starts": "auto",    # "auto" (identity + principal axes), "identity", "pca"
     "fairing_iterations": 10,
     "fairing_step": 0.5,
 }
@@ -105,6 +107,26 @@ class CPDResult:
     sigma2: float
     n_iter: int
     matrix: np.ndarray | None = None
+    source: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    beta: float | None = None
+
+    def warp(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
+        """Apply the fitted transformation to other points (P, 3).
+
+        Rigid/affine: the matrix. Nonrigid: the continuous displacement field
+        v(z) = sum_m G(z, y_m) w_m of TPAMI 2010 Eq. 19, G(z, y) = exp(-|z - y|^2 / 2 beta^2).
+        """
+        points = np.asarray(points, dtype=np.float64)
+        if self.matrix is not None:
+            return points @ self.matrix[:3, :3].T + self.matrix[:3, 3]
+        out = np.empty_like(points)
+        for start in range(0, len(points), chunk):
+            z = points[start:start + chunk]
+            d2 = np.maximum((z ** 2).sum(axis=1)[:, None] + (self.source ** 2).sum(axis=1)[None, :]
+                            - 2.0 * z @ self.source.T, 0.0)
+            out[start:start + chunk] = z + np.exp(-d2 / (2.0 * self.beta ** 2)) @ self.weights
+        return out
 
 
 def _rustcpd():
@@ -135,20 +157,22 @@ def cpd_affine(target: np.ndarray, source: np.ndarray, *, w: float = 0.0, tolera
     return CPDResult(np.asarray(r.points), float(r.sigma2), int(r.iterations), matrix)
 
 
-def cpd_nonrigid(target: np.ndarray, source: np.ndarray, *, w: float = 0.0, beta: float = 1.0,
+def cpd_nonrigid(target: np.ndarray, source: np.ndarray, *, w: float = 0.0, beta: float = 2.0,
                  lam: float = 2.0, tolerance: float = 1e-5, max_iterations: int = 100,
-                 low_rank: int | None = 150, parallel: bool = True) -> CPDResult:
+                 low_rank: int | None = 80, parallel: bool = True) -> CPDResult:
     """Nonrigid CPD (Gaussian motion coherence) of ``source`` (M, 3) onto ``target`` (N, 3).
 
     ``beta`` is the kernel width, ``lam`` the regularisation weight (TPAMI 2010 Eq. 20), both
-    in the units of the points. ``low_rank`` approximates the kernel by its leading
-    eigenpairs when smaller than M (None: exact).
+    in the units of the points. ``low_rank`` approximates the kernel by a rank-``low_rank``
+    pivoted Cholesky factor when smaller than M (None: exact).
     """
     rank = None if low_rank is None or low_rank >= len(source) else int(low_rank)
     r = _rustcpd().register_deformable(target, source, alpha=lam, beta=beta, low_rank=rank,
+                                       low_rank_method="pivoted_cholesky",
                                        outlier_weight=w, tolerance=tolerance,
                                        max_iterations=max_iterations, parallel=parallel)
-    return CPDResult(np.asarray(r.points), float(r.sigma2), int(r.iterations), None)
+    return CPDResult(np.asarray(r.points), float(r.sigma2), int(r.iterations), None,
+                     np.asarray(r.source), np.asarray(r.weights), float(r.beta))
 
 
 def cpd_log_posterior(target: np.ndarray, moved: np.ndarray, sigma2: float, w: float = 0.0,
@@ -343,34 +367,38 @@ def _rigid_pose(target_n: np.ndarray, reference_n: np.ndarray, params: dict,
                 parallel: bool) -> np.ndarray:
     """Similarity (4, 4) posing the normalised reference on the normalised target.
 
-    Rigid CPD with scale on subsamples (``rigid_points`` of each). Starts: the identity, and
-    (``pose_starts`` "pca", or "auto" when the identity start ends with a poor fit) the four
-    proper rotations aligning the reference's principal axes with the target's; the start with
-    the smallest final sigma^2 wins.
+    Rigid CPD with scale on subsamples (``rigid_points`` of each). Starts: the identity
+    (``pose_starts="identity"``), the four proper rotations aligning the reference's principal
+    axes with the target's (``"pca"``), or all five (``"auto"``). Every start gets a short run;
+    the one with the smallest sigma^2 is refined with ``rigid_iterations`` iterations.
     """
     tgt = _subsample(target_n, params["rigid_points"], 1)
     ref = _subsample(reference_n, params["rigid_points"], 2)
-    starts = [np.eye(3)]
     mode = params["pose_starts"]
+    if mode not in ("auto", "identity", "pca"):
+        raise ValueError(f"pose_starts must be 'auto', 'identity' or 'pca', got {mode!r}")
+    starts = [np.eye(3)] if mode in ("identity", "auto") else []
     if mode in ("pca", "auto"):
         axes_t = _principal_axes(target_n)
         axes_r = _principal_axes(reference_n)
         flips = [np.diag(d) for d in ([1, 1, 1], [-1, -1, 1], [-1, 1, -1], [1, -1, -1])]
-        pca_starts = [axes_t @ f @ axes_r.T for f in flips]
-        starts = pca_starts if mode == "pca" else starts + pca_starts
+        starts += [axes_t @ f @ axes_r.T for f in flips]
     best = None
-    for i, rot in enumerate(starts):
+    for rot in starts:
         r = cpd_rigid(tgt, ref @ rot.T, scaling=True, w=params["w"], tolerance=params["tolerance"],
-                      max_iterations=params["rigid_iterations"], parallel=parallel)
+                      max_iterations=15 if len(starts) > 1 else params["rigid_iterations"],
+                      parallel=parallel)
         start = np.eye(4)
         start[:3, :3] = rot
-        matrix = r.matrix @ start
         if best is None or r.sigma2 < best[0]:
-            best = (r.sigma2, matrix)
-        # "auto": accept the identity start when it fits well (sigma^2 small vs unit radius).
-        if mode == "auto" and i == 0 and r.sigma2 < 0.01:
-            break
-    return best[1]
+            best = (r.sigma2, r.matrix @ start)
+    matrix = best[1]
+    if len(starts) > 1:
+        r = cpd_rigid(tgt, ref @ matrix[:3, :3].T + matrix[:3, 3], scaling=True, w=params["w"],
+                      tolerance=params["tolerance"], max_iterations=params["rigid_iterations"],
+                      parallel=parallel)
+        matrix = r.matrix @ matrix
+    return matrix
 
 
 def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = None,
@@ -397,12 +425,15 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     y_posed = yn @ pose[:3, :3].T + pose[:3, 3]
     t1 = time.perf_counter()
     times["rigid"] = t1 - t0
-    nonrigid = cpd_nonrigid(xn, y_posed, w=p["w"], beta=p["beta"], lam=p["lam"],
+    n_cpd = p["cpd_points"]
+    x_cpd = xn if n_cpd is None else _subsample(xn, int(n_cpd), 3)
+    y_cpd = y_posed if n_cpd is None else _subsample(y_posed, int(n_cpd), 4)
+    nonrigid = cpd_nonrigid(x_cpd, y_cpd, w=p["w"], beta=p["beta"], lam=p["lam"],
                             tolerance=p["tolerance"], max_iterations=p["max_iterations"],
                             low_rank=p["low_rank"], parallel=parallel)
+    moved = nonrigid.points if len(y_cpd) == len(y_posed) else nonrigid.warp(y_posed)
     t2 = time.perf_counter()
     times["nonrigid"] = t2 - t1
-    moved = nonrigid.points
     # Candidates: target vertices, topped up with edge midpoints when there are fewer than M.
     candidates = xn
     if len(candidates) < len(moved):

@@ -1,0 +1,128 @@
+"""Establish dense correspondences between training meshes (Bernard et al., SPIE MI 2016).
+
+Every input mesh is re-expressed with the vertices and faces of one reference mesh: rigid and
+nonrigid Coherent Point Drift (rustcpd engine), a linear assignment on the CPD posterior, and
+fairing on the target surface (``core.correspondence``). ``--reference auto`` tries
+``--n-references`` candidate references among the inputs and keeps the one giving the most
+compact model; ``--reference PATH`` uses that mesh (it must be one closed surface).
+
+Writes ``DIR/<input name>`` for every input that succeeded (same format as the input; .vtk for
+formats that cannot be written), all with the reference's faces and vertex i homologous across
+files, and ``DIR/correspondence.json``: the chosen reference, per-shape residual (symmetric mean
+surface distance to the input, mm), timings, parameters, and every failed input with its reason.
+Inputs that cannot be read or used are reported and skipped; the others are still written.
+Exit code 0 when all succeeded, 1 when some failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
+from core.io import MESH_SUFFIXES, DataFileError, TriMesh, atomic_write_json, load_mesh, save_mesh
+from core.progress import StderrProgress
+
+COMMAND = "correspond"
+HELP = "bring training meshes into correspondence with one reference topology (CPD + assignment)"
+
+REPORT_NAME = "correspondence.json"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("meshes", nargs="+", metavar="MESH", help="training meshes")
+    parser.add_argument("--reference", default="auto",
+                        help="'auto' (default: best of --n-references candidates) or a mesh file")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--n-references", type=int, default=3,
+                        help="candidate references tried with --reference auto (default 3)")
+    parser.add_argument("--selection", choices=("compactness", "residual"), default="compactness",
+                        help="how --reference auto ranks candidates (default compactness)")
+    parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
+    parser.add_argument("--w", type=float, default=DEFAULT_CPD_PARAMS["w"],
+                        help="CPD outlier weight in [0, 1) (default %(default)s)")
+    parser.add_argument("--beta", type=float, default=DEFAULT_CPD_PARAMS["beta"],
+                        help="CPD kernel width, unit-RMS-radius units (default %(default)s)")
+    parser.add_argument("--lam", type=float, default=DEFAULT_CPD_PARAMS["lam"],
+                        help="CPD regularisation lambda (default %(default)s)")
+    parser.add_argument("--tolerance", type=float, default=DEFAULT_CPD_PARAMS["tolerance"],
+                        help="CPD tolerance (default %(default)s)")
+    parser.add_argument("--max-iterations", type=int, default=DEFAULT_CPD_PARAMS["max_iterations"],
+                        help="nonrigid CPD iteration limit (default %(default)s)")
+
+
+def _output_path(out_dir: Path, source: Path, used: set[str]) -> Path:
+    name = source.name
+    lower = name.lower()
+    if not any(lower.endswith(s) for s in MESH_SUFFIXES):
+        name = source.stem + ".vtk"
+    base, n = name, 1
+    while name in used:  # two inputs with the same file name in different folders
+        n += 1
+        stem, dot, suffix = base.partition(".")
+        name = f"{stem}_{n}{dot}{suffix}"
+    used.add(name)
+    return out_dir / name
+
+
+def run(args: argparse.Namespace) -> int:
+    paths = [Path(p) for p in args.meshes]
+    meshes: list[TriMesh] = []
+    load_failures: dict[str, str] = {}
+    loaded_paths: list[Path] = []
+    for path in paths:
+        try:
+            mesh = load_mesh(path)
+        except DataFileError as exc:
+            load_failures[str(path)] = exc.problem
+            continue
+        mesh.name = str(path)
+        meshes.append(mesh)
+        loaded_paths.append(path)
+    if not meshes:
+        raise ValueError("no input mesh could be read: "
+                         + "; ".join(f"{k}: {v}" for k, v in load_failures.items()))
+    reference: str | int | TriMesh = "auto"
+    if args.reference != "auto":
+        ref_path = Path(args.reference)
+        resolved = [p.resolve() for p in loaded_paths]
+        if ref_path.resolve() in resolved:
+            reference = resolved.index(ref_path.resolve())
+        else:
+            reference = load_mesh(ref_path)
+            reference.name = str(ref_path)
+    params = {"w": args.w, "beta": args.beta, "lam": args.lam, "tolerance": args.tolerance,
+              "max_iterations": args.max_iterations}
+    with StderrProgress("correspond") as progress:
+        result = establish_correspondence(meshes, reference, n_references=args.n_references,
+                                          n_jobs=args.jobs, progress=progress,
+                                          selection=args.selection, **params)
+    args.out.mkdir(parents=True, exist_ok=True)
+    used: set[str] = set()
+    written = {}
+    for path, mesh in zip(loaded_paths, result.meshes):
+        if mesh is None:
+            continue
+        out_path = _output_path(args.out, path, used)
+        save_mesh(out_path, TriMesh(mesh.vertices, result.faces, out_path.stem))
+        written[str(path)] = str(out_path)
+    report = result.to_report([str(p) for p in loaded_paths])
+    for entry in report["shapes"]:
+        entry["output"] = written.get(entry["name"])
+    for name, problem in load_failures.items():
+        report["shapes"].append({"name": name, "ok": False, "residual_mm": None, "seconds": None,
+                                 "error": problem, "output": None})
+        report["failures"][name] = problem
+    report["inputs"] = [str(p) for p in paths]
+    atomic_write_json(args.out / REPORT_NAME, report)
+    n_ok = len(written)
+    mean = report["mean_residual_mm"]
+    print(f"{args.out}: {n_ok}/{len(paths)} meshes corresponded to {result.reference_name} "
+          f"({len(result.faces)} triangles), mean residual "
+          f"{'n/a' if mean is None else f'{mean:.3f} mm'}, {result.timings['total']:.1f} s")
+    for name, problem in report["failures"].items():
+        print(f"ssm-studio correspond: {name}: {problem}", file=sys.stderr)
+    if n_ok == 0:
+        raise ValueError("no mesh could be corresponded (see " + str(args.out / REPORT_NAME) + ")")
+    return 1 if report["failures"] else 0
