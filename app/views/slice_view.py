@@ -178,8 +178,8 @@ class SliceView(QWidget):
         painter.drawImage(QRectF(x0, y0, x1 - x0, y1 - y0), self._qimage)
         self._paint_crosshair(painter)
         painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
-        self._paint_contours(painter)
         self._paint_points(painter)
+        self._paint_contours(painter)
         self._paint_labels(painter)
         painter.end()
 
@@ -194,7 +194,7 @@ class SliceView(QWidget):
         if self._segments_uv is None:
             return
         xy = self.plane_to_screen(self._segments_uv).reshape(-1, 4)
-        painter.setPen(QPen(CONTOUR_COLOR, 2))
+        painter.setPen(QPen(CONTOUR_COLOR, 1.6))
         painter.drawLines([QLineF(a, b, c, d) for a, b, c, d in xy.tolist()])
 
     def _paint_points(self, painter: QPainter) -> None:
@@ -218,7 +218,7 @@ class SliceView(QWidget):
             painter.setPen(QPen(QColor(0, 0, 0), 1))
             painter.setBrush(POINT_COLOR)
             for x, y in xy[idx]:
-                painter.drawEllipse(QPointF(x, y), 4, 4)
+                painter.drawEllipse(QPointF(x, y), 3.5, 3.5)
         painter.setBrush(Qt.BrushStyle.NoBrush)
 
     def _paint_labels(self, painter: QPainter) -> None:

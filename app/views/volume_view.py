@@ -50,7 +50,7 @@ class VolumeView(QWidget):
         self._camera_set = False
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
-        self._timer.setInterval(40)
+        self._timer.setInterval(60)
         self._timer.timeout.connect(self._flush)
         state.image_changed.connect(lambda: self._mark("planes", "camera"))
         state.crosshair_changed.connect(lambda: self._mark("planes"))
@@ -61,10 +61,13 @@ class VolumeView(QWidget):
         self._mark("planes", "surface", "points", "camera")
 
     def _mark(self, *what: str) -> None:
+        """Schedule an update: debounced (a burst of scroll steps renders once at its end),
+        but never postponed by more than MAX_DEFER_S."""
+        now = time.perf_counter()
         if self._pending_since is None:
-            self._pending_since = time.perf_counter()
+            self._pending_since = now
         self._dirty.update(what)
-        if not self._timer.isActive():
+        if now - self._pending_since < MAX_DEFER_S or not self._timer.isActive():
             self._timer.start()
 
     def flush(self) -> None:
@@ -164,7 +167,7 @@ class VolumeView(QWidget):
         if vertices is not None:
             center = vertices.mean(axis=0)
             radius = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-            distance = max(radius * 4.0, 170.0)
+            distance = max(radius * 2.8, 90.0)
         elif self.state.volume is not None:
             lo, hi = self.state.volume.world_bounds()
             center, distance = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) * 1.6
