@@ -61,8 +61,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse.csgraph import min_weight_full_bipartite_matching
 from scipy.spatial import cKDTree
-from scipy.special import logsumexp
 
 from core import mesh as meshops
 from core.io import TriMesh
@@ -191,9 +191,12 @@ def cpd_log_posterior(target: np.ndarray, moved: np.ndarray, sigma2: float, w: f
     for start in range(0, n, chunk):
         x = target[start:start + chunk]
         d2 = np.maximum(yy + (x ** 2).sum(axis=1)[None, :] - 2.0 * moved @ x.T, 0.0)
-        logits = -d2 / (2.0 * sigma2)
-        denom = logsumexp(np.vstack([logits, np.full((1, len(x)), log_c)]), axis=0)
-        out[:, start:start + chunk] = logits - denom
+        logits = d2
+        logits *= -1.0 / (2.0 * sigma2)
+        top = np.maximum(logits.max(axis=0), log_c)  # log-sum-exp with the outlier term
+        total = np.exp(logits - top).sum(axis=0) + np.exp(log_c - top)
+        logits -= top + np.log(total)
+        out[:, start:start + chunk] = logits
     return out
 
 
@@ -452,8 +455,7 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     # so that the log posterior stays informative (it only rescales the distance term).
     spacing2 = meshops.mean_edge_length(xn, tgt_f) ** 2
     sigma2 = max(nonrigid.sigma2, 0.05 * spacing2)
-    cost = -cpd_log_posterior(candidates, moved, sigma2, p["w"])
-    rows, cols = linear_sum_assignment(cost)
+    rows, cols = assign(moved, candidates, sigma2, p["w"])
     labelled = np.empty_like(moved)
     labelled[rows] = candidates[cols]
     t3 = time.perf_counter()
@@ -469,6 +471,50 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     times["total"] = time.perf_counter() - t0
     return {"vertices": vertices, "residual_mm": residual, "sigma2": nonrigid.sigma2 * scale ** 2,
             "n_iter": nonrigid.n_iter, "timings": times}
+
+
+def assign(moved: np.ndarray, candidates: np.ndarray, sigma2: float, w: float = 0.0,
+           k: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Most likely bijective labelling: row m (moved reference point) -> distinct column n.
+
+    Minimises sum -log P_mn (TPAMI 2010 Eq. 7) over assignments. Solved on a sparse graph
+    first: each point's ``k`` nearest candidates and each candidate's ``k`` nearest points, with
+    P's normaliser summed over the candidate's ``k`` nearest points (the other terms are below
+    exp(-d^2 / 2 sigma^2) of the k-th neighbour, negligible at CPD's final variance);
+    ``scipy.sparse.csgraph.min_weight_full_bipartite_matching`` then runs in O((M + N) k)
+    memory. If that graph has no full matching, the dense log posterior
+    (:func:`cpd_log_posterior`) goes to ``scipy.optimize.linear_sum_assignment``.
+
+    Returns
+    -------
+    rows, cols : (min(M, N),) int
+    """
+    m, n = len(moved), len(candidates)
+    k_rows, k_cols = min(k, n), min(k, m)
+    _, near_cols = cKDTree(candidates).query(moved, k=k_rows)
+    d_rows, near_rows = cKDTree(moved).query(candidates, k=k_cols)
+    near_cols = near_cols.reshape(m, -1)
+    d_rows, near_rows = d_rows.reshape(n, -1), near_rows.reshape(n, -1)
+    log_c = -np.inf
+    if w > 0:
+        log_c = 0.5 * 3 * np.log(2 * np.pi * sigma2) + np.log(w / (1 - w)) + np.log(m / n)
+    logits = -(d_rows ** 2) / (2.0 * sigma2)
+    top = np.maximum(logits.max(axis=1), log_c)
+    log_norm = top + np.log(np.exp(logits - top[:, None]).sum(axis=1) + np.exp(log_c - top))  # (N,)
+    rows = np.concatenate([np.repeat(np.arange(m), k_rows), near_rows.reshape(-1)])
+    cols = np.concatenate([near_cols.reshape(-1), np.repeat(np.arange(n), k_cols)])
+    graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m, n)).tocsr().tocoo()
+    d2 = ((moved[graph.row] - candidates[graph.col]) ** 2).sum(axis=1)
+    cost = d2 / (2.0 * sigma2) + log_norm[graph.col]  # -log P_mn
+    try:
+        # Shifted to be >= 1: explicit zeros would be read as missing edges.
+        r, c = min_weight_full_bipartite_matching(
+            sp.csr_matrix((cost - cost.min() + 1.0, (graph.row, graph.col)), shape=(m, n)))
+        if len(r) == min(m, n):
+            return r, c
+    except ValueError:  # no full matching within the sparse graph
+        pass
+    return linear_sum_assignment(-cpd_log_posterior(candidates, moved, sigma2, w))
 
 
 def _task(args: tuple) -> tuple:
