@@ -171,6 +171,11 @@ class MainWindow(QMainWindow):
 
         if self.workspace.volume_view is not None:
             self.workspace.volume_view.defer = lambda: self.runner.is_busy
+            self.factors_panel.factor_touched.connect(self._show_factor_region)
+        self._factor_timer = QTimer(self)
+        self._factor_timer.setSingleShot(True)
+        self._factor_timer.setInterval(2500)
+        self._factor_timer.timeout.connect(lambda: self._show_factor_region(-1))
         self.tabs = QTabWidget()
         self.tabs.setDocumentMode(True)
         self.tabs.addTab(self.workspace, "Segment")
@@ -523,6 +528,20 @@ class MainWindow(QMainWindow):
         else:
             window, level = auto_window(volume.data, 1.0, 90.0)
         self.state.set_window(window, level)
+
+    def _show_factor_region(self, index: int) -> None:
+        """Colour the 3D surface by the touched factor's displacement for a few seconds."""
+        view = self.workspace.volume_view
+        if view is None:
+            return
+        view.show_factor(index)
+        if index >= 0:
+            self._factor_timer.start()
+            sd = np.sqrt(self.state.model.coef_var[index])
+            move = sd * np.linalg.norm(self.state.model.factors[index], axis=1)
+            share = float(np.mean(move > 0.1 * move.max())) if move.max() > 0 else 0.0
+            self.show_message(f"Factor {index + 1}: moves {100 * share:.0f}% of the surface "
+                              f"(up to {move.max():.1f} mm per SD)", 4000)
 
     # -- refit --------------------------------------------------------------------------------
     def _on_points_changed(self) -> None:

@@ -64,6 +64,16 @@ def test_window_screenshot_shows_contours_in_each_slice_view(qtbot, tmp_path, mo
     assert crop3d.std() > 15
     orange = (crop3d[..., 0] > crop3d[..., 2] + 60) & (crop3d[..., 1] > crop3d[..., 2] + 20)
     assert orange.sum() > 100
+    # touching a factor slider colours the 3D surface by that factor's displacement
+    view3d = window.workspace.volume_view
+    model = window.state.model
+    window.factors_panel.set_factor_sd(2, 1.0)
+    view3d.flush()
+    shown = view3d._surface_mesh["factor displacement (mm per SD)"]
+    assert np.allclose(shown, np.sqrt(model.coef_var[2]) * np.linalg.norm(model.factors[2], axis=1))
+    window._show_factor_region(-1)
+    view3d.flush()
+    assert "factor displacement (mm per SD)" not in view3d._surface_mesh.point_data
     window.close()
 
 

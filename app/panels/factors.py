@@ -10,7 +10,7 @@ is one undo step.
 from __future__ import annotations
 
 import numpy as np
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QGridLayout, QLabel, QPushButton, QScrollArea, QSlider,
                                QVBoxLayout, QWidget)
 
@@ -21,7 +21,13 @@ MAX_SD = 3.0
 
 
 class FactorsPanel(QWidget):
-    """Sliders for the coefficients of the current model."""
+    """Sliders for the coefficients of the current model.
+
+    ``factor_touched(index)`` is emitted when a slider is pressed or moved (-1 after Reset),
+    so that the 3D view can show the region that factor moves.
+    """
+
+    factor_touched = Signal(int)
 
     def __init__(self, state: SegmentationState, parent: QWidget | None = None):
         super().__init__(parent)
@@ -72,6 +78,7 @@ class FactorsPanel(QWidget):
             slider.setObjectName(f"factor-{m}")
             slider.valueChanged.connect(lambda value, m=m: self._on_slider(m, value))
             slider.sliderPressed.connect(self.state.checkpoint)
+            slider.sliderPressed.connect(lambda m=m: self.factor_touched.emit(m))
             value = QLabel("+0.00")
             value.setMinimumWidth(44)
             value.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
@@ -103,6 +110,7 @@ class FactorsPanel(QWidget):
             self.state.checkpoint()      # keyboard/page steps: one undo step each
         sd = value / STEPS_PER_SD
         self.value_labels[index].setText(f"{sd:+.2f}")
+        self.factor_touched.emit(index)
         self.state.set_coefficient(index, sd * float(np.sqrt(model.coef_var[index])))
 
     def set_factor_sd(self, index: int, sd: float) -> None:
@@ -115,3 +123,4 @@ class FactorsPanel(QWidget):
         self.state.checkpoint()
         self.state.set_surface(np.zeros(self.state.model.n_factors), self.state.pose)
         self.state.edited.emit("coef")
+        self.factor_touched.emit(-1)

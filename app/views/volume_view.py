@@ -44,6 +44,8 @@ class VolumeView(QWidget):
         self._plane_keys: dict[str, tuple] = {}
         self.defer = lambda: False      # e.g. "a refit is running": postpone non-urgent renders
         self._pending_since: float | None = None
+        self._factor: int | None = None
+        self._surface_style_changed = False
         self._plane_actors: dict[str, object] = {}
         self._plane_meshes: dict[str, pv.PolyData] = {}
         self._dirty: set[str] = set()
@@ -55,10 +57,15 @@ class VolumeView(QWidget):
         state.image_changed.connect(lambda: self._mark("planes", "camera"))
         state.crosshair_changed.connect(lambda: self._mark("planes"))
         state.window_changed.connect(lambda: self._mark("planes"))
-        state.model_changed.connect(lambda: self._mark("surface", "camera"))
+        state.model_changed.connect(self._on_model)
         state.surface_changed.connect(lambda: self._mark("surface"))
         state.points_changed.connect(lambda: self._mark("points"))
         self._mark("planes", "surface", "points", "camera")
+
+    def _on_model(self) -> None:
+        self._factor = None
+        self._surface_style_changed = True
+        self._mark("surface", "camera")
 
     def _mark(self, *what: str) -> None:
         """Schedule an update: debounced (a burst of scroll steps renders once at its end),
@@ -130,21 +137,54 @@ class VolumeView(QWidget):
             else:
                 actor.texture = texture
 
+    def show_factor(self, index: int | None) -> None:
+        """Colour the surface by how far factor ``index`` moves each vertex (None: plain).
+
+        With a local-support model (SPLOCS, LSF, Varimax) this shows the one region that a
+        factor slider moves.
+        """
+        index = None if index is None or index < 0 else int(index)
+        if index == self._factor:
+            return
+        self._factor = index
+        self._surface_style_changed = True
+        self._mark("surface")
+
     def _update_surface(self) -> None:
         vertices = self.state.surface_vertices()
+        model = self.state.model
         if vertices is None:
             if self._surface_actor is not None:
                 self.plotter.remove_actor(self._surface_actor)
                 self._surface_actor, self._surface_mesh = None, None
             return
-        if self._surface_mesh is not None and self._surface_mesh.n_points == len(vertices):
+        if self._factor is not None and self._factor >= model.n_factors:
+            self._factor = None
+        same_mesh = self._surface_mesh is not None and self._surface_mesh.n_points == len(vertices)
+        if same_mesh and not self._surface_style_changed:
             self._surface_mesh.points = vertices
             self._surface_mesh.compute_normals(inplace=True, cell_normals=False, split_vertices=False)
             return
-        self._surface_mesh = surface_polydata(vertices, self.state.model.faces)
-        self._surface_actor = self.plotter.add_mesh(
-            self._surface_mesh, color=SURFACE_COLOR, opacity=0.65, smooth_shading=True,
-            name="surface", reset_camera=False, specular=0.3)
+        self._surface_style_changed = False
+        self._surface_mesh = surface_polydata(vertices, model.faces)
+        if self._factor is None:
+            self._surface_actor = self.plotter.add_mesh(
+                self._surface_mesh, color=SURFACE_COLOR, opacity=0.65, smooth_shading=True,
+                name="surface", reset_camera=False, specular=0.3)
+        else:
+            sd = float(np.sqrt(model.coef_var[self._factor]))
+            self._surface_mesh["factor displacement (mm per SD)"] = \
+                sd * np.linalg.norm(model.factors[self._factor], axis=1)
+            self._surface_actor = self.plotter.add_mesh(
+                self._surface_mesh, scalars="factor displacement (mm per SD)", cmap="plasma",
+                clim=[0.0, max(float(self._surface_mesh["factor displacement (mm per SD)"].max()), 1e-6)],
+                opacity=0.9, smooth_shading=True, name="surface", reset_camera=False,
+                scalar_bar_args={"title": f"F{self._factor + 1} mm/SD", "vertical": True,
+                                 "position_x": 0.84, "position_y": 0.1, "height": 0.6,
+                                 "width": 0.07, "color": "white", "fmt": "%.1f"})
+        if self._factor is None:
+            for name in list(self.plotter.scalar_bars.keys()):
+                self.plotter.remove_scalar_bar(name)
 
     def _update_points(self) -> None:
         pts = self.state.points
