@@ -87,7 +87,8 @@ def smooth_deformation(rng: np.random.Generator, n_bumps: int = 6, amplitude: fl
 
 
 def synthetic_population(n_shapes: int = 20, *, seed: int = 0, max_angle_deg: float = 45.0,
-                         translation_mm: float = 40.0) -> tuple[list[TriMesh], list]:
+                         translation_mm: float = 40.0,
+                         n_points: tuple[int, int] = (1800, 2300)) -> tuple[list[TriMesh], tuple]:
     """Remeshed, permuted and posed smooth deformations of one bean shape, with known truth.
 
     Returns the meshes and, per mesh, ``truth(u)``: the posed position on that shape of the
@@ -97,7 +98,7 @@ def synthetic_population(n_shapes: int = 20, *, seed: int = 0, max_angle_deg: fl
     rng = np.random.default_rng(seed)
     meshes, truths, params = [], [], []
     for k in range(n_shapes):
-        u, faces = _sphere_mesh(int(rng.integers(1800, 2300)), _random_rotation(rng, 180.0))
+        u, faces = _sphere_mesh(int(rng.integers(*n_points)), _random_rotation(rng, 180.0))
         perm = rng.permutation(len(u))
         inverse = np.argsort(perm)
         u = u[perm]
