@@ -60,29 +60,49 @@ SHORTCUTS = [
 
 
 class SegmentWorkspace(QWidget):
-    """The 2x2 view grid of the segmentation workspace."""
+    """The 2x2 view grid of the segmentation workspace.
+
+    The 3D view can be created after the first paint (``defer_3d``): importing pyvista's
+    plotting stack and creating the OpenGL context take about two seconds, and the slice
+    views are usable meanwhile.
+    """
+
+    volume_view_created = Signal()
 
     def __init__(self, state: SegmentationState, parent: QWidget | None = None,
-                 with_3d: bool = True):
+                 with_3d: bool = True, defer_3d: bool = False):
         super().__init__(parent)
         self.state = state
         self.views = {name: SliceView(state, name) for name in FRAME_NAMES}
         self.volume_view = None
-        if with_3d:
+        self._layout = QGridLayout(self)
+        self._layout.setContentsMargins(2, 2, 2, 2)
+        self._layout.setSpacing(3)
+        self._layout.addWidget(self.views["axial"], 0, 0)
+        self._layout.addWidget(self.views["sagittal"], 0, 1)
+        self._layout.addWidget(self.views["coronal"], 1, 0)
+        self._placeholder = QLabel("Loading the 3D view…" if with_3d else "3D view disabled")
+        self._placeholder.setAlignment(Qt.AlignmentFlag.AlignCenter)
+        self._placeholder.setStyleSheet("background: #15151c; color: #aaa;")
+        self._layout.addWidget(self._placeholder, 1, 1)
+        for i in range(2):
+            self._layout.setRowStretch(i, 1)
+            self._layout.setColumnStretch(i, 1)
+        if with_3d and not defer_3d:
+            self.create_volume_view()
+
+    def create_volume_view(self):
+        """Create the 3D view in the bottom-right cell (once); returns it."""
+        if self.volume_view is None:
             from app.views.volume_view import VolumeView
 
-            self.volume_view = VolumeView(state)
-        layout = QGridLayout(self)
-        layout.setContentsMargins(2, 2, 2, 2)
-        layout.setSpacing(3)
-        layout.addWidget(self.views["axial"], 0, 0)
-        layout.addWidget(self.views["sagittal"], 0, 1)
-        layout.addWidget(self.views["coronal"], 1, 0)
-        if self.volume_view is not None:
-            layout.addWidget(self.volume_view, 1, 1)
-        for i in range(2):
-            layout.setRowStretch(i, 1)
-            layout.setColumnStretch(i, 1)
+            self.volume_view = VolumeView(self.state)
+            self._layout.replaceWidget(self._placeholder, self.volume_view)
+            self._placeholder.hide()
+            self._placeholder.setParent(None)
+            self._placeholder.deleteLater()
+            self.volume_view_created.emit()
+        return self.volume_view
 
 
 class ToolsPanel(QWidget):
@@ -141,7 +161,7 @@ class MainWindow(QMainWindow):
     refit_applied = Signal(object)         # FitResult applied to the state
     closed = Signal()
 
-    def __init__(self, with_3d: bool = True, recovery: bool = True):
+    def __init__(self, with_3d: bool = True, recovery: bool = True, defer_3d: bool = False):
         super().__init__()
         self.setWindowTitle("SSM Studio")
         self.setAcceptDrops(True)
@@ -161,7 +181,7 @@ class MainWindow(QMainWindow):
         self.runner.busy.connect(self._on_refit_busy)
 
         self._create_actions()
-        self.workspace = SegmentWorkspace(self.state, with_3d=with_3d)
+        self.workspace = SegmentWorkspace(self.state, with_3d=with_3d, defer_3d=defer_3d)
         self.fit_panel = FitPanel(self.state)
         self.factors_panel = FactorsPanel(self.state)
         self.tools_panel = ToolsPanel(self)
@@ -169,9 +189,10 @@ class MainWindow(QMainWindow):
         self._create_toolbar()
         self._create_side_panel()
 
+        self.workspace.volume_view_created.connect(self._wire_volume_view)
         if self.workspace.volume_view is not None:
-            self.workspace.volume_view.defer = lambda: self.runner.is_busy
-            self.factors_panel.factor_touched.connect(self._show_factor_region)
+            self._wire_volume_view()
+        self.factors_panel.factor_touched.connect(self._show_factor_region)
         self._factor_timer = QTimer(self)
         self._factor_timer.setSingleShot(True)
         self._factor_timer.setInterval(2500)
@@ -529,19 +550,20 @@ class MainWindow(QMainWindow):
             window, level = auto_window(volume.data, 1.0, 90.0)
         self.state.set_window(window, level)
 
+    def _wire_volume_view(self) -> None:
+        self.workspace.volume_view.defer = lambda: self.runner.is_busy
+
     def _show_factor_region(self, index: int) -> None:
         """Colour the 3D surface by the touched factor's displacement for a few seconds."""
-        view = self.workspace.volume_view
-        if view is None:
-            return
-        view.show_factor(index)
-        if index >= 0:
+        if index >= 0 and self.state.model is not None:
             self._factor_timer.start()
             sd = np.sqrt(self.state.model.coef_var[index])
             move = sd * np.linalg.norm(self.state.model.factors[index], axis=1)
             share = float(np.mean(move > 0.1 * move.max())) if move.max() > 0 else 0.0
             self.show_message(f"Factor {index + 1}: moves {100 * share:.0f}% of the surface "
                               f"(up to {move.max():.1f} mm per SD)", 4000)
+        if self.workspace.volume_view is not None:
+            self.workspace.volume_view.show_factor(index)
 
     # -- refit --------------------------------------------------------------------------------
     def _on_points_changed(self) -> None:
@@ -969,7 +991,7 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
     app.setApplicationName("SSM Studio")
     app.setStyle("Fusion")
     started = time.perf_counter()
-    window = MainWindow(recovery=screenshot is None)
+    window = MainWindow(recovery=screenshot is None, defer_3d=screenshot is None)
     window.resize(1600, 1000)
     try:
         if session:
@@ -1001,5 +1023,6 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
         print(f"ssm-studio: wrote {screenshot} ({time.perf_counter() - started:.1f} s)",
               file=sys.stderr)
         return 0
+    QTimer.singleShot(100, window.workspace.create_volume_view)   # after the first paint
     QTimer.singleShot(0, window.offer_recovery)
     return app.exec()

@@ -96,3 +96,23 @@ def test_bad_image_on_the_command_line_exits_with_message(tmp_path, capsys, qapp
     err = capsys.readouterr().err
     assert "scan.nii.gz" in err and "Traceback" not in err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_deferred_3d_view_is_created_after_the_slices(qtbot, tmp_path, monkeypatch):
+    _need_demo()
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    window = MainWindow(recovery=False, defer_3d=True)
+    qtbot.addWidget(window)
+    window.load_demo()
+    window.show()
+    qtbot.waitExposed(window)
+    assert window.workspace.volume_view is None
+    assert window.workspace.views["axial"]._qimage is not None
+    view3d = window.workspace.create_volume_view()
+    assert window.workspace.create_volume_view() is view3d        # once
+    window.runner._pending = (None, 0)                   # pretend a refit is queued
+    assert view3d.defer() is True                        # 3D renders wait for refits
+    window.runner._pending = None
+    image = view3d.screenshot()
+    assert image.std() > 15
+    window.close()

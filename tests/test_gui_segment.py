@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("PySide6")
 pytestmark = pytest.mark.gui
 
-from PySide6.QtCore import QPoint, Qt  # noqa: E402
+from PySide6.QtCore import QEvent, QPoint, Qt  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
 from app import demo  # noqa: E402
@@ -317,7 +317,14 @@ def test_status_bar_reports_position_voxel_and_value_under_cursor(window):
     ijk = np.rint(volume.world_to_voxel(window.state.crosshair)).astype(int) + [10, 0, -7]
     world = volume.voxel_to_world(ijk)
     x, y = view.world_to_screen(world)
-    QTest.mouseMove(view, QPoint(int(round(x)), int(round(y))))
+    # a synthetic move event (QTest.mouseMove moves the X pointer, whose events arrive late)
+    from PySide6.QtCore import QPointF
+    from PySide6.QtGui import QMouseEvent
+    from PySide6.QtWidgets import QApplication
+
+    pos = QPointF(round(x), round(y))
+    QApplication.sendEvent(view, QMouseEvent(QEvent.Type.MouseMove, pos, view.mapToGlobal(pos),
+                                             Qt.MouseButton.NoButton, Qt.MouseButton.NoButton, NO_MOD))
     text = window.cursor_label.text()
     assert f"voxel ({ijk[0]}, {ijk[1]}, {ijk[2]})" in text
     assert f"value {volume.data[tuple(ijk)]:.4g}" in text
