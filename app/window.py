@@ -908,6 +908,8 @@ class MainWindow(QMainWindow):
     def _show_segment_controls(self, visible: bool) -> None:
         """The side panel and the drawing tools belong to the Segment tab only."""
         self.side_dock.setVisible(visible)
+        self.cursor_label.setVisible(visible)
+        self.fit_label.setVisible(visible)
         for act in (*self.tool_actions.values(), self.act_undo, self.act_redo, self.act_place,
                     self.act_reset_views):
             act.setVisible(visible)

@@ -221,32 +221,40 @@ class SliceView(QWidget):
                 painter.drawEllipse(QPointF(x, y), 3.5, 3.5)
         painter.setBrush(Qt.BrushStyle.NoBrush)
 
+    @staticmethod
+    def _text(painter: QPainter, rect: QRectF, flags, text: str, color: QColor) -> None:
+        """Text with a dark outline, readable over bright and dark image regions."""
+        painter.setPen(QColor(0, 0, 0, 200))
+        for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            painter.drawText(rect.translated(dx, dy), flags, text)
+        painter.setPen(color)
+        painter.drawText(rect, flags, text)
+
     def _paint_labels(self, painter: QPainter) -> None:
         labels = self.frame.edge_labels()
         font = QFont(self.font())
         font.setPointSize(13)
         font.setBold(True)
         painter.setFont(font)
-        painter.setPen(LABEL_COLOR)
         w, h, m = self.width(), self.height(), 6
         flags = Qt.AlignmentFlag
-        painter.drawText(QRectF(m, 0, 30, h), flags.AlignLeft | flags.AlignVCenter, labels["left"])
-        painter.drawText(QRectF(w - 30 - m, 0, 30, h), flags.AlignRight | flags.AlignVCenter, labels["right"])
-        painter.drawText(QRectF(0, m, w, 24), flags.AlignHCenter | flags.AlignTop, labels["top"])
-        painter.drawText(QRectF(0, h - 24 - m, w, 24), flags.AlignHCenter | flags.AlignBottom, labels["bottom"])
+        text = self._text
+        text(painter, QRectF(m, 0, 30, h), flags.AlignLeft | flags.AlignVCenter, labels["left"], LABEL_COLOR)
+        text(painter, QRectF(w - 30 - m, 0, 30, h), flags.AlignRight | flags.AlignVCenter, labels["right"], LABEL_COLOR)
+        text(painter, QRectF(0, m, w, 24), flags.AlignHCenter | flags.AlignTop, labels["top"], LABEL_COLOR)
+        text(painter, QRectF(0, h - 24 - m, w, 24), flags.AlignHCenter | flags.AlignBottom, labels["bottom"], LABEL_COLOR)
         font.setPointSize(9)
         font.setBold(False)
         painter.setFont(font)
-        painter.setPen(VIEW_COLORS[self.frame_name])
         axis = "xyz"[int(np.argmax(np.abs(self.frame.n)))]
         lo, hi = self._depth_range
         index = int(round((self.depth - lo) / self._step())) + 1
         total = int(round((hi - lo) / self._step())) + 1
-        painter.drawText(QRectF(m, m, w, 20), flags.AlignLeft | flags.AlignTop,
-                         f"{self.frame_name.capitalize()}  {axis} = {self.depth:.1f} mm  ({index}/{total})")
-        painter.setPen(QColor(150, 150, 150))
-        painter.drawText(QRectF(0, 0, w - m, h - m), flags.AlignRight | flags.AlignBottom,
-                         f"W {self.state.window:.0f}  L {self.state.level:.0f}")
+        text(painter, QRectF(m, m, w, 20), flags.AlignLeft | flags.AlignTop,
+             f"{self.frame_name.capitalize()}  {axis} = {self.depth:.1f} mm  ({index}/{total})",
+             VIEW_COLORS[self.frame_name])
+        text(painter, QRectF(0, 0, w - m, h - m), flags.AlignRight | flags.AlignBottom,
+             f"W {self.state.window:.0f}  L {self.state.level:.0f}", QColor(170, 170, 170))
         if self.hasFocus():
             painter.setPen(QPen(VIEW_COLORS[self.frame_name], 2))
             painter.drawRect(QRectF(1, 1, w - 2, h - 2))
