@@ -42,8 +42,8 @@ ybar_j = sum_i p_ij y_i (so it costs O(|J| M^2) for the |J| vertices with weight
   for anisotropic W_j there is none, and we take one Gauss-Newton step of the
   point-to-plane-like energy in the similarity parameters (scale, small rotation via
   Rodrigues, translation), linearised at the current pose (a generalised EM step: the
-  energy decreases, the step is not the exact minimiser). With ``pose_sd`` (default 10 deg,
-  3 mm, 0.1 in log scale) a Gaussian prior on the deviation from the initial placement is
+  energy decreases, the step is not the exact minimiser). With ``pose_sd`` (default 3 deg,
+  1 mm, 0.03 in log scale) a Gaussian prior on the deviation from the initial placement is
   added to that step (Eq. 6): it only matters in directions the points leave free (one
   or two parallel contours), where it keeps the model from sliding or scaling away;
 - shape (Eq. 4): with the points mapped to the model frame, y'_i = R^T (y_i - t) / s and
@@ -391,7 +391,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                xtol: float = 1e-2, outlier_weight: float = 0.0, anisotropy: float = 10.0,
                normal_weight: float = 2.0, n_neighbors: int = 6, max_neighbors: int = 48, min_sigma: float = 0.3,
                max_distance_factor: float = 1.0, pose_first: bool = False,
-               pose_sd: tuple[float, float, float] | None = (10.0, 3.0, 0.1),
+               pose_sd: tuple[float, float, float] | None = (3.0, 1.0, 0.03),
                callback: Callable[[int, float], None] | None = None) -> FitResult:
     """Fit ``model`` to user points by EM on the model-centred Gaussian mixture.
 
@@ -426,9 +426,11 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         Floor of the GMM standard deviation (mm), about the expected point noise.
     pose_sd : (rotation deg, translation mm, log scale), optional
         Standard deviations of a Gaussian prior on the fitted pose's deviation from the
-        initial placement (``model.world_transform``): it keeps an underdetermined fit (one
-        or two parallel contours) from sliding or scaling away. GMM methods only (the pose
-        step is then the linearised one, also for ``gmm-iso``).
+        model's placement ``model.world_transform`` (also on a warm start):
+        it keeps an underdetermined fit (one or two contours) from sliding or scaling away,
+        and is outweighed by the data wherever the points constrain the pose. Widen it (or
+        pass None) when the model is placed only roughly. GMM methods only (the pose step is
+        then the linearised one, also for ``gmm-iso``).
     pose_first : bool
         On a cold start, run pose-only EM to convergence before fitting the shape.
     max_distance_factor : float
