@@ -279,6 +279,25 @@ def test_build_inspect_cancel_save(panel, qtbot, tmp_path):
     assert panel.state.stages["correspondence"].result is corr
     assert panel.stale_stages() == []
 
+    # --- evaluation of two methods side by side -------------------------------------------
+    panel.eval_checks["pca"].setChecked(True)
+    panel.eval_checks["varimax"].setChecked(True)
+    qtbot.mouseClick(panel.evaluate_button, Qt.LeftButton)
+    wait_idle(qtbot, panel, 120000)
+    results = panel.state.evaluation
+    assert list(results) == ["pca", "varimax"], panel.status_label.text()
+    table = panel.evaluation_view.table
+    assert table.rowCount() == 2 and table.verticalHeaderItem(1).text() == "varimax"
+    headers = [table.horizontalHeaderItem(c).text() for c in range(table.columnCount())]
+    assert "g avg (mm)" in headers and "g0.05 avg (mm)" in headers and "s avg (mm)" in headers
+    assert panel.evaluation_view.canvas is not None
+    for method in results:  # K - 1 factors span the centred training set: no error
+        assert np.max(results[method]["reconstruction"]["max"]) < 1e-6
+        assert np.min(results[method]["generalisation"]["avg"]) > 0.01
+    # PCA and its rotation span the same space: same generalisation
+    np.testing.assert_allclose(results["pca"]["generalisation"]["avg"],
+                               results["varimax"]["generalisation"]["avg"], rtol=1e-6)
+
 
 def test_cancel_during_correspondence(panel, qtbot):
     files = demo_files()

@@ -733,13 +733,15 @@ class BuilderPanel(QWidget):
 
     def _start_worker(self, stage: str, fn, *args, key: tuple | None = None, **kwargs) -> None:
         worker = Worker(fn, *args, **kwargs)
+        worker.stage, worker.key = stage, key
         self._worker = worker
         self._worker_stage = stage
         self._worker_started = time.monotonic()
+        # bound methods of this GUI-thread object: the calls are queued to the GUI thread
         worker.progress.connect(self._on_progress)
-        worker.succeeded.connect(lambda result: self._on_succeeded(stage, key, result))
-        worker.failed.connect(lambda message: self._on_failed(stage, message))
-        worker.cancelled.connect(lambda: self._on_cancelled(stage))
+        worker.succeeded.connect(self._on_succeeded)
+        worker.failed.connect(self._on_failed)
+        worker.cancelled.connect(self._on_cancelled)
         worker.done.connect(self._on_worker_done)
         self.progress_bar.setValue(0)
         self.progress_bar.setFormat(f"{STAGE_TITLES[stage]}: %p%")
@@ -757,9 +759,11 @@ class BuilderPanel(QWidget):
             self.status_label.setStyleSheet("")
             self.status_label.setText(f"{STAGE_TITLES[self._worker_stage]}: {message}")
 
-    def _on_succeeded(self, stage: str, key: tuple | None, result: Any) -> None:
-        if self._closed:
+    def _on_succeeded(self, result: Any) -> None:
+        worker = self.sender()
+        if self._closed or worker is not self._worker:
             return
+        stage, key = worker.stage, worker.key
         seconds = time.monotonic() - self._worker_started
         if stage == "load":
             self._on_loaded(result)
@@ -768,11 +772,18 @@ class BuilderPanel(QWidget):
         else:
             self._on_stage_done(stage, result, key, seconds)
 
-    def _on_failed(self, stage: str, message: str) -> None:
+    def _on_failed(self, message: str) -> None:
+        worker = self.sender()
+        if worker is not self._worker:
+            return
         self._plan = []
-        self._set_status(f"{STAGE_TITLES[stage]} failed: {message}", error=True)
+        self._set_status(f"{STAGE_TITLES[worker.stage]} failed: {message}", error=True)
 
-    def _on_cancelled(self, stage: str) -> None:
+    def _on_cancelled(self) -> None:
+        worker = self.sender()
+        if worker is not self._worker:
+            return
+        stage = worker.stage
         self._plan = []
         self.last_cancel_latency = time.monotonic() - getattr(self, "_cancel_requested_at",
                                                                time.monotonic())

@@ -214,16 +214,55 @@ def model_world_transform(transforms: np.ndarray) -> np.ndarray:
 
 def run_evaluation(corr, aligned, methods: dict[str, dict[str, Any]],
                    progress: ProgressCallback | None = None) -> dict[str, Any]:
-    """Evaluate each method (name -> parameters) on the aligned training shapes."""
-    from core import evaluation
+    """Evaluate each method (name -> parameters) on the aligned training shapes.
+
+    Returns ``core.evaluation.evaluate_model``'s result per method (per-shape "avg"/"max"
+    errors in mm for reconstruction, generalisation, specificity, sparse reconstruction;
+    compactness).
+    """
+    from core.evaluation import evaluate_model
 
     results = {}
     for i, (method, params) in enumerate(methods.items()):
         sub = sub_progress(progress, i / len(methods), (i + 1) / len(methods))
         report(sub, 0.0, f"evaluating {method}")
-        results[method] = evaluation.evaluate(aligned.aligned, corr.faces, method, params,
-                                              progress=sub)
+        results[method] = evaluate_model(method, aligned.aligned, corr.faces, params=params,
+                                         progress=sub)
     return results
+
+
+def evaluation_table(results: dict[str, Any]) -> tuple[list[str], dict[str, list[str]]]:
+    """Column titles and, per method, the cells: factors, then mean ± SD over shapes (mm) of
+    each measure's per-shape average and maximum error, then the variance explained."""
+    from core.evaluation import LABELS, PER_SHAPE_MEASURES
+
+    present = [m for m in PER_SHAPE_MEASURES if any(m in r for r in results.values())]
+    columns = ["factors"]
+    for name in present:
+        short = LABELS[name][0]
+        columns += [f"{short} avg (mm)", f"{short} max (mm)"]
+    columns.append("variance explained")
+    rows: dict[str, list[str]] = {}
+    for method, res in results.items():
+        cells = [str(res.get("n_factors", ""))]
+        for name in present:
+            for stat in ("avg", "max"):
+                if name in res:
+                    v = np.asarray(res[name][stat], dtype=np.float64)
+                    cells.append(f"{v.mean():.3f} ± {v.std(ddof=1) if len(v) > 1 else 0.0:.3f}")
+                else:
+                    cells.append("")
+        comp = res.get("compactness")
+        cells.append(f"{100 * float(comp[-1]):.1f}%" if comp is not None and len(comp) else "")
+        rows[method] = cells
+    return columns, rows
+
+
+def evaluation_figure(results: dict[str, Any]):
+    """The boxplot figure of ``core.evaluation`` (matplotlib Figure, paper's Figure 4 style)."""
+    from core.evaluation import plot_metrics
+
+    return plot_metrics(results)
 
 
 # ------------------------------------------------------------------------------------------

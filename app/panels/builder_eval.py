@@ -32,7 +32,7 @@ class EvaluationView(QWidget):
         self.table = QTableWidget(0, 0)
         self.table.setObjectName("evaluation_table")
         self.table.setEditTriggers(QTableWidget.NoEditTriggers)
-        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.Stretch)
+        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeToContents)
         self.info = QLabel("Build a model, tick the methods to compare and press Evaluate. "
                            "Errors are per-vertex Euclidean distances (mm), averaged per "
                            "shape; the table shows mean ± SD over shapes.")
@@ -44,7 +44,7 @@ class EvaluationView(QWidget):
         splitter = QSplitter(Qt.Vertical)
         splitter.addWidget(self.table)
         splitter.addWidget(self._canvas_holder)
-        splitter.setSizes([160, 440])
+        splitter.setSizes([130, 470])
         layout = QVBoxLayout(self)
         layout.setContentsMargins(2, 2, 2, 2)
         layout.addWidget(self.info)

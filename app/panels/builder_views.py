@@ -45,20 +45,22 @@ def polydata(vertices: np.ndarray, faces: np.ndarray):
     return pv.PolyData(np.array(vertices, dtype=np.float64), cells)
 
 
-def grid_offsets(extents: np.ndarray, gap: float = 0.15) -> np.ndarray:
+def grid_offsets(extents: np.ndarray, gap: float = 0.25) -> np.ndarray:
     """Translations placing K objects of bounding-box sizes ``extents`` (K, 3) in a grid.
 
-    Objects go in rows of ceil(sqrt(K)) along x, rows stacked along -y, one cell size for all
-    (the largest extent plus ``gap`` of it). Returns (K, 3) offsets to add to each object
-    after centring it on its bounding-box centre.
+    Cells are the largest extent along x and along y plus ``gap`` of it; the number of columns
+    makes the whole grid roughly square. Objects go along x in rows stacked along -y. Returns
+    (K, 3) offsets to add to each object after centring it on its bounding-box centre.
     """
     k = len(extents)
     if k == 0:
         return np.zeros((0, 3))
-    cell = float(np.max(extents[:, :2])) * (1.0 + gap) if np.max(extents) > 0 else 1.0
-    columns = max(1, math.ceil(math.sqrt(k)))
+    size = np.max(extents[:, :2], axis=0)
+    size = np.where(size > 0, size, max(float(size.max()), 1.0)) * (1.0 + gap)
+    columns = int(min(k, max(1, math.ceil(math.sqrt(k * size[1] / size[0])))))
     index = np.arange(k)
-    return np.stack([(index % columns) * cell, -(index // columns) * cell, np.zeros(k)], axis=1)
+    return np.stack([(index % columns) * size[0], -(index // columns) * size[1], np.zeros(k)],
+                    axis=1)
 
 
 class LazyPlotter(QWidget):
@@ -138,6 +140,7 @@ class MeshesView(LazyPlotter):
         else:
             offsets = np.zeros((len(meshes), 3))
         label_points = []
+        overlay_opacity = float(np.clip(2.0 / len(meshes), 0.08, 0.6))
         for i, (name, v, (_, _, faces)) in enumerate(zip(names, verts, meshes)):
             poly = polydata(v + offsets[i], faces)
             if scalars is not None:
@@ -148,7 +151,8 @@ class MeshesView(LazyPlotter):
                                  render=False)
             else:
                 plotter.add_mesh(poly, color=_COLOURS[i % len(_COLOURS)], smooth_shading=True,
-                                 opacity=0.45 if layout == "overlay" else 1.0, render=False)
+                                 opacity=overlay_opacity if layout == "overlay" else 1.0,
+                                 render=False)
             if layout == "grid":
                 label_points.append([(v[:, 0].min() + v[:, 0].max()) / 2 + offsets[i, 0],
                                      v[:, 1].max() + offsets[i, 1], v[:, 2].max() + offsets[i, 2]])
@@ -206,7 +210,7 @@ class FactorView(QWidget):
         splitter.addWidget(left)
         splitter.addWidget(self.view)
         splitter.setStretchFactor(1, 4)
-        splitter.setSizes([170, 600])
+        splitter.setSizes([230, 600])
         slider_row = QHBoxLayout()
         slider_row.addWidget(QLabel("-3 SD"))
         slider_row.addWidget(self.slider, 1)
