@@ -396,3 +396,36 @@ def test_oblique_image_clicks_and_display_agree(qtbot, tmp_path, monkeypatch):
         expected = window_to_uint8(np.array([value]), win.state.window, win.state.level)[0]
         assert abs(int(grey) - int(expected)) <= 12   # pixel vs exact point: within one pixel's variation
     win.close()
+
+
+def test_shortcuts_are_listed_in_help(window):
+    from app.window import SHORTCUTS
+
+    listed = " ".join(key for key, _ in SHORTCUTS)
+    for action in (window.act_open_image, window.act_load_model, window.act_save_session,
+                   window.act_undo, window.act_redo, window.act_export, window.act_place):
+        key = action.shortcut().toString()
+        assert key and key in listed, action.text()
+    help_menu = [m for m in window.menuBar().actions() if m.text() == "&Help"][0].menu()
+    assert window.act_shortcuts in help_menu.actions()
+
+
+def test_dropping_a_model_file_loads_it(window, tmp_path):
+    from PySide6.QtCore import QMimeData, QPointF, QUrl
+    from PySide6.QtGui import QDragEnterEvent, QDropEvent
+    from PySide6.QtWidgets import QApplication
+
+    from core.io import save_model
+    from core.simulated_user import pca_model, synthetic_shapes
+
+    shapes, faces = synthetic_shapes(5, subdivisions=2, seed=4)
+    path = tmp_path / "dropped.npz"
+    save_model(path, pca_model(shapes + window.state.crosshair, faces, n_factors=3))
+    mime = QMimeData()
+    mime.setUrls([QUrl.fromLocalFile(str(path))])
+    enter = QDragEnterEvent(QPointF(50, 50), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton, NO_MOD)
+    QApplication.sendEvent(window, enter)
+    assert enter.isAccepted()
+    event = QDropEvent(QPointF(50, 50), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton, NO_MOD)
+    window.dropEvent(event)             # Qt routes a Drop only inside a real drag session
+    assert window.state.model_path == path and window.state.model.n_factors == 3
