@@ -151,8 +151,8 @@ def test_load_lists_vertex_counts_and_problems(panel, qtbot, tmp_path):
     assert [e.name for e in panel.state.entries] == [files[0].name, "broken.vtk", "notes.stl"]
     good, broken, blank = (panel.mesh_list.topLevelItem(i) for i in range(3))
     assert int(good.text(1)) == panel.state.entries[0].mesh.n_vertices > 1000
-    assert broken.text(1) == "" and broken.text(2)  # the problem is shown, nothing aborted
-    assert blank.text(2)
+    assert broken.text(1) == "" and broken.text(3)  # the problem is shown, nothing aborted
+    assert blank.text(3)
     assert len(panel.usable_entries()) == 1
     assert not panel.build_button.isEnabled()  # fewer than 3 usable meshes
     # drag and drop of a file adds it too
@@ -200,6 +200,8 @@ def test_build_inspect_cancel_save(panel, qtbot, tmp_path):
     corr = panel.state.stages["correspondence"].result
     align = panel.state.stages["alignment"].result
     assert model.n_vertices == corr.meshes[0].n_vertices
+    fits = [float(panel.mesh_list.topLevelItem(i).text(2)) for i in range(N_TRAIN)]
+    assert 0.0 <= min(fits) and max(fits) < 1.0  # mm: corresponded meshes cover the originals
     # the model reproduces the aligned training shapes exactly (K - 1 PCA modes)
     coef = np.linalg.lstsq(model.basis, (align.aligned - model.mean).reshape(N_TRAIN, -1).T,
                            rcond=None)[0]

@@ -135,12 +135,16 @@ class BuilderPanel(QWidget):
         self.clear_button.setToolTip("Remove all meshes.")
         self.mesh_list = QTreeWidget()
         self.mesh_list.setObjectName("mesh_list")
-        self.mesh_list.setColumnCount(3)
-        self.mesh_list.setHeaderLabels(["Mesh", "Vertices", "Problems"])
+        self.mesh_list.setColumnCount(4)
+        self.mesh_list.setHeaderLabels(["Mesh", "Vertices", "Fit (mm)", "Problems"])
+        self.mesh_list.headerItem().setToolTip(
+            2, "After correspondence: symmetric mean surface distance between the corresponded "
+               "mesh (reference topology) and the original mesh.")
         self.mesh_list.setRootIsDecorated(False)
         self.mesh_list.setSelectionMode(QAbstractItemView.ExtendedSelection)
         self.mesh_list.header().setSectionResizeMode(0, QHeaderView.ResizeToContents)
         self.mesh_list.header().setSectionResizeMode(1, QHeaderView.ResizeToContents)
+        self.mesh_list.header().setSectionResizeMode(2, QHeaderView.ResizeToContents)
         self.mesh_list.setToolTip("Training meshes. Untick a mesh to leave it out; meshes "
                                   "that failed to load cannot be used.")
         self.mesh_summary = QLabel("No meshes. Add a folder of training meshes.")
@@ -453,20 +457,26 @@ class BuilderPanel(QWidget):
     def _refresh_mesh_list(self) -> None:
         self.mesh_list.blockSignals(True)
         self.mesh_list.clear()
+        fits, failures = self._correspondence_by_mesh()
         for entry in self.state.entries:
+            problems = list(entry.problems)
+            if entry.included and entry.name in failures:
+                problems.insert(0, failures[entry.name])
+            fit = fits.get(entry.name) if entry.included else None
             item = QTreeWidgetItem([entry.name, "" if entry.mesh is None else
-                                    str(entry.mesh.n_vertices), "; ".join(entry.problems)])
+                                    str(entry.mesh.n_vertices),
+                                    "" if fit is None else f"{fit:.2f}", "; ".join(problems)])
             item.setToolTip(0, entry.path)
-            item.setToolTip(2, "\n".join(entry.problems))
+            item.setToolTip(3, "\n".join(problems))
             if entry.mesh is None:
                 item.setFlags(item.flags() & ~Qt.ItemIsUserCheckable)
-                for c in range(3):
+                for c in range(4):
                     item.setForeground(c, QColor("#b00020"))
             else:
                 item.setFlags(item.flags() | Qt.ItemIsUserCheckable)
                 item.setCheckState(0, Qt.Checked if entry.included else Qt.Unchecked)
-                if entry.problems:
-                    item.setForeground(2, QColor("#a05a00"))
+                if problems:
+                    item.setForeground(3, QColor("#a05a00"))
             self.mesh_list.addTopLevelItem(item)
         self.mesh_list.blockSignals(False)
         usable = self.usable_entries()
@@ -489,6 +499,16 @@ class BuilderPanel(QWidget):
         self.reference_combo.blockSignals(False)
         self._refresh_stage_labels()
         self._update_buttons()
+
+    def _correspondence_by_mesh(self) -> tuple[dict[str, float], dict[str, str]]:
+        """Residual (mm) and failure reason per mesh name from the cached correspondence."""
+        cached = self.state.stages.get("correspondence")
+        if cached is None:
+            return {}, {}
+        corr = cached.result
+        fits = {m.name: r for m, r in zip(corr.meshes, corr.residuals_mm)
+                if m is not None and r is not None}
+        return fits, dict(corr.failures)
 
     def _on_item_changed(self, item: QTreeWidgetItem, column: int) -> None:
         row = self.mesh_list.indexOfTopLevelItem(item)
@@ -557,6 +577,8 @@ class BuilderPanel(QWidget):
                 del self.state.stages[later]
         if self._plan and self._plan[0] == stage:
             self._plan.pop(0)
+        if stage == "correspondence":
+            self._refresh_mesh_list()
         if stage == "correspondence" and result.failures:
             failed = ", ".join(f"{n} ({r})" for n, r in result.failures.items())
             self._set_status(f"Correspondence failed for: {failed}", error=True)
