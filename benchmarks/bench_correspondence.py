@@ -66,22 +66,42 @@ def bean(u: np.ndarray) -> np.ndarray:
     is well defined.
     """
     x = 18.0 * u[:, 0]
-    taper = 1.0 - 0.25 * u[:, 0]
-    y = 8.0 * u[:, 1] * taper + 0.035 * x ** 2
-    z = 6.0 * u[:, 2] * taper + 3.0 * np.exp(-((x - 5.0) ** 2) / 50.0) * (1.0 + u[:, 1]) / 2.0
+    taper = 1.0 - 0.5 * u[:, 0]
+    y = 8.0 * u[:, 1] * taper + 0.012 * (x + 18.0) ** 2
+    z = 6.0 * u[:, 2] * taper + 5.0 * np.exp(-((x - 9.0) ** 2) / 30.0) * (1.0 + u[:, 2]) / 2.0
     return np.column_stack([x, y, z])
 
 
+def bean_normals(u: np.ndarray, eps: float = 1e-4) -> np.ndarray:
+    """Outward unit normals of :func:`bean` at unit vectors ``u`` (P, 3), by finite differences."""
+    helper = np.where(np.abs(u[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(u, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(u, t1)
+    d1 = bean(u + eps * t1) - bean(u - eps * t1)
+    d2 = bean(u + eps * t2) - bean(u - eps * t2)
+    n = np.cross(d1, d2)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n * np.sign(np.einsum("ij,ij->i", n, bean(u) - bean(u).mean(axis=0)))[:, None]
+
+
 def smooth_deformation(rng: np.random.Generator, n_bumps: int = 6, amplitude: float = 1.5,
-                       width: float = 9.0):
-    """A random smooth displacement field of R^3 (Gaussian RBFs) plus anisotropic scaling."""
+                       width: float = 7.0):
+    """A random smooth shape change: Gaussian bumps along the surface normal, then an
+    anisotropic scaling. Maps unit vectors (P, 3) to points (P, 3).
+
+    The bumps move material points along the normal only, so the true homologues are
+    determined by the geometry (a tangential field would make them unobservable).
+    """
     centres = bean(rng.normal(size=(n_bumps, 3)) / 1.7)
-    vectors = rng.normal(size=(n_bumps, 3)) * amplitude
+    heights = rng.normal(size=n_bumps) * amplitude
     scale = rng.uniform(0.9, 1.1, size=3)
 
-    def f(points: np.ndarray) -> np.ndarray:
-        d2 = ((points[:, None, :] - centres[None]) ** 2).sum(axis=2)
-        return points * scale + np.exp(-d2 / (2 * width ** 2)) @ vectors
+    def f(u: np.ndarray) -> np.ndarray:
+        p = bean(u)
+        d2 = ((p[:, None, :] - centres[None]) ** 2).sum(axis=2)
+        bump = np.exp(-d2 / (2 * width ** 2)) @ heights
+        return (p + bump[:, None] * bean_normals(u)) * scale
 
     return f
 
@@ -108,7 +128,7 @@ def synthetic_population(n_shapes: int = 20, *, seed: int = 0, max_angle_deg: fl
         trans = rng.uniform(-translation_mm, translation_mm, size=3)
 
         def truth(uu, deform=deform, rot=rot, trans=trans):
-            return deform(bean(uu)) @ rot.T + trans
+            return deform(uu) @ rot.T + trans
 
         meshes.append(TriMesh(truth(u), faces, f"synthetic_{k:02d}"))
         truths.append(truth)

@@ -108,14 +108,15 @@ class CPDResult:
     n_iter: int
     matrix: np.ndarray | None = None
     source: np.ndarray | None = None
-    weights: np.ndarray | None = None
+    coefficients: np.ndarray | None = None
     beta: float | None = None
 
     def warp(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
         """Apply the fitted transformation to other points (P, 3).
 
         Rigid/affine: the matrix. Nonrigid: the continuous displacement field
-        v(z) = sum_m G(z, y_m) w_m of TPAMI 2010 Eq. 19, G(z, y) = exp(-|z - y|^2 / 2 beta^2).
+        v(z) = G(z, Y) C of TPAMI 2010 Eq. 19, G(z, y) = exp(-|z - y|^2 / 2 beta^2), with the
+        coefficients C set by :func:`cpd_nonrigid` so that v reproduces the moved points.
         """
         points = np.asarray(points, dtype=np.float64)
         if self.matrix is not None:
@@ -125,7 +126,7 @@ class CPDResult:
             z = points[start:start + chunk]
             d2 = np.maximum((z ** 2).sum(axis=1)[:, None] + (self.source ** 2).sum(axis=1)[None, :]
                             - 2.0 * z @ self.source.T, 0.0)
-            out[start:start + chunk] = z + np.exp(-d2 / (2.0 * self.beta ** 2)) @ self.weights
+            out[start:start + chunk] = z + np.exp(-d2 / (2.0 * self.beta ** 2)) @ self.coefficients
         return out
 
 
@@ -163,16 +164,31 @@ def cpd_nonrigid(target: np.ndarray, source: np.ndarray, *, w: float = 0.0, beta
     """Nonrigid CPD (Gaussian motion coherence) of ``source`` (M, 3) onto ``target`` (N, 3).
 
     ``beta`` is the kernel width, ``lam`` the regularisation weight (TPAMI 2010 Eq. 20), both
-    in the units of the points. ``low_rank`` approximates the kernel by a rank-``low_rank``
-    pivoted Cholesky factor when smaller than M (None: exact).
+    in the units of the points. ``low_rank`` approximates the kernel G by its leading
+    eigenpairs, G ~ Q L Q^T, when smaller than M (None: exact).
+
+    The displacement field for other points (:meth:`CPDResult.warp`): with the exact kernel,
+    v(z) = G(z, Y) W with CPD's weights W. With the low-rank kernel the moved points are
+    Y + Q L Q^T W, and G(z, Y) W does not reproduce them (W has large components where
+    Q L Q^T is zero; rustcpd's own ``transform`` is off by far more than the point spacing
+    there), so the field is extended by Nystrom: v(z) = G(z, Y) Q L^-1 Q^T D with D the
+    displacements of the sources, exact at the sources.
     """
     rank = None if low_rank is None or low_rank >= len(source) else int(low_rank)
     r = _rustcpd().register_deformable(target, source, alpha=lam, beta=beta, low_rank=rank,
-                                       low_rank_method="pivoted_cholesky",
+                                       low_rank_method="eigen",
                                        outlier_weight=w, tolerance=tolerance,
                                        max_iterations=max_iterations, parallel=parallel)
-    return CPDResult(np.asarray(r.points), float(r.sigma2), int(r.iterations), None,
-                     np.asarray(r.source), np.asarray(r.weights), float(r.beta))
+    points = np.asarray(r.points)
+    src = np.asarray(r.source)
+    if rank is None:
+        coefficients = np.asarray(r.weights)
+    else:
+        basis = np.asarray(r.low_rank_basis)
+        eigenvalues = np.asarray(r.low_rank_eigenvalues)
+        coefficients = basis @ ((basis.T @ (points - src)) / eigenvalues[:, None])
+    return CPDResult(points, float(r.sigma2), int(r.iterations), None, src, coefficients,
+                     float(r.beta))
 
 
 def cpd_log_posterior(target: np.ndarray, moved: np.ndarray, sigma2: float, w: float = 0.0,
@@ -239,29 +255,49 @@ def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nda
 
 
 class SurfaceProjector:
-    """Closest points on a triangle surface, vectorised.
+    """Exact closest points on a triangle surface, vectorised.
 
     Candidate triangles for each query are the ``k`` whose centroids are nearest (KD-tree);
-    the exact closest point on each candidate is computed and the nearest kept.
+    the closest point on each is computed and the nearest kept. The answer is certified
+    exact when the best distance plus the largest centroid-to-corner radius R does not
+    exceed the k-th centroid distance (no farther triangle can then be closer); queries that
+    fail the test are redone with twice as many candidates.
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, k: int = 8):
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.faces = np.asarray(faces)
         self.k = int(min(k, len(self.faces)))
-        self._tree = cKDTree(self.vertices[self.faces].mean(axis=1))
+        self._triangles = self.vertices[self.faces]  # (F, 3, 3)
+        centroids = self._triangles.mean(axis=1)
+        self._radius = float(np.linalg.norm(self._triangles - centroids[:, None], axis=2).max())
+        self._tree = cKDTree(centroids)
 
-    def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Closest surface points (P, 3) and distances (P,) for query ``points`` (P, 3)."""
-        _, cand = self._tree.query(points, k=self.k)
-        cand = cand.reshape(len(points), -1)
-        tri = self.vertices[self.faces[cand]]  # (P, k, 3, 3)
+    def _query(self, points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cdist, cand = self._tree.query(points, k=k)
+        cdist, cand = cdist.reshape(len(points), -1), cand.reshape(len(points), -1)
+        tri = self._triangles[cand]  # (P, k, 3, 3)
         q = np.broadcast_to(points[:, None, :], tri.shape[:2] + (3,))
         closest = _closest_on_triangles(q, tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
         dist = np.linalg.norm(closest - q, axis=2)
         best = np.argmin(dist, axis=1)
         rows = np.arange(len(points))
-        return closest[rows, best], dist[rows, best]
+        d = dist[rows, best]
+        exact = (k >= len(self.faces)) | (d + self._radius <= cdist[:, -1])
+        return closest[rows, best], d, exact
+
+    def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest surface points (P, 3) and distances (P,) for query ``points`` (P, 3)."""
+        points = np.asarray(points, dtype=np.float64)
+        closest, dist, exact = self._query(points, self.k)
+        k = self.k
+        todo = np.flatnonzero(~exact)
+        while len(todo) and k < len(self.faces):
+            k = min(2 * k, len(self.faces))
+            c, d, e = self._query(points[todo], k)
+            closest[todo], dist[todo] = c, d
+            todo = todo[~e]
+        return closest, dist
 
 
 def closest_points_on_surface(points: np.ndarray, vertices: np.ndarray,
@@ -373,7 +409,8 @@ def _rigid_pose(target_n: np.ndarray, reference_n: np.ndarray, params: dict,
     Rigid CPD with scale on subsamples (``rigid_points`` of each). Starts: the identity
     (``pose_starts="identity"``), the four proper rotations aligning the reference's principal
     axes with the target's (``"pca"``), or all five (``"auto"``). Every start gets a short run;
-    the one with the smallest sigma^2 is refined with ``rigid_iterations`` iterations.
+    the one with the smallest sigma^2 is refined with ``rigid_iterations`` iterations. (A
+    nearly symmetric shape can fit as well flipped: that pose is then a matter of chance.)
     """
     tgt = _subsample(target_n, params["rigid_points"], 1)
     ref = _subsample(reference_n, params["rigid_points"], 2)
@@ -386,16 +423,19 @@ def _rigid_pose(target_n: np.ndarray, reference_n: np.ndarray, params: dict,
         axes_r = _principal_axes(reference_n)
         flips = [np.diag(d) for d in ([1, 1, 1], [-1, -1, 1], [-1, 1, -1], [1, -1, -1])]
         starts += [axes_t @ f @ axes_r.T for f in flips]
-    best = None
+    fits = []
     for rot in starts:
-        r = cpd_rigid(tgt, ref @ rot.T, scaling=True, w=params["w"], tolerance=params["tolerance"],
+        # Without scale: both sets have unit RMS radius, and a free scale lets a shrunken,
+        # wrongly oriented reference fit inside the target almost as well as the right pose.
+        r = cpd_rigid(tgt, ref @ rot.T, scaling=len(starts) == 1, w=params["w"],
+                      tolerance=params["tolerance"],
                       max_iterations=15 if len(starts) > 1 else params["rigid_iterations"],
                       parallel=parallel)
         start = np.eye(4)
         start[:3, :3] = rot
-        if best is None or r.sigma2 < best[0]:
-            best = (r.sigma2, r.matrix @ start)
-    matrix = best[1]
+        fits.append((r.sigma2, r.matrix @ start))
+    fits.sort(key=lambda f: f[0])
+    matrix = fits[0][1]
     if len(starts) > 1:
         r = cpd_rigid(tgt, ref @ matrix[:3, :3].T + matrix[:3, 3], scaling=True, w=params["w"],
                       tolerance=params["tolerance"], max_iterations=params["rigid_iterations"],
