@@ -324,3 +324,15 @@ def test_cancel_during_correspondence(panel, qtbot):
     assert panel.state.stages == {} and panel.state.model is None
     assert panel.build_button.isEnabled() and not panel.cancel_button.isEnabled()
     assert panel.stage_labels["correspondence"].text() == "not run"
+
+    # closing the panel while a stage runs stops the worker (and its process pool) cleanly
+    with qtbot.waitSignal(panel.progress_bar.valueChanged, timeout=30000):
+        qtbot.mouseClick(panel.build_button, Qt.LeftButton)
+    qtbot.wait(500)
+    worker = panel._worker
+    assert worker is not None and worker.stage == "correspondence"
+    start = time.monotonic()
+    panel.close_views()
+    assert time.monotonic() - start < 2.0
+    assert worker.isFinished() and worker.was_cancelled
+    panel.close_views()  # idempotent
