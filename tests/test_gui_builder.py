@@ -296,6 +296,9 @@ def test_build_inspect_cancel_save(panel, qtbot, tmp_path):
     for method in results:  # K - 1 factors span the centred training set: no error
         assert np.max(results[method]["reconstruction"]["max"]) < 1e-6
         assert np.min(results[method]["generalisation"]["avg"]) > 0.01
+    # the evaluation of the shown model's method goes into its file's metadata
+    assert panel.state.model.info["evaluation"]["method"] == "varimax"
+    assert panel.state.model.info["correspondence"]["reference"] == corr.reference_name
     # PCA and its rotation span the same space: same generalisation
     np.testing.assert_allclose(results["pca"]["generalisation"]["avg"],
                                results["varimax"]["generalisation"]["avg"], rtol=1e-6)

@@ -583,6 +583,14 @@ class BuilderPanel(QWidget):
             failed = ", ".join(f"{n} ({r})" for n, r in result.failures.items())
             self._set_status(f"Correspondence failed for: {failed}", error=True)
         if stage == "model":
+            corr = self.state.stages["correspondence"].result
+            residuals = [r for r in corr.residuals_mm if r is not None]
+            result.info.setdefault("timings", {}).update(
+                {f"{s}_seconds": round(self.state.stages[s].seconds, 3) for s in STAGES})
+            result.info["correspondence"] = {
+                "reference": corr.reference_name,
+                "mean_residual_mm": float(np.mean(residuals)) if residuals else None,
+                "failures": dict(corr.failures)}
             self._set_model(result, key)
             total = time.monotonic() - getattr(self, "_build_started", time.monotonic())
             self._set_status(f"Model built: {result.method}, {result.n_factors} factors, "
@@ -683,6 +691,15 @@ class BuilderPanel(QWidget):
 
     def _on_evaluated(self, results: dict[str, Any]) -> None:
         self.state.evaluation = results
+        model = self.state.model
+        if model is not None and model.method in results and \
+                self.state.model_key is not None and self.state.model_key == \
+                self.state.stages.get("model", CachedStage((), None, 0)).key and \
+                self.forms[model.method].values() == model.params:
+            from core.evaluation import summary_rows
+
+            model.info["evaluation"] = summary_rows({model.method: results[model.method]})[0]
+            self.state.saved_key = None  # the file on disk lacks the evaluation
         self.evaluation_view.set_results(results)
         self.tabs.setCurrentWidget(self.evaluation_view)
         self._set_status(f"Evaluated {', '.join(results)}.")
