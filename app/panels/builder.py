@@ -726,6 +726,9 @@ class BuilderPanel(QWidget):
         from core.io import load_model
 
         model = load_model(path)
+        if model.method in self.forms:  # show how it was built
+            self.model_method.setCurrentText(model.method)
+            self.forms[model.method].set_values(model.params)
         self.show_model(model)
         self.state.saved_path = str(path)
         self.state.saved_key = id(model)

@@ -331,7 +331,29 @@ class FactorView(QWidget):
             plotter.add_mesh(polydata(self._mean, self._faces), style="wireframe",
                              color="gray", opacity=0.08, render=False)
         plotter.reset_camera(render=False)
+        if factor is not None:
+            self._face_vertex(int(np.argmax(self.magnitudes()[factor])))
         plotter.render()
+
+    def _face_vertex(self, vertex: int) -> None:
+        """Turn the camera (same distance, same focal point) to look at ``vertex`` from outside,
+        along the surface normal there, so the factor's region is in view."""
+        from core.mesh import vertex_normals
+
+        camera = self.view.plotter.camera
+        focal = np.asarray(camera.focal_point)
+        distance = np.linalg.norm(np.asarray(camera.position) - focal)
+        normal = vertex_normals(self._mean, self._faces)[vertex]
+        if not np.all(np.isfinite(normal)) or np.linalg.norm(normal) < 1e-9:
+            return
+        direction = normal / np.linalg.norm(normal)
+        up = np.asarray(camera.up)
+        if abs(float(np.dot(up, direction))) > 0.95:
+            up = np.eye(3)[int(np.argmin(np.abs(direction)))]
+        camera.position = tuple(focal + distance * direction)
+        camera.up = tuple(up)
+        self.view.plotter.reset_camera(render=False)  # fit the shape, keeping the direction
+        camera.zoom(0.85)  # leave room for the scalar bar
 
     def _on_slider(self, value: int) -> None:
         sd = value / self.SLIDER_STEPS_PER_SD
