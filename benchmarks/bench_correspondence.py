@@ -134,3 +134,168 @@ def synthetic_population(n_shapes: int = 20, *, seed: int = 0, max_angle_deg: fl
         truths.append(truth)
         params.append(u)
     return meshes, (truths, params)
+
+
+# ----------------------------------------------------------------------------- data sets
+
+def demo_population(folder: Path):
+    """The demo set (``resources/demo``): meshes and a truth function per reference.
+
+    Returns meshes and ``truth(ref, k) -> (N_ref, 3)``: the true homologues on mesh k of the
+    vertices of mesh ``ref`` (through the barycentric remeshing record of ground_truth.npz).
+    """
+    from core.io import load_mesh
+
+    gt = np.load(folder / "ground_truth.npz")
+    names = [str(n) for n in gt["mesh_names"]]
+    meshes = []
+    for name in names:
+        mesh = load_mesh(folder / "meshes" / name)
+        mesh.name = name
+        meshes.append(mesh)
+    offsets, tris, bary = gt["remesh_offsets"], gt["remesh_triangles"], gt["remesh_barycentric"]
+    base_faces, shapes = gt["base_faces"], gt["corresponded_shapes"]
+
+    def truth(ref: int, k: int) -> np.ndarray:
+        rows = np.arange(offsets[ref], offsets[ref + 1])
+        corners = base_faces[tris[rows]]  # (N_ref, 3)
+        return np.einsum("nl,nlc->nc", bary[rows], shapes[k][corners])
+
+    return meshes, truth
+
+
+def synthetic_truth(n_shapes: int, seed: int = 0):
+    meshes, (truths, params) = synthetic_population(n_shapes, seed=seed)
+    return meshes, lambda ref, k: truths[k](params[ref])
+
+
+# ----------------------------------------------------------------------------- peers
+
+def _normalised(points: np.ndarray):
+    centre = points.mean(axis=0)
+    scale = float(np.sqrt(((points - centre) ** 2).sum(axis=1).mean()))
+    return (points - centre) / scale, centre, scale
+
+
+def plain_rustcpd(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarray:
+    """rustcpd alone: rigid + nonrigid CPD on all points, then nearest-point projection."""
+    import rustcpd
+
+    from core.correspondence import SurfaceProjector
+
+    xn, centre, scale = _normalised(target.vertices)
+    yn, _, _ = _normalised(reference.vertices)
+    rigid = rustcpd.register_rigid(xn, yn, scale=True, tolerance=params["tolerance"],
+                                   max_iterations=params["rigid_iterations"])
+    nonrigid = rustcpd.register_deformable(xn, rigid.points, alpha=params["lam"], beta=params["beta"],
+                                           low_rank=params["low_rank"], low_rank_method="pivoted_cholesky",
+                                           tolerance=params["tolerance"],
+                                           max_iterations=params["max_iterations"])
+    moved = np.asarray(nonrigid.points) * scale + centre
+    return SurfaceProjector(target.vertices, target.faces)(moved)[0]
+
+
+def plain_pycpd(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarray:
+    """pycpd: rigid + nonrigid CPD (pure numpy), then nearest-point projection."""
+    from pycpd import DeformableRegistration, RigidRegistration
+
+    from core.correspondence import SurfaceProjector
+
+    xn, centre, scale = _normalised(target.vertices)
+    yn, _, _ = _normalised(reference.vertices)
+    rigid = RigidRegistration(X=xn, Y=yn, tolerance=params["tolerance"],
+                              max_iterations=params["rigid_iterations"])
+    posed, _ = rigid.register()
+    nonrigid = DeformableRegistration(X=xn, Y=posed, alpha=params["lam"], beta=params["beta"],
+                                      tolerance=params["tolerance"],
+                                      max_iterations=params["max_iterations"])
+    moved, _ = nonrigid.register()
+    return SurfaceProjector(target.vertices, target.faces)(moved * scale + centre)[0]
+
+
+def ours(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarray:
+    from core.correspondence import correspond_pair
+
+    return correspond_pair(reference, target, params)["vertices"]
+
+
+def degenerate_fraction(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Fraction of triangles with less than 5 % of the mean triangle area (slivers, collapses)."""
+    v = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    return float((area < 0.05 * area.mean()).mean())
+
+
+# ----------------------------------------------------------------------------- main
+
+def main(argv: list[str] | None = None) -> int:
+    from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--shapes", type=int, default=6, help="targets per method (default 6)")
+    parser.add_argument("--pycpd", type=int, default=2, help="targets for pycpd (slow; default 2)")
+    parser.add_argument("--batch", type=int, default=20, help="meshes in the batch timing (default 20)")
+    parser.add_argument("--synthetic", action="store_true", help="ignore the demo set")
+    args = parser.parse_args(argv)
+
+    demo = ROOT / "resources" / "demo"
+    if not args.synthetic and (demo / "ground_truth.npz").exists():
+        meshes, truth = demo_population(demo)
+        source = f"demo set ({demo.relative_to(ROOT)}, {len(meshes)} caudate meshes)"
+    else:
+        meshes, truth = synthetic_truth(max(args.batch, args.shapes + 1))
+        source = "synthetic bean shapes"
+    counts = [m.n_vertices for m in meshes]
+    print(f"data: {source}; vertices {min(counts)}-{max(counts)}")
+    params = dict(DEFAULT_CPD_PARAMS)
+    ref = 0
+    reference = meshes[ref]
+    targets = list(range(1, min(len(meshes), args.shapes + 1)))
+    peers = [("ssm-studio", ours, targets), ("rustcpd alone", plain_rustcpd, targets),
+             ("pycpd", plain_pycpd, targets[:args.pycpd])]
+    rows = []
+    for name, fn, tgts in peers:
+        if name == "pycpd":
+            try:
+                import pycpd  # noqa: F401
+            except ImportError:
+                print("pycpd not installed (pip install .[bench]); skipped")
+                continue
+        if not tgts:
+            continue
+        times, means, maxes, degen = [], [], [], []
+        for k in tgts:
+            t0 = time.perf_counter()
+            out = fn(reference, meshes[k], params)
+            times.append(time.perf_counter() - t0)
+            err = np.linalg.norm(out - truth(ref, k), axis=1)
+            means.append(err.mean())
+            maxes.append(err.max())
+            degen.append(degenerate_fraction(out, reference.faces))
+        rows.append((name, len(tgts), np.mean(times), np.mean(means), np.max(maxes), 100 * np.mean(degen)))
+    print(f"\nper shape, reference {reference.name} ({reference.n_vertices} vertices), "
+          f"same targets, same CPD parameters")
+    print(f"{'method':<15}{'shapes':>7}{'s/shape':>9}{'mean err mm':>13}{'max err mm':>12}{'degenerate %':>14}")
+    for r in rows:
+        print(f"{r[0]:<15}{r[1]:>7}{r[2]:>9.2f}{r[3]:>13.3f}{r[4]:>12.3f}{r[5]:>14.2f}")
+    if len(rows) >= 2:
+        print(f"time ratio ssm-studio / rustcpd alone: {rows[0][2] / rows[1][2]:.2f}")
+
+    batch = meshes[:args.batch]
+    for label, reference_arg, n_refs in (("fixed reference", 0, 1), ("auto, 3 candidates", "auto", 3)):
+        t0 = time.perf_counter()
+        result = establish_correspondence(batch, reference_arg, n_references=n_refs, n_jobs=2)
+        wall = time.perf_counter() - t0
+        r = result.reference_index
+        errs = [np.linalg.norm(m.vertices - truth(r, k), axis=1)
+                for k, m in enumerate(result.meshes) if m is not None and k != r]
+        print(f"\nbatch of {len(batch)} meshes, 2 workers, {label}: {wall:.1f} s wall "
+              f"({result.timings['n_registrations']} registrations, "
+              f"{result.timings['per_shape_mean']:.2f} s each), reference {result.reference_name}, "
+              f"error vs truth mean {np.mean([e.mean() for e in errs]):.3f} mm, "
+              f"max {np.max([e.max() for e in errs]):.3f} mm, failures {len(result.failures)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -76,11 +76,11 @@ DEFAULT_CPD_PARAMS = {
     "max_iterations": 100,    # nonrigid CPD iterations
     "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
     "rigid_points": 500,      # subsample size for the rigid pose
-    "cpd_points": 1000,       # subsample size for nonrigid CPD (None: all points); the fitted
-                              # displacement field then moves every reference vertex
+    "cpd_points": None,       # subsample size for nonrigid CPD (None: all points); with a
+                              # subsample the fitted displacement field moves every vertex
     "low_rank": 80,           # rank of the kernel approximation (None: exact)
     "pose_starts": "auto",    # "auto" (identity + principal axes), "identity", "pca"
-    "fairing_iterations": 10,
+    "fairing_iterations": 30,
     "fairing_step": 0.5,
 }
 
@@ -160,7 +160,8 @@ def cpd_affine(target: np.ndarray, source: np.ndarray, *, w: float = 0.0, tolera
 
 def cpd_nonrigid(target: np.ndarray, source: np.ndarray, *, w: float = 0.0, beta: float = 2.0,
                  lam: float = 2.0, tolerance: float = 1e-5, max_iterations: int = 100,
-                 low_rank: int | None = 80, parallel: bool = True) -> CPDResult:
+                 low_rank: int | None = 80, low_rank_method: str = "eigen",
+                 parallel: bool = True) -> CPDResult:
     """Nonrigid CPD (Gaussian motion coherence) of ``source`` (M, 3) onto ``target`` (N, 3).
 
     ``beta`` is the kernel width, ``lam`` the regularisation weight (TPAMI 2010 Eq. 20), both
@@ -172,11 +173,13 @@ def cpd_nonrigid(target: np.ndarray, source: np.ndarray, *, w: float = 0.0, beta
     Y + Q L Q^T W, and G(z, Y) W does not reproduce them (W has large components where
     Q L Q^T is zero; rustcpd's own ``transform`` is off by far more than the point spacing
     there), so the field is extended by Nystrom: v(z) = G(z, Y) Q L^-1 Q^T D with D the
-    displacements of the sources, exact at the sources.
+    displacements of the sources, exact at the sources for ``low_rank_method="eigen"``
+    (``"pivoted_cholesky"`` is faster to build but its basis is not G's eigenbasis, so the
+    extension is then only approximate; use it when only ``points`` are needed).
     """
     rank = None if low_rank is None or low_rank >= len(source) else int(low_rank)
     r = _rustcpd().register_deformable(target, source, alpha=lam, beta=beta, low_rank=rank,
-                                       low_rank_method="eigen",
+                                       low_rank_method=low_rank_method,
                                        outlier_weight=w, tolerance=tolerance,
                                        max_iterations=max_iterations, parallel=parallel)
     points = np.asarray(r.points)
@@ -261,10 +264,12 @@ class SurfaceProjector:
     the closest point on each is computed and the nearest kept. The answer is certified
     exact when the best distance plus the largest centroid-to-corner radius R does not
     exceed the k-th centroid distance (no farther triangle can then be closer); queries that
-    fail the test are redone with twice as many candidates.
+    fail the test are redone with twice as many candidates. With ``exact=False`` the first
+    pass is kept (fast; used inside the fairing loop, whose points are already on the surface).
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, k: int = 8):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, k: int = 8, exact: bool = True):
+        self.exact = exact
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.faces = np.asarray(faces)
         self.k = int(min(k, len(self.faces)))
@@ -291,7 +296,7 @@ class SurfaceProjector:
         points = np.asarray(points, dtype=np.float64)
         closest, dist, exact = self._query(points, self.k)
         k = self.k
-        todo = np.flatnonzero(~exact)
+        todo = np.flatnonzero(~exact) if self.exact else np.zeros(0, int)
         while len(todo) and k < len(self.faces):
             k = min(2 * k, len(self.faces))
             c, d, e = self._query(points[todo], k)
@@ -473,7 +478,8 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     y_cpd = y_posed if n_cpd is None else _subsample(y_posed, int(n_cpd), 4)
     nonrigid = cpd_nonrigid(x_cpd, y_cpd, w=p["w"], beta=p["beta"], lam=p["lam"],
                             tolerance=p["tolerance"], max_iterations=p["max_iterations"],
-                            low_rank=p["low_rank"], parallel=parallel)
+                            low_rank=p["low_rank"], parallel=parallel,
+                            low_rank_method="eigen" if len(y_cpd) < len(y_posed) else "pivoted_cholesky")
     moved = nonrigid.points if len(y_cpd) == len(y_posed) else nonrigid.warp(y_posed)
     t2 = time.perf_counter()
     times["nonrigid"] = t2 - t1
@@ -500,9 +506,10 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     labelled[rows] = candidates[cols]
     t3 = time.perf_counter()
     times["assignment"] = t3 - t2
-    projector = SurfaceProjector(xn, tgt_f)
+    projector = SurfaceProjector(xn, tgt_f, exact=False)
     faired = fair_mesh(labelled, ref_f, projector, rest_vertices=y_posed,
                        iterations=p["fairing_iterations"], step=p["fairing_step"])
+    faired, _ = SurfaceProjector(xn, tgt_f)(faired)  # final exact projection
     t4 = time.perf_counter()
     times["fairing"] = t4 - t3
     vertices = faired * scale + centre
