@@ -188,7 +188,13 @@ class DeformationModel:
 
     def _cache_basis(self) -> None:
         basis = self.factors_.reshape(len(self.factors_), -1).T  # (3N, M)
-        self._pinv = np.linalg.pinv(basis)
+        # Normal equations: pinv(Phi) = (Phi^T Phi)^+ Phi^T, the (M, M) Gram matrix inverted
+        # by eigendecomposition with a relative cut-off for (numerically) dependent factors.
+        gram = basis.T @ basis
+        w, v = np.linalg.eigh(gram)
+        cutoff = 1e-12 * max(float(w[-1]), 1e-300)
+        inv_w = np.where(w > cutoff, 1.0 / np.where(w > cutoff, w, 1.0), 0.0)
+        self._pinv = (v * inv_w) @ v.T @ basis.T
 
     # ---- using a fitted model ----------------------------------------------------------
     def _check_fitted(self) -> None:

@@ -85,13 +85,15 @@ def farthest_points(points: np.ndarray, count: int, rng: np.random.Generator) ->
 
 
 def planted_shapes(base: np.ndarray, faces: np.ndarray, *, n_shapes: int = 30, n_factors: int = 6,
-                   radius: float | None = None, amplitude: float = 3.0, noise: float = 0.05,
+                   radius: float | None = None, radius_spread: float = 0.0,
+                   amplitude: float = 3.0, noise: float = 0.05,
                    random_state: int = 0) -> PlantedShapes:
     """Training shapes from planted bump factors with disjoint supports (see module doc).
 
     radius defaults to 0.45 x the smallest distance between two bump centres, so supports are
-    disjoint; amplitude (mm) is the peak displacement of a factor; noise is the per-coordinate
-    standard deviation (mm).
+    disjoint; with ``radius_spread`` s in [0, 1) the factors' radii are spread evenly over
+    [(1 - s) radius, radius] (regions of different sizes); amplitude (mm) is the peak
+    displacement of a factor; noise is the per-coordinate standard deviation (mm).
     """
     rng = np.random.default_rng(random_state)
     centres = farthest_points(base, n_factors, rng)
@@ -99,6 +101,7 @@ def planted_shapes(base: np.ndarray, faces: np.ndarray, *, n_shapes: int = 30, n
     min_sep = cd[~np.eye(n_factors, dtype=bool)].min() if n_factors > 1 else np.ptp(base, 0).max()
     r = 0.45 * min_sep if radius is None else float(radius)
     normals = meshops.vertex_normals(base, faces)
+    r = r * rng.permutation(np.linspace(1.0 - radius_spread, 1.0, n_factors))[:, None]
     d = np.linalg.norm(base[None] - base[centres][:, None], axis=-1)  # (M, N)
     bump = np.where(d < r, (1 - (d / r) ** 2) ** 2, 0.0)
     factors = amplitude * bump[:, :, None] * normals[None]
