@@ -321,7 +321,7 @@ class _ModelCache:
         self.t0 = t0.copy()
         self.mean = model.mean @ t0[:3, :3].T + t0[:3, 3]  # (N, 3)
         self.factors = model.factors @ t0[:3, :3].T  # (M, N, 3)
-        self.basis_t = np.ascontiguousarray(self.factors.reshape(model.n_factors, -1))  # (M, 3N)
+        self.basis_t = np.ascontiguousarray(self.factors.reshape(model.n_factors, 3 * model.n_vertices))
         self.inv_var = 1.0 / model.coef_var
         self.faces = model.faces
         self.table = _vertex_face_table(model.faces, model.n_vertices)
@@ -669,7 +669,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                 trans = grow * rot_d @ (trans - centre) + centre + theta[4:]
 
         # M-step, shape (Eq. 4), in the base frame.
-        if shape_active:
+        if shape_active and n_factors > 0:
             ybar_b = ((ybar - wj[:, None] * trans) @ rot) / scale  # R^T (ybar - w t) / s
             sigma2_b = sigma2 / scale**2
             # only the vertices that carry weight (as s2 shrinks, a few per point)
