@@ -18,8 +18,10 @@ from PySide6.QtWidgets import QCheckBox, QComboBox, QDoubleSpinBox, QLineEdit, Q
 from app.panels.builder import BuilderPanel
 from app.panels.builder_forms import ParameterForm, parse_numpydoc_parameters
 import core.correspondence  # noqa: F401 - imported here, not in the timed worker
-from core.io import load_model
+from app.panels.builder_engine import NO_CORRESPONDENCE
+from core.io import TriMesh, load_model, save_mesh
 from core.models import LSF, PCA, Varimax
+from core.models.synthetic import ellipsoid_surface, planted_shapes, support_iou
 
 DEMO = Path(__file__).resolve().parents[1] / "resources" / "demo" / "meshes"
 N_TRAIN = 5
@@ -339,3 +341,39 @@ def test_cancel_during_correspondence(panel, qtbot):
     assert time.monotonic() - start < 2.0
     assert worker.isFinished() and worker.was_cancelled
     panel.close_views()  # idempotent
+
+
+def test_lsf_factors_from_corresponded_meshes_show_planted_regions(panel, qtbot, tmp_path):
+    """Meshes already in correspondence (shared topology) skip CPD; LSF recovers the planted
+    local factors and the factor view colours exactly their regions."""
+    base, faces = ellipsoid_surface(3)
+    planted = planted_shapes(base, faces, n_shapes=16, n_factors=4, noise=0.02, random_state=3)
+    for k, shape in enumerate(planted.shapes):
+        save_mesh(tmp_path / f"shape_{k:02d}.vtk", TriMesh(shape, faces))
+    panel.add_paths([str(tmp_path)])
+    wait_idle(qtbot, panel, 20000)
+    assert len(panel.usable_entries()) == 16
+    panel.reference_combo.setCurrentText(NO_CORRESPONDENCE)
+    panel.align_method.setCurrentText("none")
+    panel.model_method.setCurrentText("lsf")
+    panel.current_form().editor("n_factors").setValue(8)
+    with qtbot.waitSignal(panel.model_built, timeout=60000) as built:
+        qtbot.mouseClick(panel.build_button, Qt.LeftButton)
+    wait_idle(qtbot, panel, 5000)
+    model = built.args[0]
+    assert model.method == "lsf" and model.params["n_factors"] == 8
+    # unaligned shapes: the model sits where the shapes are
+    np.testing.assert_allclose(model.world_transform, np.eye(4), atol=1e-6)
+    iou = support_iou(planted.factors, model.factors)
+    assert iou.mean() > 0.75, iou
+    panel.tabs.setCurrentWidget(panel.factor_view)
+    view = panel.factor_view
+    for m in range(min(4, model.n_factors)):
+        view.factor_list.setCurrentRow(m)
+        shown = view.actor.mapper.dataset.point_data["mm at 1 SD"]
+        coloured = shown > 0.1 * shown.max()
+        # the coloured region is one planted support (local), not the whole surface
+        best = max(range(len(planted.supports)),
+                   key=lambda j: (coloured & planted.supports[j]).sum())
+        inside = (coloured & planted.supports[best]).sum() / coloured.sum()
+        assert coloured.mean() < 0.3 and inside > 0.8

@@ -162,10 +162,11 @@ class BuilderPanel(QWidget):
         # --- correspondence ---------------------------------------------------------------
         self.reference_combo = QComboBox()
         self.reference_combo.setObjectName("reference")
-        self.reference_combo.addItem("auto")
+        self.reference_combo.addItems(["auto", engine.NO_CORRESPONDENCE])
         self.reference_combo.setToolTip("Reference mesh whose topology every shape takes. "
-                                        "'auto' tries several and keeps the best (lowest "
-                                        "residual).")
+                                        "'auto' tries several candidates and keeps the one "
+                                        "giving the most compact model. 'none' uses meshes "
+                                        "that already share one topology as they are.")
         self.n_references = QSpinBox()
         self.n_references.setObjectName("n_references")
         self.n_references.setRange(1, 20)
@@ -184,7 +185,7 @@ class BuilderPanel(QWidget):
         self.align_method.setToolTip("sync: transformation synchronisation (all pairwise "
                                      "transforms at once, no reference; CVPR 2015).\n"
                                      "gpa: generalised Procrustes analysis (iterate aligning "
-                                     "to the current mean).")
+                                     "to the current mean).\nnone: keep the shapes' pose.")
         self.align_transform = QComboBox()
         self.align_transform.setObjectName("align_transform")
         self.align_transform.addItems(engine.TRANSFORMS)
@@ -374,6 +375,8 @@ class BuilderPanel(QWidget):
         text = self.reference_combo.currentText()
         if text == "auto" or not text:
             return "auto"
+        if text == engine.NO_CORRESPONDENCE:
+            return text
         names = [e.name for e in self.usable_entries()]
         return names.index(text) if text in names else "auto"
 
@@ -492,7 +495,7 @@ class BuilderPanel(QWidget):
         current = self.reference_combo.currentText()
         self.reference_combo.blockSignals(True)
         self.reference_combo.clear()
-        self.reference_combo.addItem("auto")
+        self.reference_combo.addItems(["auto", engine.NO_CORRESPONDENCE])
         self.reference_combo.addItems([e.name for e in usable])
         index = self.reference_combo.findText(current)
         self.reference_combo.setCurrentIndex(max(index, 0))

@@ -20,8 +20,11 @@ import numpy as np
 from core.io import MESH_SUFFIXES, DataFileError, TriMesh, load_mesh
 from core.progress import ProgressCallback, report, sub_progress
 
-ALIGN_METHODS = ("sync", "gpa")
-TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
+try:
+    from core.pipeline import ALIGN_METHODS, TRANSFORMS
+except ImportError:  # pragma: no cover - older core
+    ALIGN_METHODS = ("sync", "gpa")
+    TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
 MODEL_ORDER = ("pca", "lsf", "splocs", "varimax")
 
 
@@ -151,13 +154,30 @@ def default_n_references() -> int:
 # ------------------------------------------------------------------------------------------
 
 
+NO_CORRESPONDENCE = "none (already corresponded)"
+
+
 def run_correspondence(meshes: list[TriMesh], reference: str | int = "auto", n_references: int = 3,
                        progress: ProgressCallback | None = None):
-    """Stage 1: bring every mesh into correspondence with a reference (CorrespondenceResult)."""
-    from core.correspondence import establish_correspondence
+    """Stage 1 (``core.pipeline.correspond``): every mesh with the reference's topology.
 
-    return establish_correspondence(meshes, reference=reference, n_references=n_references,
-                                    progress=progress)
+    ``reference`` is "auto", an index into ``meshes``, or :data:`NO_CORRESPONDENCE` for meshes
+    that already share one topology (checked; they are used as they are).
+    Returns a ``core.correspondence.CorrespondenceResult``.
+    """
+    from core import pipeline
+    from core.correspondence import CorrespondenceResult
+
+    if reference == NO_CORRESPONDENCE:
+        report(progress, 0.0, "checking the meshes share one topology")
+        names, shapes, faces = pipeline.corresponded_shapes(meshes)
+        report(progress, 1.0, "meshes already in correspondence")
+        return CorrespondenceResult(
+            meshes=[TriMesh(x, faces, n) for x, n in zip(shapes, names)], reference_index=None,
+            reference_name="(input topology)", faces=faces, residuals_mm=[None] * len(names),
+            failures={}, timings={})
+    return pipeline.correspond(meshes, reference=reference, n_references=n_references,
+                               progress=progress)
 
 
 def _corresponded(corr) -> tuple[list[str], np.ndarray]:
@@ -171,45 +191,29 @@ def _corresponded(corr) -> tuple[list[str], np.ndarray]:
 
 def run_alignment(corr, method: str = "sync", transform: str = "similarity",
                   progress: ProgressCallback | None = None):
-    """Stage 2: remove the pose of the corresponded shapes (AlignmentResult)."""
-    from core.alignment import align_shapes
+    """Stage 2 (``core.pipeline.align``): remove the pose of the corresponded shapes."""
+    from core import pipeline
 
     _, shapes = _corresponded(corr)
-    return align_shapes(shapes, method=method, transform=transform, progress=progress)
+    return pipeline.align(shapes, method=method, transform=transform, progress=progress)
 
 
 def run_model(corr, aligned, method: str = "pca", params: dict[str, Any] | None = None,
               progress: ProgressCallback | None = None):
-    """Stage 3: fit the model on the aligned shapes; returns a ShapeModel placed in world."""
-    from core.models import make_model
+    """Stage 3 (``core.pipeline.fit_model``): fit the model on the aligned shapes; returns a
+    ShapeModel placed in world by ``core.pipeline.world_placement``."""
+    from core import pipeline
 
-    names, _ = _corresponded(corr)
-    estimator = make_model(method, **(params or {}))
-    estimator.fit(aligned.aligned, faces=corr.faces, progress=progress)
-    world = model_world_transform(aligned.transforms)
+    names, shapes = _corresponded(corr)
+    estimator = pipeline.fit_model(aligned.aligned, corr.faces, method=method,
+                                   method_params=params, progress=progress)
+    world = pipeline.world_placement(estimator.mean_, shapes,
+                                     aligned.transform if aligned.method != "none" else "rigid")
+    info = {"alignment": {"method": aligned.method, "transform": aligned.transform},
+            "n_iter": getattr(estimator, "n_iter_", None),
+            "converged": getattr(estimator, "converged_", None)}
     return estimator.to_shape_model(corr.faces, world_transform=world, source_meshes=names,
-                                    info={"alignment": {"method": aligned.method,
-                                                        "transform": aligned.transform},
-                                          "reference": corr.reference_name})
-
-
-def model_world_transform(transforms: np.ndarray) -> np.ndarray:
-    """Model frame -> world: the average of the inverse alignment transforms, made a similarity.
-
-    ``transforms[k]`` maps shape k (world) into the model frame; the returned transform puts
-    the model's mean where the training shapes were on average.
-    """
-    inverses = np.linalg.inv(np.asarray(transforms, dtype=np.float64))
-    mean = inverses.mean(axis=0)
-    u, s, vt = np.linalg.svd(mean[:3, :3])
-    rotation = u @ vt
-    if np.linalg.det(rotation) < 0:
-        u[:, -1] *= -1
-        rotation = u @ vt
-    world = np.eye(4)
-    world[:3, :3] = rotation * np.cbrt(abs(np.linalg.det(mean[:3, :3])))
-    world[:3, 3] = mean[:3, 3]
-    return world
+                                    info=info)
 
 
 def run_evaluation(corr, aligned, methods: dict[str, dict[str, Any]],
