@@ -173,6 +173,7 @@ class MainWindow(QMainWindow):
         self._hover: np.ndarray | None = None
         self._closing = False
         self.recovery_enabled = recovery
+        self.unsaved = False
         self.refit_times: list[float] = []
 
         self.runner = LatestWinsRunner(self)
@@ -224,7 +225,7 @@ class MainWindow(QMainWindow):
         self.state.model_changed.connect(self._update_actions)
         self.state.image_changed.connect(self._update_title)
         self.state.model_changed.connect(self._update_title)
-        self.state.edited.connect(self._schedule_autosave)
+        self.state.edited.connect(self._on_edited)
         self.fit_panel.settings_changed.connect(self._on_fit_settings)
         self.fit_panel.refit_requested.connect(lambda: self.schedule_refit(force=True))
 
@@ -701,7 +702,20 @@ class MainWindow(QMainWindow):
 
     def _update_title(self) -> None:
         parts = [p.name for p in (self.state.image_path, self.state.model_path) if p is not None]
-        self.setWindowTitle("SSM Studio" + (" — " + " + ".join(parts) if parts else ""))
+        if self.session_path is not None:
+            parts.insert(0, self.session_path.name)
+        title = "SSM Studio" + (" — " + " + ".join(parts) if parts else "")
+        self.setWindowTitle(title + (" *" if self.unsaved else ""))
+
+    def _on_edited(self, what: str = "") -> None:
+        if not self.unsaved:
+            self.unsaved = True
+            self._update_title()
+        self._schedule_autosave(what)
+
+    def _mark_saved(self) -> None:
+        self.unsaved = False
+        self._update_title()
 
     def show_shortcuts(self) -> None:
         rows = "".join(f"<tr><td><b>{k}</b></td><td>&nbsp;&nbsp;{v}</td></tr>" for k, v in SHORTCUTS)
@@ -829,6 +843,7 @@ class MainWindow(QMainWindow):
         session = sessions.load_session(path)
         self.apply_session(session)
         self.session_path = Path(path)
+        self._mark_saved()
         self.show_message(f"Opened session {Path(path).name}")
 
     def save_session(self, ask: bool = False, path: str | os.PathLike | None = None) -> bool:
@@ -848,6 +863,7 @@ class MainWindow(QMainWindow):
         ok = self._guarded(lambda: sessions.save_session(target, self.session_object()))
         if ok:
             self.session_path = target
+            self._mark_saved()
             self.show_message(f"Saved session {target.name}")
         return ok
 
@@ -896,6 +912,8 @@ class MainWindow(QMainWindow):
         except (ValueError, OSError) as exc:
             self.show_error(exc)
             return False
+        self.unsaved = True                      # recovered work is not saved anywhere yet
+        self._update_title()
         self.show_message("Recovered the unsaved session")
         return True
 
@@ -961,6 +979,15 @@ class MainWindow(QMainWindow):
         if self._closing:
             event.accept()
             return
+        if self.unsaved and not self._quiet_errors() and self.state.image_path is not None:
+            answer = QMessageBox.question(
+                self, "Unsaved changes", "Save the session before closing?",
+                QMessageBox.StandardButton.Save | QMessageBox.StandardButton.Discard
+                | QMessageBox.StandardButton.Cancel, QMessageBox.StandardButton.Save)
+            if answer == QMessageBox.StandardButton.Cancel or (
+                    answer == QMessageBox.StandardButton.Save and not self.save_session()):
+                event.ignore()
+                return
         self._closing = True
         self._autosave_timer.stop()
         self.runner.cancel()
@@ -1021,6 +1048,7 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
             print(f"ssm-studio: error: {error_message(exc)}", file=sys.stderr)
             return 2
         finally:
+            window.unsaved = False               # nothing to ask when only rendering
             window.close()
         print(f"ssm-studio: wrote {screenshot} ({time.perf_counter() - started:.1f} s)",
               file=sys.stderr)

@@ -107,7 +107,9 @@ def test_session_round_trip_with_relative_paths(qtbot, tmp_path, state_dir):
     window.factors_panel.set_factor_sd(1, 1.5)
     window.state.set_window(300.0, 120.0)
     session_file = tmp_path / "case" / "session.json"
+    assert window.windowTitle().endswith(" *")          # unsaved edits
     assert window.save_session(path=session_file)
+    assert not window.windowTitle().endswith(" *") and "session.json" in window.windowTitle()
     doc = json.loads(session_file.read_text())
     assert doc["image"] == "data/t1.nii.gz" and doc["model"] == "data/model.npz"
     points, coef, pose = window.state.points, window.state.coef.copy(), window.state.pose.copy()
