@@ -77,6 +77,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from core.mesh import mean_edge_length
 from core.shape_model import ShapeModel
 
 METHODS = ("gmm-aniso", "gmm-iso", "icp")
@@ -334,8 +335,6 @@ class _ModelCache:
         pad[idx[order], np.arange(len(idx)) - starts[idx[order]]] = np.repeat(
             np.arange(len(model.faces)), 3)[order]
         self.table_pad = pad
-        from core.mesh import mean_edge_length
-
         self.edge_length = mean_edge_length(self.mean, model.faces)
 
     def shape(self, coef: np.ndarray) -> np.ndarray:
@@ -389,7 +388,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                method: str = "gmm-aniso", pose: str = "similarity", prior_weight: float = 1.0,
                init: FitResult | None = None, max_iter: int = 100, tol: float = 1e-5,
                xtol: float = 1e-2, outlier_weight: float = 0.0, anisotropy: float = 10.0,
-               normal_weight: float = 2.0, n_neighbors: int = 6, max_neighbors: int = 48, min_sigma: float = 0.3,
+               normal_weight: float = 2.0, n_neighbors: int = 6, max_neighbors: int = 48,
+               min_sigma: float = 0.3,
                max_distance_factor: float = 1.0, pose_first: bool = False,
                pose_sd: tuple[float, float, float] | None = (3.0, 1.0, 0.03),
                callback: Callable[[int, float], None] | None = None) -> FitResult:
@@ -536,7 +536,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         # Warm start: keep the previous variance. With an outlier term, raise it to cover the
         # farthest point (a newly placed point is not an outlier); without one, every point
         # keeps its full weight whatever s2 is.
-        previous = float(init.sigma2) if np.isfinite(init.sigma2) and init.sigma2 > 0 else float(d.mean()) / 3.0
+        usable = np.isfinite(init.sigma2) and init.sigma2 > 0
+        previous = float(init.sigma2) if usable else float(d.mean()) / 3.0
         sigma2 = max(previous, float(dmin.max()) / 3.0 if outlier_weight > 0 else 0.0, sigma2_min)
 
     if neighbours_for(sigma2) > pairs.k:
