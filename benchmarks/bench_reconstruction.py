@@ -235,7 +235,8 @@ def latency(shapes, faces, reps: int, with_rustcpd: bool):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cases", type=int, default=8, help="leave-one-out cases (default 8)")
-    parser.add_argument("--contours", default="1,2,3,4,5,6,8,10,12")
+    parser.add_argument("--contours", default=",".join(str(k) for k in range(1, 13)),
+                        help="contour counts (default 1..12)")
     parser.add_argument("--reps", type=int, default=100, help="latency fits (default 100)")
     parser.add_argument("--no-itk", action="store_true")
     parser.add_argument("--no-rustcpd", action="store_true")
