@@ -254,7 +254,7 @@ def main(argv=None) -> int:
             print("itk-morphologicalcontourinterpolation not installed: ITK column skipped")
             with_itk = False
     shapes, faces, source = load_shapes()
-    cases = list(np.linspace(0, len(shapes) - 1, args.cases).round().astype(int))
+    cases = [int(c) for c in np.linspace(0, len(shapes) - 1, args.cases).round()]
     print(f"Shapes: {source}; {shapes.shape[1]} vertices; LOO cases {cases}")
     skip = set(args.skip.split(","))
     if "mixed" not in skip:
