@@ -53,16 +53,33 @@ class Points:
         """Mask (P,) of points drawn on the slice (frame, depth)."""
         return (self.frame == frame) & (np.abs(self.depth - depth) <= tolerance)
 
-    def normals(self) -> np.ndarray:
-        """(P, 3) unit normals, NaN rows for single points on their slice."""
+    def normals(self, surface: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(P, 3) unit in-plane normals, NaN rows for single points on their slice.
+
+        Per slice, from the drawing order (``core.planes.contour_normals``: outwards from the
+        points' centroid). With ``surface`` = (vertices (N, 3), vertex normals (N, 3)) of the
+        current fit, each slice's sign is instead the one agreeing with the surface normals
+        at the nearest vertices (majority vote): right also for an open stroke along one
+        side of the structure, where the centroid rule is ambiguous.
+        """
         out = np.full((len(self), 3), np.nan)
         if len(self) == 0:
             return out
         keys = np.stack([self.frame.astype(np.float64), np.round(self.depth, 3)], axis=1)
         groups = np.unique(keys, axis=0)
+        nearest = None
+        if surface is not None:
+            from scipy.spatial import cKDTree
+
+            _, nearest = cKDTree(surface[0]).query(self.xyz)
         for f, d in groups:
             idx = np.flatnonzero((keys[:, 0] == f) & (keys[:, 1] == d))
-            out[idx] = contour_normals(self.xyz[idx], FRAMES[FRAME_NAMES[int(f)]].n)
+            normals = contour_normals(self.xyz[idx], FRAMES[FRAME_NAMES[int(f)]].n)
+            if nearest is not None:
+                agree = np.nansum(np.einsum("ij,ij->i", normals, surface[1][nearest[idx]]))
+                if agree < 0:
+                    normals = -normals
+            out[idx] = normals
         return out
 
 

@@ -588,6 +588,16 @@ class MainWindow(QMainWindow):
         return FitResult(coef=state.coef.copy(), pose=state.pose.copy(),
                          vertices=state.surface_vertices().copy())
 
+    def point_normals(self) -> np.ndarray:
+        """(P, 3) normals of the contour points, oriented by the current surface; 0 = unknown."""
+        from core.mesh import vertex_normals
+
+        surface = None
+        vertices = self.state.surface_vertices()
+        if vertices is not None:
+            surface = (vertices, vertex_normals(vertices, self.state.model.faces))
+        return np.nan_to_num(self.state.points.normals(surface), nan=0.0)
+
     def schedule_refit(self, force: bool = False) -> int | None:
         """Submit a refit of the current points (newest wins); returns its generation."""
         state = self.state
@@ -601,7 +611,7 @@ class MainWindow(QMainWindow):
 
         model = state.model
         points = state.points.xyz.copy()
-        normals = np.nan_to_num(state.points.normals(), nan=0.0)
+        normals = self.point_normals()
         settings = self.fit_panel.settings
         init = self._warm_start()
         edit_time = time.perf_counter()
@@ -756,8 +766,7 @@ class MainWindow(QMainWindow):
         pts = self.state.points
         if len(pts) == 0:
             raise ValueError("no contour points to export")
-        normals = np.nan_to_num(pts.normals(), nan=0.0)
-        save_points(path, pts.xyz, normals)
+        save_points(path, pts.xyz, self.point_normals())
         self.show_message(f"Exported {len(pts)} points to {Path(path).name}")
 
     def export_all(self, folder: str | os.PathLike) -> list[Path]:
@@ -796,7 +805,7 @@ class MainWindow(QMainWindow):
         pts = state.points
         return Session(
             image_path=state.image_path, model_path=state.model_path,
-            points=pts.xyz.copy(), normals=np.nan_to_num(pts.normals(), nan=0.0) if len(pts) else None,
+            points=pts.xyz.copy(), normals=self.point_normals() if len(pts) else None,
             point_slices=[(FRAME_NAMES[int(f)], float(d)) for f, d in zip(pts.frame, pts.depth)],
             coef=None if state.coef is None else state.coef.copy(),
             pose=None if state.pose is None else state.pose.copy(),

@@ -429,3 +429,25 @@ def test_dropping_a_model_file_loads_it(window, tmp_path):
     event = QDropEvent(QPointF(50, 50), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton, NO_MOD)
     window.dropEvent(event)             # Qt routes a Drop only inside a real drag session
     assert window.state.model_path == path and window.state.model.n_factors == 3
+
+
+def test_open_stroke_normals_point_out_of_the_model(window):
+    """A stroke along one side only: the sign comes from the model surface, not the centroid."""
+    from core.mesh import vertex_normals
+
+    state = window.state
+    vertices, faces = state.surface_vertices(), state.model.faces
+    normals = vertex_normals(vertices, faces)
+    depth = state.crosshair[2]
+    from core.slicing import polylines
+
+    line = polylines(vertices, faces, np.array([0, 0, depth]), np.array([0, 0, 1.0]))[0]
+    stroke = line.points[: max(4, len(line.points) // 4)]      # a quarter of the outline
+    for p in stroke:
+        state.add_point(p, "axial", depth, checkpoint=False)
+    got = state.points.normals((vertices, normals))
+    from scipy.spatial import cKDTree
+
+    _, near = cKDTree(vertices).query(stroke)
+    assert np.mean(np.einsum("ij,ij->i", got, normals[near]) > 0) > 0.8
+    window.wait_for_refit()
