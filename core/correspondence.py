@@ -37,10 +37,11 @@ not used (the overlapping part); the fairing then spreads the vertices over the 
 
 **Reference choice** (``reference="auto"``): because the pipeline is fast, ``n_references``
 candidate references (the closed training meshes closest to the typical shape, by
-pose-invariant principal extents) are each corresponded to all shapes, and the candidate giving
+pose-invariant principal extents) are each corresponded to the same ``selection_shapes``
+shapes (default 8, all if fewer), and the candidate giving
 the most compact model (smallest mean per-vertex variance after similarity Procrustes alignment,
 relative to the mean's size; ``selection="compactness"``) or the lowest mean residual
-(``selection="residual"``) is kept.
+(``selection="residual"``) is kept and corresponds the remaining shapes.
 
 **Residual** (``residuals_mm``): the symmetric mean surface distance in mm between the
 corresponded mesh and the target: the mean of (a) the mean distance of the corresponded
@@ -730,7 +731,7 @@ def _run_tasks(tasks: list[tuple], n_jobs: int, progress: ProgressCallback | Non
 def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMesh = "auto", *,
                              n_references: int = 3, n_jobs: int | None = None,
                              progress: ProgressCallback | None = None, selection: str = "compactness",
-                             **cpd_params) -> CorrespondenceResult:
+                             selection_shapes: int = 8, **cpd_params) -> CorrespondenceResult:
     """Express every training mesh with the vertices and faces of one reference mesh.
 
     Parameters
@@ -750,6 +751,10 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
         terminates the worker pool and propagates.
     selection : {"compactness", "residual"}
         How ``"auto"`` ranks the candidates (module docstring).
+    selection_shapes : int
+        Candidates are compared on this many shapes (the candidates themselves and others
+        spread over the input order); the winner then corresponds the rest. All shapes when
+        there are fewer.
     **cpd_params
         Overrides of :data:`DEFAULT_CPD_PARAMS` (``w``, ``beta``, ``lam``, ``tolerance``,
         ``max_iterations``, ``low_rank``, ``fairing_iterations``, ...).
@@ -812,24 +817,41 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
 
     if n_jobs is None:
         n_jobs = os.cpu_count() or 1
-    tasks = []
-    for c in candidates:
-        ref = external if c is None else meshes[c]
-        for i in usable:
-            if c is not None and i == c:
-                continue
-            tasks.append(((c, i), np.asarray(ref.vertices, float), np.asarray(ref.faces),
-                          np.asarray(meshes[i].vertices, float), np.asarray(meshes[i].faces),
-                          params, False))
-    report(progress, 0.0, f"{len(tasks)} registrations")
-    results = _run_tasks(tasks, n_jobs, progress, 0.0, 0.95)
+
+    def make_tasks(refs: list, targets: list[int]) -> list[tuple]:
+        tasks = []
+        for c in refs:
+            ref = external if c is None else meshes[c]
+            for i in targets:
+                if c is not None and i == c:
+                    continue
+                tasks.append(((c, i), np.asarray(ref.vertices, float), np.asarray(ref.faces),
+                              np.asarray(meshes[i].vertices, float), np.asarray(meshes[i].faces),
+                              params, False))
+        return tasks
+
+    # Candidates are compared on the same subset of shapes (all candidates plus evenly spread
+    # others, ``selection_shapes`` in all); the winner then corresponds the remaining shapes.
+    if len(candidates) > 1 and len(usable) > max(int(selection_shapes), len(candidates)):
+        others = [i for i in usable if i not in candidates]
+        n_more = max(int(selection_shapes) - len(candidates), 1)
+        spread = np.linspace(0, len(others) - 1, min(n_more, len(others))).round().astype(int)
+        subset = sorted(set(candidates) | {others[j] for j in spread})
+    else:
+        subset = list(usable)
+    phase1 = make_tasks(candidates, subset)
+    rest = [i for i in usable if i not in subset]
+    n_total = len(phase1) + len(rest)
+    split = 0.95 * len(phase1) / max(n_total, 1)
+    report(progress, 0.0, f"{n_total} registrations")
+    results = _run_tasks(phase1, n_jobs, progress, 0.0, split)
 
     # Score candidates and keep the best.
     scores = {}
     best = None
     for c in candidates:
         ref = external if c is None else meshes[c]
-        outs = [results[(c, i)][0] if (c is None or i != c) else None for i in usable]
+        outs = [results[(c, i)][0] if (c is None or i != c) else None for i in subset]
         shapes = [o["vertices"] for o in outs if o is not None]
         if c is not None:
             shapes.append(np.asarray(ref.vertices, float))
@@ -845,6 +867,7 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
         if best is None or key < best[0]:
             best = (key, c)
     chosen = best[1]
+    results.update(_run_tasks(make_tasks([chosen], rest), n_jobs, progress, split, 0.95))
     ref = external if chosen is None else meshes[chosen]
     ref_faces = np.asarray(ref.faces).copy()
     out_meshes: list[TriMesh | None] = [None] * len(meshes)
@@ -869,7 +892,7 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
         "per_shape_mean": float(np.mean(per_shape)) if per_shape else 0.0,
         "per_shape_max": float(np.max(per_shape)) if per_shape else 0.0,
         "cpu_total": float(np.sum(per_shape)) if per_shape else 0.0,
-        "n_registrations": len(tasks),
+        "n_registrations": len(results),
         "n_jobs": int(n_jobs),
     }
     report(progress, 1.0, "done")
