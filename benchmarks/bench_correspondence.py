@@ -10,7 +10,9 @@ Peers, on the same inputs in the same run:
 
 Quality is measured on shapes with known homologues (synthetic, or the demo set's ground truth
 when present): the distance of every corresponded vertex to its true homologue (mean and max,
-mm). Then the whole batch (``establish_correspondence``, auto reference) is timed on 2 workers.
+mm), the share of degenerate triangles and the area distortion against the reference's
+triangulation. Then the whole batch (``establish_correspondence``, fixed and auto reference)
+is timed on 2 workers.
 
 Run: ``.venv/bin/python benchmarks/bench_correspondence.py [--shapes 6] [--pycpd 2]``
 """
@@ -219,6 +221,20 @@ def ours(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarray:
     return correspond_pair(reference, target, params)["vertices"]
 
 
+def area_distortion(vertices: np.ndarray, reference: np.ndarray, faces: np.ndarray) -> float:
+    """Mean |log| ratio of each triangle's share of the total area, output vs reference.
+
+    0 when the output reproduces the reference's vertex distribution on the new shape;
+    grows where vertices bunch up or spread out (the irregularities fairing removes).
+    """
+    def shares(v):
+        t = v[faces]
+        a = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+        return np.maximum(a, 1e-12) / a.sum()
+
+    return float(np.abs(np.log(shares(vertices) / shares(reference))).mean())
+
+
 def degenerate_fraction(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Fraction of triangles with less than 5 % of the mean triangle area (slivers, collapses)."""
     v = vertices[faces]
@@ -263,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
         if not tgts:
             continue
-        times, means, maxes, degen = [], [], [], []
+        times, means, maxes, degen, distortion = [], [], [], [], []
         for k in tgts:
             t0 = time.perf_counter()
             out = fn(reference, meshes[k], params)
@@ -272,12 +288,15 @@ def main(argv: list[str] | None = None) -> int:
             means.append(err.mean())
             maxes.append(err.max())
             degen.append(degenerate_fraction(out, reference.faces))
-        rows.append((name, len(tgts), np.mean(times), np.mean(means), np.max(maxes), 100 * np.mean(degen)))
+            distortion.append(area_distortion(out, reference.vertices, reference.faces))
+        rows.append((name, len(tgts), np.mean(times), np.mean(means), np.max(maxes), 100 * np.mean(degen),
+                     np.mean(distortion)))
     print(f"\nper shape, reference {reference.name} ({reference.n_vertices} vertices), "
           f"same targets, same CPD parameters")
-    print(f"{'method':<15}{'shapes':>7}{'s/shape':>9}{'mean err mm':>13}{'max err mm':>12}{'degenerate %':>14}")
+    print(f"{'method':<15}{'shapes':>7}{'s/shape':>9}{'mean err mm':>13}{'max err mm':>12}"
+          f"{'degenerate %':>14}{'area distortion':>17}")
     for r in rows:
-        print(f"{r[0]:<15}{r[1]:>7}{r[2]:>9.2f}{r[3]:>13.3f}{r[4]:>12.3f}{r[5]:>14.2f}")
+        print(f"{r[0]:<15}{r[1]:>7}{r[2]:>9.2f}{r[3]:>13.3f}{r[4]:>12.3f}{r[5]:>14.2f}{r[6]:>17.3f}")
     if len(rows) >= 2:
         print(f"time ratio ssm-studio / rustcpd alone: {rows[0][2] / rows[1][2]:.2f}")
 
