@@ -92,7 +92,8 @@ def test_project_linear_classes():
     m = rng.normal(size=(5, 3, 3))
     rot = project_linear(m, "rigid")
     np.testing.assert_allclose(np.linalg.det(rot), 1.0)
-    np.testing.assert_allclose(rot @ np.swapaxes(rot, 1, 2), np.broadcast_to(np.eye(3), (5, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(rot @ np.swapaxes(rot, 1, 2), np.broadcast_to(np.eye(3), (5, 3, 3)),
+                               atol=1e-12)
     orth = project_linear(m, "euclidean")
     np.testing.assert_allclose(np.abs(np.linalg.det(orth)), 1.0)
     sim = project_linear(m, "similarity")
