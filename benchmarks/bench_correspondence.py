@@ -235,11 +235,50 @@ def area_distortion(vertices: np.ndarray, reference: np.ndarray, faces: np.ndarr
     return float(np.abs(np.log(shares(vertices) / shares(reference))).mean())
 
 
+def flipped_fraction(vertices: np.ndarray, faces: np.ndarray, target: TriMesh) -> float:
+    """Fraction of output triangles facing inwards (normal against the target's local normal):
+    fold-overs, where the output surface doubles back on itself."""
+    from scipy.spatial import cKDTree
+
+    from core.mesh import face_normals, vertex_normals
+
+    centroids = vertices[faces].mean(axis=1)
+    _, nearest = cKDTree(target.vertices).query(centroids)
+    target_normals = vertex_normals(target.vertices, target.faces)[nearest]
+    return float((np.einsum("ij,ij->i", face_normals(vertices, faces), target_normals) < 0).mean())
+
+
 def degenerate_fraction(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Fraction of triangles with less than 5 % of the mean triangle area (slivers, collapses)."""
     v = vertices[faces]
     area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     return float((area < 0.05 * area.mean()).mean())
+
+
+def alignment_on_demo(folder: Path) -> None:
+    """Pose removal on the demo set's true correspondences: sync vs GPA vs reference-based.
+
+    The demo shapes are s_k R_k y_k + t_k with known unposed shapes y_k; the error is the RMS
+    distance between the aligned shapes and the y_k after one common similarity (the gauge).
+    """
+    from core.alignment import (align_shapes, apply_transform, fit_transform,
+                                pairwise_transforms, reference_transforms)
+
+    gt = np.load(folder / "ground_truth.npz")
+    posed = gt["corresponded_shapes"]
+    unposed = gt["base_vertices"][None] + np.einsum("km,mnc->knc", gt["coefficients"], gt["factors"])
+
+    def error(aligned: np.ndarray) -> float:
+        gauge = fit_transform(aligned.reshape(-1, 3), unposed.reshape(-1, 3), "similarity")
+        return float(np.sqrt(((apply_transform(gauge, aligned) - unposed) ** 2).sum(-1).mean()))
+
+    print("\nalignment of the demo set's true correspondences (similarity), RMS error vs unposed truth")
+    for method in ("sync", "gpa"):
+        t0 = time.perf_counter()
+        result = align_shapes(posed, method=method, transform="similarity")
+        print(f"  {method:<16}{error(result.aligned):8.3f} mm  {time.perf_counter() - t0:6.2f} s")
+    ref = reference_transforms(pairwise_transforms(posed, "similarity"), 0)
+    print(f"  {'to shape 0':<16}{error(apply_transform(ref, posed)):8.3f} mm")
 
 
 # ----------------------------------------------------------------------------- main
@@ -279,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
         if not tgts:
             continue
-        times, means, maxes, degen, distortion = [], [], [], [], []
+        times, means, maxes, degen, distortion, flipped = [], [], [], [], [], []
         for k in tgts:
             t0 = time.perf_counter()
             out = fn(reference, meshes[k], params)
@@ -289,18 +328,25 @@ def main(argv: list[str] | None = None) -> int:
             maxes.append(err.max())
             degen.append(degenerate_fraction(out, reference.faces))
             distortion.append(area_distortion(out, reference.vertices, reference.faces))
+            flipped.append(flipped_fraction(out, reference.faces, meshes[k]))
         rows.append((name, len(tgts), np.mean(times), np.mean(means), np.max(maxes), 100 * np.mean(degen),
-                     np.mean(distortion)))
+                     np.mean(distortion), 100 * np.mean(flipped)))
     print(f"\nper shape, reference {reference.name} ({reference.n_vertices} vertices), "
           f"same targets, same CPD parameters")
     print(f"{'method':<15}{'shapes':>7}{'s/shape':>9}{'mean err mm':>13}{'max err mm':>12}"
-          f"{'degenerate %':>14}{'area distortion':>17}")
+          f"{'degenerate %':>14}{'area distortion':>17}{'flipped %':>11}")
     for r in rows:
-        print(f"{r[0]:<15}{r[1]:>7}{r[2]:>9.2f}{r[3]:>13.3f}{r[4]:>12.3f}{r[5]:>14.2f}{r[6]:>17.3f}")
+        print(f"{r[0]:<15}{r[1]:>7}{r[2]:>9.2f}{r[3]:>13.3f}{r[4]:>12.3f}{r[5]:>14.2f}{r[6]:>17.3f}"
+              f"{r[7]:>11.2f}")
     if len(rows) >= 2:
         print(f"time ratio ssm-studio / rustcpd alone: {rows[0][2] / rows[1][2]:.2f}")
 
+    if (demo / "ground_truth.npz").exists() and not args.synthetic:
+        alignment_on_demo(demo)
+
     batch = meshes[:args.batch]
+    if len(batch) < 2:
+        return 0
     for label, reference_arg, n_refs in (("fixed reference", 0, 1), ("auto, 3 candidates", "auto", 3)):
         t0 = time.perf_counter()
         result = establish_correspondence(batch, reference_arg, n_references=n_refs, n_jobs=2)
