@@ -88,7 +88,7 @@ def compactness(model: DeformationModel, shapes: np.ndarray) -> np.ndarray:
 
 
 def specificity(model: DeformationModel, shapes: np.ndarray, n_samples: int,
-                random_state: int | None, chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
+                random_state: int | None, chunk: int = 16) -> tuple[np.ndarray, np.ndarray]:
     """Avg and max error (n_samples,) of random model instances to their closest training shape."""
     samples = model.sample(n_samples, random_state)
     avg = np.empty(n_samples)
@@ -104,11 +104,12 @@ def specificity(model: DeformationModel, shapes: np.ndarray, n_samples: int,
     return avg, mx
 
 
-def _fold(task: dict) -> dict:
+def _fold(task: dict, progress: ProgressCallback | None = None) -> dict:
     """One leave-one-out fold: generalisation and sparse reconstruction of shape ``k``."""
     shapes, k = task["shapes"], task["k"]
     train = np.delete(shapes, k, axis=0)
-    model = make_model(task["method"], **task["params"]).fit(train, task["faces"])
+    model = make_model(task["method"], **task["params"]).fit(train, task["faces"],
+                                                             progress=progress)
     target = shapes[k]
     out: dict[str, Any] = {"k": k, "n_factors": model.n_factors_}
     if "generalisation" in task["measures"]:
@@ -151,7 +152,9 @@ def _run_folds(tasks: list[dict], n_jobs: int, progress: ProgressCallback | None
     if n_jobs <= 1 or len(tasks) <= 1:
         for i, task in enumerate(tasks):
             report(progress, i / len(tasks), f"leave-one-out fold {i + 1}/{len(tasks)}")
-            results.append(_fold(task))
+            # The fit reports too, so a cancel stops within one of its iterations.
+            results.append(_fold(task, sub_progress(progress, i / len(tasks),
+                                                    (i + 1) / len(tasks))))
         report(progress, 1.0, "leave-one-out done")
         return results
     ctx = mp.get_context("spawn")  # no fork from a (possibly) multi-threaded GUI process
