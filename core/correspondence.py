@@ -738,10 +738,10 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     ----------
     meshes : list of TriMesh
         Training meshes (any vertex count, order and pose). ``mesh.name`` names them in errors.
-    reference : "auto", int or TriMesh
+    reference : "auto", int, path or TriMesh
         ``"auto"``: try ``n_references`` candidates among the inputs and keep the best
-        (``selection``); int: that input; TriMesh: an external reference mesh. A reference must
-        be one closed connected surface.
+        (``selection``); int: that input; a path: the input of that name, else the mesh file;
+        TriMesh: an external reference mesh. A reference must be one closed connected surface.
     n_references : int
         Candidates tried with ``"auto"``.
     n_jobs : int, optional
@@ -790,6 +790,15 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
             usable.append(i)
 
     # Reference candidates.
+    if isinstance(reference, (str, os.PathLike)) and str(reference) != "auto":
+        ref_path = str(reference)
+        if ref_path in names:  # one of the inputs, by its name
+            reference = names.index(ref_path)
+        else:
+            from core.io import load_mesh
+
+            reference = load_mesh(ref_path)  # DataFileError names the file
+            reference.name = ref_path
     external = None
     if isinstance(reference, TriMesh):
         problem = mesh_problem(reference, need_closed=True)
