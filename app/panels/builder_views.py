@@ -48,8 +48,9 @@ def polydata(vertices: np.ndarray, faces: np.ndarray):
 def grid_offsets(extents: np.ndarray, gap: float = 0.25) -> np.ndarray:
     """Translations placing K objects of bounding-box sizes ``extents`` (K, 3) in a grid.
 
-    Cells are the largest extent along x and along y plus ``gap`` of it; the number of columns
-    makes the whole grid roughly square. Objects go along x in rows stacked along -y. Returns
+    Cells are the largest extent along x and along y plus ``gap`` of it (the narrower side at
+    least 0.6 of the wider, leaving room for labels); the number of columns makes the whole
+    grid roughly square. Objects go along x in rows stacked along -y. Returns
     (K, 3) offsets to add to each object after centring it on its bounding-box centre.
     """
     k = len(extents)
@@ -57,6 +58,7 @@ def grid_offsets(extents: np.ndarray, gap: float = 0.25) -> np.ndarray:
         return np.zeros((0, 3))
     size = np.max(extents[:, :2], axis=0)
     size = np.where(size > 0, size, max(float(size.max()), 1.0)) * (1.0 + gap)
+    size = np.maximum(size, 0.6 * size.max())  # room for a name under thin objects
     columns = int(min(k, max(1, math.ceil(math.sqrt(k * size[1] / size[0])))))
     index = np.arange(k)
     return np.stack([(index % columns) * size[0], -(index // columns) * size[1], np.zeros(k)],
@@ -157,7 +159,9 @@ class MeshesView(LazyPlotter):
                 label_points.append([(v[:, 0].min() + v[:, 0].max()) / 2 + offsets[i, 0],
                                      v[:, 1].max() + offsets[i, 1], v[:, 2].max() + offsets[i, 2]])
         if layout == "grid" and len(names) <= 36:
-            plotter.add_point_labels(np.array(label_points), names, font_size=10,
+            short = [n.rsplit(".", 2)[0] if n.lower().endswith((".gz",)) else n.rsplit(".", 1)[0]
+                     for n in names]
+            plotter.add_point_labels(np.array(label_points), short, font_size=10,
                                      shape_opacity=0.0, show_points=False, text_color="black",
                                      render=False)
         if layout == "grid":
