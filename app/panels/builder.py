@@ -351,6 +351,8 @@ class BuilderPanel(QWidget):
         for combo in (self.reference_combo, self.align_method, self.align_transform):
             combo.currentIndexChanged.connect(self._refresh_stage_labels)
         self.n_references.valueChanged.connect(self._refresh_stage_labels)
+        self.reference_combo.currentTextChanged.connect(
+            lambda text: self.n_references.setEnabled(text == "auto"))
         self.build_button.clicked.connect(self.build)
         self.cancel_button.clicked.connect(self.cancel)
         self.evaluate_button.clicked.connect(self.evaluate)

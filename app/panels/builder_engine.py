@@ -90,9 +90,10 @@ def load_entries(files: list[str | os.PathLike], progress: ProgressCallback | No
         name = Path(f).name
         try:
             mesh = load_mesh(f)
-        except DataFileError as exc:
-            entries.append(MeshEntry(str(f), name, None, [exc.problem if hasattr(exc, "problem")
-                                                          else str(exc)], included=False))
+        except (ValueError, OSError) as exc:  # DataFileError and other unreadable input
+            problem = exc.problem if isinstance(exc, DataFileError) else \
+                f"{type(exc).__name__}: {exc}"
+            entries.append(MeshEntry(str(f), name, None, [problem], included=False))
             continue
         mesh.name = name
         entries.append(MeshEntry(str(f), name, mesh, mesh_problems(mesh)))
