@@ -128,13 +128,19 @@ def test_figure_json_and_table(tmp_path, subspace_shapes):
 
 @pytest.mark.slow
 def test_lsf_sparse_reconstruction_beats_splocs_on_planted_shapes():
-    """The paper's claim on shapes made of smooth local bumps with disjoint supports."""
+    """The paper's claim, on shapes made of smooth local bumps with disjoint supports of
+    different sizes plus noise: over four draws, LSF's sparse reconstruction error (left-out
+    shape from 5% of its vertices) is lower on average and in most draws."""
     base, faces = ellipsoid_surface(3)
-    data = planted_shapes(base, faces, n_shapes=20, n_factors=6, noise=0.05, radius_spread=0.5,
-                          random_state=1)
-    res = evaluate_methods(["lsf", "splocs"], data.shapes, faces, n_factors=12, n_jobs=2,
-                           measures=("sparse_reconstruction",))
-    lsf = res["lsf"]["sparse_reconstruction"]["avg"].mean()
-    splocs = res["splocs"]["sparse_reconstruction"]["avg"].mean()
-    print(f"sparse reconstruction (avg, mm): LSF {lsf:.4f}, SPLOCS {splocs:.4f}")
-    assert lsf < splocs
+    errors = {"lsf": [], "splocs": []}
+    for seed in (1, 2, 3, 4):
+        data = planted_shapes(base, faces, n_shapes=14, n_factors=6, noise=0.05,
+                              radius_spread=0.5, random_state=seed)
+        res = evaluate_methods(["lsf", "splocs"], data.shapes, faces, n_factors=12, n_jobs=2,
+                               measures=("sparse_reconstruction",))
+        for method in errors:
+            errors[method].append(res[method]["sparse_reconstruction"]["avg"].mean())
+    lsf, splocs = np.array(errors["lsf"]), np.array(errors["splocs"])
+    print(f"sparse reconstruction (avg, mm): LSF {np.round(lsf, 4)}, SPLOCS {np.round(splocs, 4)}")
+    assert lsf.mean() < splocs.mean()
+    assert np.sum(lsf < splocs) >= 3

@@ -27,9 +27,10 @@ Nesterov-type extrapolation and a restart without extrapolation whenever the obj
 increases (Xu & Yin). The step sizes come from a diagonal majoriser of the quadratic part
 (L_m = absolute row sums of Phi^T Phi, resp. A A^T, which dominate the Hessian by
 Gershgorin) rather than one global Lipschitz constant ||Phi^T Phi||_2: the block is still a
-valid prox-linear step, and the many small factors are not slowed down by the largest one. The proximal operator of the
-factor norm has no closed form because of E; it is computed by an accelerated projected
-gradient iteration on its dual (warm-started between outer iterations): with
+valid prox-linear step, and the many small factors are not slowed down by the largest one.
+The proximal operator of the factor norm has no closed form because of E; it is computed by
+an accelerated projected gradient iteration on its dual (warm-started between outer
+iterations): with
 h = c1||.||_1 + cg sum_i||._(i)|| + c2||.||_2 (scaled by the threshold),
 
     x(v) = prox_h(y - E^T v),   v <- Proj_{||v||_2 <= t cG}(v + E x(v) / ||E||_2^2),
@@ -46,8 +47,8 @@ cG = lambda_graph / sqrt(3 |E|). Factors whose product norm ||Phi_m|| ||A_m|| va
 removed (the rank adapts). Factor splitting (paper, section 2.6; not in the reference code): a
 factor whose support (vertices with displacement magnitude above ``split_threshold`` times its
 maximum) has several connected components on the mesh graph is split into one factor per
-component; components carrying less than ``split_min_energy`` of the factor's energy are
-dropped. No initialisation of support regions is needed: Phi starts as M random coordinate
+component carrying at least ``split_min_energy`` of the factor's energy (smaller pieces and
+sub-threshold tails are dropped; a factor with one such component is kept whole). No initialisation of support regions is needed: Phi starts as M random coordinate
 vectors (as in Haeffele's code), drawn with probability proportional to each coordinate's
 variance over the training set (a uniform draw leaves many factors dead from the first step
 on data that vary only in places).
