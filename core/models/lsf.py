@@ -390,7 +390,7 @@ class LSF(DeformationModel):
         Edge set of E (mesh edges, or all pairs within the threshold radius).
     graph_threshold : float, default 0.1
         Edges with weight exp(-(d/d_mean)^2) below this are dropped.
-    max_iter : int, default 200
+    max_iter : int, default 400
         Outer block-coordinate-descent iterations.
     n_inner : int, default 3
         Dual iterations per proximal operator (warm-started from the previous outer
@@ -434,7 +434,7 @@ class LSF(DeformationModel):
     def __init__(self, n_factors: int = 96, *, lambda_: float = 64.0, lambda_coef: float = 1e-4,
                  lambda_1: float = 1.0, lambda_2: float = 1.0, lambda_group: float = 2.0,
                  lambda_graph: float = 1.0, graph: str = "mesh", graph_threshold: float = 0.1,
-                 max_iter: int = 200, n_inner: int = 3, tol: float = 1e-4, split: bool = True,
+                 max_iter: int = 400, n_inner: int = 3, tol: float = 1e-4, split: bool = True,
                  split_threshold: float = 0.01, split_min_energy: float = 0.05,
                  random_state: int | None = 0):
         self.n_factors = n_factors
