@@ -21,10 +21,24 @@ _GUARD = 1 << 40
 _guarded = False
 
 
+def _affected_pyside_installed() -> bool:
+    """True when the installed PySide6 is the release with the leak (6.12.0)."""
+    from importlib import metadata
+
+    for dist in ("PySide6-Essentials", "PySide6"):
+        try:
+            return metadata.version(dist) == "6.12.0"
+        except metadata.PackageNotFoundError:
+            continue
+    return False
+
+
 def guard_singletons() -> None:
     """Make True, False and None immune to the PySide6 6.12.0 ``emit()`` reference leak."""
     global _guarded
     if _guarded or sys.version_info >= (3, 12) or sys.implementation.name != "cpython":
+        return
+    if not _affected_pyside_installed():
         return
     for obj in (True, False, None):
         ctypes.c_ssize_t.from_address(id(obj)).value += _GUARD   # ob_refcnt: first field
