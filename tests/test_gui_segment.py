@@ -77,7 +77,8 @@ def test_click_in_axial_view_lands_on_the_voxel_displayed_there(window, qtbot):
         world = volume.voxel_to_world(ijk)
         x, y = view.world_to_screen(world)
         # what is painted at that pixel is the windowed intensity of that voxel
-        grey = image.pixelColor(int(round(x * ratio)), int(round(y * ratio))).red()
+        # the pixel containing the voxel centre (pixel i covers [i, i+1) in widget coordinates)
+        grey = image.pixelColor(int(np.floor(x * ratio)), int(np.floor(y * ratio))).red()
         expected = window_to_uint8(np.array([volume.data[tuple(ijk)]]), window.state.window,
                                    window.state.level)[0]
         assert abs(int(grey) - int(expected)) <= 2
@@ -392,7 +393,8 @@ def test_oblique_image_clicks_and_display_agree(qtbot, tmp_path, monkeypatch):
         # the painted grey level is the trilinear intensity at that world point
         vox = win.state.volume.world_to_voxel(placed)
         value = ndimage.map_coordinates(data, vox[:, None], order=1)[0]
-        grey = image.pixelColor(int(round(x * ratio)), int(round(y * ratio))).red()
+        # the pixel containing the voxel centre (pixel i covers [i, i+1) in widget coordinates)
+        grey = image.pixelColor(int(np.floor(x * ratio)), int(np.floor(y * ratio))).red()
         expected = window_to_uint8(np.array([value]), win.state.window, win.state.level)[0]
         assert abs(int(grey) - int(expected)) <= 12   # pixel vs exact point: within one pixel's variation
     win.close()
@@ -423,7 +425,7 @@ def test_dropping_a_model_file_loads_it(window, tmp_path):
     save_model(path, pca_model(shapes + window.state.crosshair, faces, n_factors=3))
     mime = QMimeData()
     mime.setUrls([QUrl.fromLocalFile(str(path))])
-    enter = QDragEnterEvent(QPointF(50, 50), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton, NO_MOD)
+    enter = QDragEnterEvent(QPoint(50, 50), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton, NO_MOD)
     QApplication.sendEvent(window, enter)
     assert enter.isAccepted()
     event = QDropEvent(QPointF(50, 50), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton, NO_MOD)
