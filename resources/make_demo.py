@@ -105,7 +105,8 @@ CONTOUR_SPACING_MM = 2.0
 
 # Demo model (when core.pipeline is available).
 PIPELINE_REFERENCE = 0        # correspondence reference: the first training mesh
-PIPELINE_VARIANCE = 0.98      # PCA: fewest modes explaining 98 % of the variance
+PIPELINE_METHOD = "lsf"       # local-support factors: each slider moves one region
+PIPELINE_FACTORS = 8          # LSF factors before splitting (6 planted regions + pose/noise)
 
 
 # --------------------------------------------------------------------------------------
@@ -502,7 +503,7 @@ def pca_stand_in_model(shapes: np.ndarray, faces: np.ndarray, names: list[str]) 
 
 def build_with_pipeline(meshes: list[TriMesh], truth: dict) -> ShapeModel | None:
     """Build the demo model with the project's own pipeline, as ``ssm-studio build-model
-    resources/demo/meshes --correspond --reference 0 --variance 0.98`` would; None when
+    resources/demo/meshes --correspond --reference 0 --method lsf --factors 8`` would; None when
     ``core.pipeline`` is not available.
 
     The correspondence found by the pipeline is scored against the ground truth: vertex j of
@@ -515,8 +516,8 @@ def build_with_pipeline(meshes: list[TriMesh], truth: dict) -> ShapeModel | None
     except ImportError:
         return None
     result = build_model(meshes, correspond=True, reference=PIPELINE_REFERENCE,
-                         align="sync", transform="similarity", method="pca",
-                         method_params={"variance_retained": PIPELINE_VARIANCE})
+                         align="sync", transform="similarity", method=PIPELINE_METHOD,
+                         n_factors=PIPELINE_FACTORS)
     rows = slice(truth["remesh_offsets"][PIPELINE_REFERENCE],
                  truth["remesh_offsets"][PIPELINE_REFERENCE + 1])
     tri, bary = truth["remesh_triangles"][rows], truth["remesh_barycentric"][rows]
@@ -530,8 +531,8 @@ def build_with_pipeline(meshes: list[TriMesh], truth: dict) -> ShapeModel | None
     model = result.model
     model.info["built_from"] = ("core.pipeline.build_model on resources/demo/meshes: "
                                 f"correspondence (reference {reference_name}), "
-                                "sync similarity alignment, PCA "
-                                f"{PIPELINE_VARIANCE:.0%} variance")
+                                f"sync similarity alignment, {PIPELINE_METHOD.upper()} "
+                                f"with {PIPELINE_FACTORS} factors before splitting")
     model.info["ground_truth_correspondence_error_mm"] = {
         "mean": float(errors.mean()), "median": float(np.median(errors)),
         "p95": float(np.percentile(errors, 95)), "max": float(errors.max())}
