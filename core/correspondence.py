@@ -227,42 +227,6 @@ def cpd_log_posterior(target: np.ndarray, moved: np.ndarray, sigma2: float, w: f
 
 # ============================================================================ surface geometry
 
-def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Closest points on triangles (a, b, c) to points p, all (..., 3) (Ericson, RTCD 5.1.5)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1 = np.einsum("...i,...i", ab, ap)
-    d2 = np.einsum("...i,...i", ac, ap)
-    bp = p - b
-    d3 = np.einsum("...i,...i", ab, bp)
-    d4 = np.einsum("...i,...i", ac, bp)
-    cp = p - c
-    d5 = np.einsum("...i,...i", ab, cp)
-    d6 = np.einsum("...i,...i", ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    denom = va + vb + vc
-    denom = np.where(np.abs(denom) < 1e-300, 1e-300, denom)
-    v = vb / denom
-    wgt = vc / denom
-    out = a + ab * v[..., None] + ac * wgt[..., None]  # interior
-    # Edges (later assignments win in the order the regions are exclusive).
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_ab = d1 / (d1 - d3)
-        t_ac = d2 / (d2 - d6)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    on_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    out = np.where(on_ab[..., None], a + ab * np.nan_to_num(t_ab)[..., None], out)
-    out = np.where(on_ac[..., None], a + ac * np.nan_to_num(t_ac)[..., None], out)
-    out = np.where(on_bc[..., None], b + (c - b) * np.nan_to_num(t_bc)[..., None], out)
-    out = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, out)
-    out = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, out)
-    out = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, out)
-    return out
-
-
 class SurfaceProjector:
     """Exact closest points on a triangle surface, vectorised.
 
@@ -289,7 +253,7 @@ class SurfaceProjector:
         cdist, cand = cdist.reshape(len(points), -1), cand.reshape(len(points), -1)
         tri = self._triangles[cand]  # (P, k, 3, 3)
         q = np.broadcast_to(points[:, None, :], tri.shape[:2] + (3,))
-        closest = _closest_on_triangles(q, tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
+        closest = meshops.closest_points_on_triangles(q, tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
         dist = np.linalg.norm(closest - q, axis=2)
         best = np.argmin(dist, axis=1)
         rows = np.arange(len(points))

@@ -77,7 +77,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.mesh import mean_edge_length
+from core.mesh import closest_points_on_triangles, mean_edge_length
 from core.shape_model import ShapeModel
 
 METHODS = ("gmm-aniso", "gmm-iso", "icp")
@@ -176,43 +176,6 @@ def _rodrigues(omega: np.ndarray) -> np.ndarray:
     k = omega / theta
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
-
-
-def closest_points_on_triangles(points: np.ndarray, a: np.ndarray, b: np.ndarray,
-                                c: np.ndarray) -> np.ndarray:
-    """Closest point on triangle (a, b, c) to each point, all (Q, 3) (Ericson, RTCD 5.1.5)."""
-    ab, ac, ap = b - a, c - a, points - a
-    d1 = np.einsum("ij,ij->i", ab, ap)
-    d2 = np.einsum("ij,ij->i", ac, ap)
-    bp = points - b
-    d3 = np.einsum("ij,ij->i", ab, bp)
-    d4 = np.einsum("ij,ij->i", ac, bp)
-    cp = points - c
-    d5 = np.einsum("ij,ij->i", ab, cp)
-    d6 = np.einsum("ij,ij->i", ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    eps = 1e-300
-    # interior (default)
-    denom = np.where(np.abs(va + vb + vc) < eps, eps, va + vb + vc)
-    v = vb / denom
-    w = vc / denom
-    out = a + ab * v[:, None] + ac * w[:, None]
-    # edge regions (assigned in reverse priority so that vertex regions win)
-    bc_mask = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    wbc = (d4 - d3) / np.maximum((d4 - d3) + (d5 - d6), eps)
-    out = np.where(bc_mask[:, None], b + (c - b) * wbc[:, None], out)
-    ac_mask = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    wac = d2 / np.maximum(d2 - d6, eps)
-    out = np.where(ac_mask[:, None], a + ac * wac[:, None], out)
-    ab_mask = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    vab = d1 / np.maximum(d1 - d3, eps)
-    out = np.where(ab_mask[:, None], a + ab * vab[:, None], out)
-    out = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, out)
-    out = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, out)
-    out = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)
-    return out
 
 
 def _vertex_face_table(faces: np.ndarray, n_vertices: int) -> np.ndarray:

@@ -117,14 +117,14 @@ def test_closest_points_on_surface_brute_force(population):
     closest, dist = corr.closest_points_on_surface(queries, mesh.vertices, mesh.faces)
     tri = mesh.vertices[mesh.faces]
     q = np.broadcast_to(queries[:, None, :], (200, len(tri), 3))
-    all_closest = corr._closest_on_triangles(q, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+    all_closest = meshops.closest_points_on_triangles(q, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
     brute = np.linalg.norm(all_closest - q, axis=2).min(axis=1)
     np.testing.assert_allclose(dist, brute, atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(closest - queries, axis=1), dist, atol=1e-12)
     # Exactness of the triangle routine on a hand case: above an interior point, beyond a vertex.
     a, b, c = np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
     pts = np.array([[0.2, 0.2, 1.0], [2.0, -1.0, 0.0], [0.7, 0.7, 0.0]])
-    out = corr._closest_on_triangles(pts, a, b, c)
+    out = meshops.closest_points_on_triangles(pts, a, b, c)
     np.testing.assert_allclose(out, [[0.2, 0.2, 0.0], [1.0, 0.0, 0.0], [0.5, 0.5, 0.0]], atol=1e-12)
 
 

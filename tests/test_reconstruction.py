@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from core.progress import Cancelled
-from core.reconstruction import (FitResult, _rodrigues, closest_points_on_triangles, fit_points,
-                                 surface_distance)
+from core.mesh import closest_points_on_triangles
+from core.reconstruction import FitResult, _rodrigues, fit_points, surface_distance
 from core.simulated_user import pca_model, simulate_user, synthetic_shapes
 
 
