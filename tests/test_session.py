@@ -233,7 +233,8 @@ def _crashing_run(state: Path, script: str) -> int:
     code = ("import os, numpy as np\nfrom core import session as s\n" + script +
             "\nos._exit(3)\n")
     env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state))
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, timeout=60,
+    # -u: os._exit() skips flushing, and the pid printed on stdout must get through the pipe
+    proc = subprocess.run([sys.executable, "-u", "-c", code], cwd=ROOT, env=env, timeout=60,
                           capture_output=True, text=True)
     assert proc.returncode == 3, proc.stderr
     return int(proc.stdout.strip().splitlines()[-1])
