@@ -25,7 +25,8 @@ from pathlib import Path
 
 from core.io import save_model
 from core.models import METHODS
-from core.pipeline import ALIGN_METHODS, TRANSFORMS, build_model, load_training_meshes, \
+from core.cli._options import add_preparation_options
+from core.pipeline import build_model, load_training_meshes, \
     parse_param_values
 from core.progress import StderrProgress
 
@@ -42,14 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--variance", type=float, default=None, metavar="F",
                         help="pca only: keep the fewest modes explaining this fraction (e.g. 0.95)")
     parser.add_argument("--out", required=True, type=Path, help="model file to write (.npz)")
-    parser.add_argument("--correspond", action="store_true",
-                        help="inputs are raw meshes: establish correspondence first")
+    add_preparation_options(parser)
     parser.add_argument("--reference", default="auto",
                         help="correspondence reference: auto (default), an input index, or a mesh file")
-    parser.add_argument("--align", choices=ALIGN_METHODS, default="sync",
-                        help="alignment: sync (default), gpa or none")
-    parser.add_argument("--transform", choices=TRANSFORMS, default="similarity",
-                        help="alignment transform class (default similarity)")
     parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                         help="method parameter, e.g. --param lambda_=64 --param max_iter=300 "
                              "(repeatable)")

@@ -18,7 +18,8 @@ from pathlib import Path
 from core.evaluation import evaluate_methods, plot_metrics, summary_table, to_json
 from core.io import atomic_write_json
 from core.models import METHODS, model_class
-from core.pipeline import ALIGN_METHODS, TRANSFORMS, align, corresponded_shapes, correspond, \
+from core.cli._options import add_preparation_options
+from core.pipeline import align, corresponded_shapes, correspond, \
     load_training_meshes, parse_param_values
 from core.progress import StderrProgress
 
@@ -35,12 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="number of factors for every method (default: each method's own)")
     parser.add_argument("--json", type=Path, default=None, help="write all results as JSON")
     parser.add_argument("--plot", type=Path, default=None, help="write the boxplot figure (.png/.pdf/.svg)")
-    parser.add_argument("--correspond", action="store_true",
-                        help="inputs are raw meshes: establish correspondence first")
-    parser.add_argument("--align", choices=ALIGN_METHODS, default="sync",
-                        help="alignment: sync (default), gpa or none")
-    parser.add_argument("--transform", choices=TRANSFORMS, default="similarity",
-                        help="alignment transform class (default similarity)")
+    add_preparation_options(parser)
     parser.add_argument("--param", action="append", default=[], metavar="METHOD.NAME=VALUE",
                         help="parameter of one method, e.g. --param lsf.lambda_=32 (repeatable)")
     parser.add_argument("--samples", type=int, default=1000,
