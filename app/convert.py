@@ -18,3 +18,25 @@ def surface_polydata(vertices: np.ndarray, faces: np.ndarray) -> pv.PolyData:
 def points_polydata(points: np.ndarray) -> pv.PolyData:
     """Point cloud (P, 3) -> PolyData of vertices."""
     return pv.PolyData(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+
+
+def face_camera_to(plotter, vertices: np.ndarray, faces: np.ndarray, vertex: int) -> None:
+    """Turn ``plotter``'s camera about its focal point to look at ``vertex`` from outside.
+
+    The camera keeps its distance and moves onto the surface normal at ``vertex``, so the
+    region around it (e.g. the support of a local deformation factor) is in view.
+    """
+    from core.mesh import vertex_normals
+
+    camera = plotter.camera
+    focal = np.asarray(camera.focal_point)
+    distance = np.linalg.norm(np.asarray(camera.position) - focal)
+    normal = vertex_normals(np.asarray(vertices, dtype=np.float64), np.asarray(faces))[vertex]
+    if not np.all(np.isfinite(normal)) or np.linalg.norm(normal) < 1e-9:
+        return
+    direction = normal / np.linalg.norm(normal)
+    up = np.asarray(camera.up)
+    if abs(float(np.dot(up, direction))) > 0.95:
+        up = np.eye(3)[int(np.argmin(np.abs(direction)))]
+    camera.position = tuple(focal + distance * direction)
+    camera.up = tuple(up)

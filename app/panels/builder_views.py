@@ -37,12 +37,10 @@ _COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#
 
 
 def polydata(vertices: np.ndarray, faces: np.ndarray):
-    """(N, 3) vertices and (F, 3) triangles -> ``pyvista.PolyData``."""
-    import pyvista as pv
+    """(N, 3) vertices and (F, 3) triangles -> ``pyvista.PolyData`` (pyvista imported late)."""
+    from app.convert import surface_polydata
 
-    faces = np.asarray(faces, dtype=np.int64)
-    cells = np.hstack([np.full((len(faces), 1), 3, np.int64), faces]).ravel()
-    return pv.PolyData(np.array(vertices, dtype=np.float64), cells)
+    return surface_polydata(vertices, faces)
 
 
 def grid_offsets(extents: np.ndarray, gap: float = 0.25) -> np.ndarray:
@@ -340,24 +338,12 @@ class FactorView(QWidget):
         plotter.render()
 
     def _face_vertex(self, vertex: int) -> None:
-        """Turn the camera (same distance, same focal point) to look at ``vertex`` from outside,
-        along the surface normal there, so the factor's region is in view."""
-        from core.mesh import vertex_normals
+        """Look at ``vertex`` from outside so the factor's region is in view."""
+        from app.convert import face_camera_to
 
-        camera = self.view.plotter.camera
-        focal = np.asarray(camera.focal_point)
-        distance = np.linalg.norm(np.asarray(camera.position) - focal)
-        normal = vertex_normals(self._mean, self._faces)[vertex]
-        if not np.all(np.isfinite(normal)) or np.linalg.norm(normal) < 1e-9:
-            return
-        direction = normal / np.linalg.norm(normal)
-        up = np.asarray(camera.up)
-        if abs(float(np.dot(up, direction))) > 0.95:
-            up = np.eye(3)[int(np.argmin(np.abs(direction)))]
-        camera.position = tuple(focal + distance * direction)
-        camera.up = tuple(up)
+        face_camera_to(self.view.plotter, self._mean, self._faces, vertex)
         self.view.plotter.reset_camera(render=False)  # fit the shape, keeping the direction
-        camera.zoom(0.85)  # leave room for the scalar bar
+        self.view.plotter.camera.zoom(0.85)  # leave room for the scalar bar
 
     def _on_slider(self, value: int) -> None:
         sd = value / self.SLIDER_STEPS_PER_SD

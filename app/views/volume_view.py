@@ -16,9 +16,11 @@ from PySide6.QtCore import QTimer
 from PySide6.QtWidgets import QVBoxLayout, QWidget
 from pyvistaqt import QtInteractor
 
-from app.convert import points_polydata, surface_polydata
+from app.convert import face_camera_to, points_polydata, surface_polydata
 from app.state import FRAME_NAMES, SegmentationState
 from core.planes import FRAMES, window_to_uint8
+
+PLANE_OPACITY = 0.75  # slice planes in 3D: the image stays readable, the surface shows through
 
 SURFACE_COLOR = (1.0, 0.67, 0.0)
 MAX_DEFER_S = 0.5
@@ -132,7 +134,7 @@ class VolumeView(QWidget):
             actor = self._plane_actors.get(name)
             if actor is None:
                 self._plane_actors[name] = self.plotter.add_mesh(
-                    mesh, texture=texture, lighting=False, opacity=0.75, name=f"plane-{name}",
+                    mesh, texture=texture, lighting=False, opacity=PLANE_OPACITY, name=f"plane-{name}",
                     reset_camera=False)
             else:
                 actor.texture = texture
@@ -178,13 +180,19 @@ class VolumeView(QWidget):
             self._surface_actor = self.plotter.add_mesh(
                 self._surface_mesh, scalars="factor displacement (mm per SD)", cmap="plasma",
                 clim=[0.0, max(float(self._surface_mesh["factor displacement (mm per SD)"].max()), 1e-6)],
-                opacity=0.9, smooth_shading=True, name="surface", reset_camera=False,
+                opacity=1.0, smooth_shading=True, name="surface", reset_camera=False,
                 scalar_bar_args={"title": f"F{self._factor + 1} mm/SD", "vertical": True,
                                  "position_x": 0.84, "position_y": 0.1, "height": 0.6,
                                  "width": 0.07, "color": "white", "fmt": "%.1f"})
+            # turn the view to the factor's region (it may face away from the camera), and let
+            # the slice planes, which may stand in front of it, fade while it is shown
+            face_camera_to(self.plotter, vertices, model.faces,
+                           int(np.argmax(self._surface_mesh["factor displacement (mm per SD)"])))
         if self._factor is None:
             for name in list(self.plotter.scalar_bars.keys()):
                 self.plotter.remove_scalar_bar(name)
+        for actor in self._plane_actors.values():
+            actor.prop.opacity = PLANE_OPACITY if self._factor is None else 0.2
 
     def _update_points(self) -> None:
         pts = self.state.points
