@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.progress import Cancelled
-from core.mesh import closest_points_on_triangles
+from core.mesh import closest_points_on_triangles, vertex_normals
 from core.reconstruction import FitResult, _rodrigues, fit_points, surface_distance
 from core.simulated_user import pca_model, simulate_user, synthetic_shapes
 
@@ -217,3 +217,26 @@ def test_pose_prior_steadies_a_single_contour_fit(family):
             fit = fit_points(model, user.points, user.normals, pose_sd=sd)
             out.append(_mean_surface_distance(fit.vertices, truth, faces))
     assert np.mean(with_prior) < 0.8 * np.mean(without), (with_prior, without)
+
+
+def test_adaptive_anisotropy_follows_the_noise_and_the_coverage(family):
+    """eta is the fitted tangential / normal variance ratio: about 1 for isotropic noise,
+    the cap when the points only slide in the tangent plane; the coverage floor keeps it
+    higher for two contours than for twelve; fixed when adaptive_anisotropy is off."""
+    shapes, faces, model = family
+    truth = shapes[0]
+    normals = vertex_normals(truth, faces)
+    rng = np.random.default_rng(3)
+    noise = rng.normal(scale=0.3, size=truth.shape)
+    tangential = noise - (noise * normals).sum(axis=1, keepdims=True) * normals
+    iso = fit_points(model, truth + noise, pose="none", anisotropy=10.0)
+    assert 1.0 <= iso.anisotropy < 2.0, iso.anisotropy
+    slid = fit_points(model, truth + tangential, pose="none", anisotropy=10.0)
+    assert slid.anisotropy == pytest.approx(10.0)
+    fixed = fit_points(model, truth + noise, pose="none", anisotropy=10.0, adaptive_anisotropy=False)
+    assert fixed.anisotropy == 10.0 and fit_points(model, truth + noise, method="gmm-iso").anisotropy == 1.0
+    sparse = simulate_user(truth, faces, 2, rng=rng)
+    dense = simulate_user(truth, faces, 12, rng=rng)
+    eta_sparse = fit_points(model, sparse.points, sparse.normals).anisotropy
+    eta_dense = fit_points(model, dense.points, dense.normals).anisotropy
+    assert eta_sparse > 1.5 * eta_dense, (eta_sparse, eta_dense)
