@@ -7,6 +7,8 @@ held-out shape (``core.simulated_user.simulate_user``: 2 mm point spacing, 0.3 m
 noise, normals from the contour tangent), and each method reconstructs the surface:
 
 - gmm-aniso, gmm-iso, icp: ``core.reconstruction.fit_points`` (similarity pose, prior weight 1);
+  with ``--fixed-eta`` also ``aniso-eta10``: gmm-aniso with ``adaptive_anisotropy=False`` (the
+  fixed eta = 10 it replaced, for comparison);
 - rustcpd: ``rustcpd.register_atlas`` (isotropic GMM + similarity, same model: modes (3N, M)
   point-major, eigenvalues = the coefficient variances, its defaults otherwise);
 - itk-mci (parallel slices only): each contour's points are filled as a polygon into a label
@@ -42,6 +44,7 @@ from core.reconstruction import fit_points, surface_distance  # noqa: E402
 from core.simulated_user import pca_model, simulate_user, slice_planes, synthetic_shapes  # noqa: E402
 
 OURS = ("gmm-aniso", "gmm-iso", "icp")
+FIXED_ETA = "aniso-eta10"  # gmm-aniso without the adaptive anisotropy (--fixed-eta)
 
 
 def load_shapes() -> tuple[np.ndarray, np.ndarray, str]:
@@ -113,8 +116,10 @@ def itk_mci_surface(user, grid_origin: np.ndarray, spacing: float, shape: tuple[
 # ---------------------------------------------------------------------------------------
 
 
-def accuracy(shapes, faces, cases, contour_counts, scenario: str, with_itk: bool, with_rustcpd: bool):
-    methods = list(OURS) + (["rustcpd"] if with_rustcpd else []) + (["itk-mci"] if with_itk else [])
+def accuracy(shapes, faces, cases, contour_counts, scenario: str, with_itk: bool, with_rustcpd: bool,
+             with_fixed_eta: bool = False):
+    methods = (list(OURS) + ([FIXED_ETA] if with_fixed_eta else [])
+               + (["rustcpd"] if with_rustcpd else []) + (["itk-mci"] if with_itk else []))
     table = {m: {k: [] for k in contour_counts} for m in methods}
     times = {m: [] for m in methods}
     spacing = 0.5
@@ -134,6 +139,10 @@ def accuracy(shapes, faces, cases, contour_counts, scenario: str, with_itk: bool
                 t0 = time.perf_counter()
                 if method in OURS:
                     surf_v = fit_points(model, user.points, user.normals, method=method).vertices
+                    surf_f = faces
+                elif method == FIXED_ETA:
+                    surf_v = fit_points(model, user.points, user.normals, method="gmm-aniso",
+                                        adaptive_anisotropy=False).vertices
                     surf_f = faces
                 elif method == "rustcpd":
                     surf_v, _ = rustcpd_fit(model, user.points)
@@ -240,6 +249,8 @@ def main(argv=None) -> int:
     parser.add_argument("--reps", type=int, default=100, help="latency fits (default 100)")
     parser.add_argument("--no-itk", action="store_true")
     parser.add_argument("--no-rustcpd", action="store_true")
+    parser.add_argument("--fixed-eta", action="store_true",
+                        help="also gmm-aniso with a fixed eta = 10 (adaptive_anisotropy=False)")
     parser.add_argument("--skip", default="", help="comma list of sections to skip: mixed,axial,latency")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 cases, 3 counts, 5 reps")
     args = parser.parse_args(argv)
@@ -258,11 +269,12 @@ def main(argv=None) -> int:
     print(f"Shapes: {source}; {shapes.shape[1]} vertices; LOO cases {cases}")
     skip = set(args.skip.split(","))
     if "mixed" not in skip:
-        table, times = accuracy(shapes, faces, cases, counts, "mixed", False, not args.no_rustcpd)
+        table, times = accuracy(shapes, faces, cases, counts, "mixed", False, not args.no_rustcpd,
+                                args.fixed_eta)
         print_accuracy(table, times, counts, "Accuracy, mixed axial/coronal/sagittal contours")
     if "axial" not in skip:
         table, times = accuracy(shapes, faces, cases, [k for k in counts if k >= 2], "axial",
-                                with_itk, not args.no_rustcpd)
+                                with_itk, not args.no_rustcpd, args.fixed_eta)
         print_accuracy(table, times, [k for k in counts if k >= 2],
                        "Accuracy, parallel axial contours (with ITK morphological contour interpolation)")
     if "latency" not in skip:
