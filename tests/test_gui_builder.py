@@ -167,6 +167,10 @@ def test_load_lists_vertex_counts_and_problems(panel, qtbot, tmp_path):
     # unticking a mesh leaves it out of training
     panel.mesh_list.topLevelItem(0).setCheckState(0, Qt.Unchecked)
     assert [e.name for e in panel.usable_entries()] == [files[1].name]
+    # the list is rebuilt after the signal (rebuilding inside it deleted the item: a crash)
+    qtbot.wait(50)
+    assert panel.mesh_list.topLevelItemCount() == 4
+    assert panel.mesh_list.topLevelItem(0).checkState(0) == Qt.Unchecked
 
 
 # ------------------------------------------------------------------------------------------

@@ -521,8 +521,13 @@ class BuilderPanel(QWidget):
             entry = self.state.entries[row]
             if entry.mesh is not None:
                 entry.included = item.checkState(0) == Qt.Checked
-                self._refresh_mesh_list()
-                self._refresh_meshes_view()
+                # Rebuild the list after this signal returns: clearing it here would delete the
+                # item whose itemChanged is being delivered (a use-after-free crash).
+                QTimer.singleShot(0, self, self._refresh_after_inclusion_change)
+
+    def _refresh_after_inclusion_change(self) -> None:
+        self._refresh_mesh_list()
+        self._refresh_meshes_view()
 
     # ======================================================================================
     # Pipeline
