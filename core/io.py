@@ -293,7 +293,6 @@ def load_volume(path: str | os.PathLike) -> Volume:
         Not found, empty, truncated or corrupt gzip, not a NIfTI file, .hdr/.img pair, CIFTI,
         wrong dimensionality, unsupported voxel type, non-finite or singular affine.
     """
-    import nibabel as nib
 
     path = _require_file(path)
     if _suffix(path) not in VOLUME_SUFFIXES:
@@ -525,6 +524,46 @@ def _vtk_errors() -> Iterator[list[str]]:
             vtk.vtkLogger.SetStderrVerbosity(verbosity)
             vtk.vtkOutputWindow.SetInstance(previous)
             errors.extend(_vtk_error_text(window.GetOutput()))
+
+
+def expand_mesh_paths(paths: list[str | os.PathLike]) -> list[Path]:
+    """Files and folders -> the mesh files among them, in order, without repeats.
+
+    A folder stands for the files in it whose names end in one of :data:`MESH_SUFFIXES`
+    (sorted by name); a folder with none contributes nothing.
+    """
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            files += sorted(f for f in p.iterdir()
+                            if f.is_file() and any(f.name.lower().endswith(s) for s in MESH_SUFFIXES))
+        else:
+            files.append(p)
+    seen: set[Path] = set()
+    return [f for f in files if not (f in seen or seen.add(f))]
+
+
+def load_meshes(paths: list[str | os.PathLike], progress=None
+                ) -> tuple[list[tuple[Path, TriMesh]], dict[str, str]]:
+    """Read several mesh files, going on past unreadable ones (a batch is not lost to one file).
+
+    Returns the (path, mesh) pairs read, in input order, and the problem of each file that
+    could not be read (path -> message). ``progress(fraction, message)`` as in core.progress.
+    """
+    loaded: list[tuple[Path, TriMesh]] = []
+    failures: dict[str, str] = {}
+    for i, path in enumerate(map(Path, paths)):
+        if progress is not None:
+            progress(i / max(len(paths), 1), f"reading {path.name}")
+        try:
+            loaded.append((path, load_mesh(path)))
+        except DataFileError as exc:
+            failures[str(path)] = exc.problem
+        except (ValueError, OSError) as exc:  # should not happen: load_mesh wraps its errors
+            failures[str(path)] = f"{type(exc).__name__}: {exc}"
+    if progress is not None:
+        progress(1.0, f"{len(loaded)} meshes read")
+    return loaded, failures
 
 
 def load_mesh(path: str | os.PathLike) -> TriMesh:

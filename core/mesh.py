@@ -153,3 +153,27 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray,
     out = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, out)
     out = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, out)
     return out
+
+
+def surface_problems(vertices: np.ndarray, faces: np.ndarray) -> list[str]:
+    """Warnings about a readable mesh that may spoil correspondence or modelling.
+
+    Lists vertices in no triangle, an open surface, several separate pieces and degenerate
+    (zero-area) triangles; an empty list means none was found.
+    """
+    problems = []
+    used = np.zeros(len(vertices), bool)
+    used[faces.ravel()] = True
+    if not used.all():
+        problems.append(f"{int((~used).sum())} vertices in no triangle")
+    n_boundary = len(boundary_edges(faces))
+    if n_boundary:
+        problems.append(f"open surface ({n_boundary} boundary edges)")
+    pieces = n_components(faces, len(vertices))
+    if pieces > 1:
+        problems.append(f"{pieces} separate pieces")
+    area = np.linalg.norm(face_normals(vertices, faces, normalize=False), axis=1)
+    degenerate = int((area <= 1e-12 * max(float(area.max(initial=0.0)), 1e-300)).sum())
+    if degenerate:
+        problems.append(f"{degenerate} degenerate triangles")
+    return problems

@@ -261,19 +261,14 @@ def load_training_meshes(inputs: Sequence[str], progress: ProgressCallback | Non
     """
     from pathlib import Path
 
-    from core.io import MESH_SUFFIXES, DataFileError, load_mesh
+    from core.io import MESH_SUFFIXES, DataFileError, expand_mesh_paths, load_mesh
 
     paths = []
     for item in inputs:
-        p = Path(item)
-        if p.is_dir():
-            found = sorted(q for q in p.iterdir()
-                           if q.is_file() and any(q.name.lower().endswith(s) for s in MESH_SUFFIXES))
-            if not found:
-                raise DataFileError(p, f"folder contains no mesh files ({', '.join(MESH_SUFFIXES)})")
-            paths.extend(found)
-        else:
-            paths.append(p)
+        found = expand_mesh_paths([item])
+        if not found and Path(item).is_dir():
+            raise DataFileError(item, f"folder contains no mesh files ({', '.join(MESH_SUFFIXES)})")
+        paths.extend(p for p in found if p not in paths)
     meshes = []
     for i, p in enumerate(paths):
         report(progress, i / max(len(paths), 1), f"reading {p.name}")

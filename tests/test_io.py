@@ -976,3 +976,23 @@ def test_vtk_output_window_is_restored_after_bad_file(tmp_path, capfd):
         io.load_mesh(tmp_path / "bad.vtp")
     assert vtk.vtkOutputWindow.GetInstance() is before
     assert capfd.readouterr().err == ""
+
+
+def test_expand_and_load_meshes_keep_order_and_report_bad_files(tmp_path):
+    import pyvista as pv
+
+    from core.io import expand_mesh_paths, load_meshes, save_mesh
+
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    sphere = TriMesh.from_polydata(pv.Sphere(theta_resolution=8, phi_resolution=8))
+    for name in ("b.vtk", "a.ply"):
+        save_mesh(folder / name, sphere)
+    (folder / "notes.txt").write_text("not a mesh")
+    (folder / "c.stl").write_bytes(b"")
+    files = expand_mesh_paths([folder, folder / "a.ply"])
+    assert [f.name for f in files] == ["a.ply", "b.vtk", "c.stl"]  # sorted, no repeat, no .txt
+    loaded, failures = load_meshes(files)
+    assert [p.name for p, _ in loaded] == ["a.ply", "b.vtk"]
+    assert all(m.n_vertices == sphere.n_vertices for _, m in loaded)
+    assert list(failures) == [str(folder / "c.stl")] and "empty" in failures[str(folder / "c.stl")]

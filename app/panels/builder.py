@@ -57,7 +57,7 @@ from app.panels.builder_eval import EvaluationView
 from app.panels.builder_forms import ParameterForm
 from app.panels.builder_views import FactorView, MeshesView, SamplesView
 from app.workers import Worker
-from core.io import MESH_SUFFIXES
+from core.io import MESH_SUFFIXES, expand_mesh_paths
 
 STAGES = ("correspondence", "alignment", "model")
 STAGE_TITLES = {"load": "Loading meshes", "correspondence": "Correspondence",
@@ -430,7 +430,7 @@ class BuilderPanel(QWidget):
 
     def add_paths(self, paths: list[str | Path]) -> None:
         """Load mesh files and folders (of mesh files) in a worker and add them to the list."""
-        files = engine.expand_mesh_paths(paths)
+        files = expand_mesh_paths(paths)
         known = {e.path for e in self.state.entries}
         files = [f for f in files if str(f) not in known]
         if not files:

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from core.io import MESH_SUFFIXES, DataFileError, TriMesh, load_mesh
+from core.io import TriMesh, load_meshes
+from core.mesh import surface_problems
 from core.progress import ProgressCallback, report, sub_progress
 
 try:
@@ -44,60 +45,19 @@ class MeshEntry:
     included: bool = True
 
 
-def expand_mesh_paths(paths: list[str | os.PathLike]) -> list[Path]:
-    """Files and folders -> the mesh files among them (folders: their mesh files, sorted)."""
-    files: list[Path] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            files += sorted(f for f in p.iterdir()
-                            if f.is_file() and any(f.name.lower().endswith(s) for s in MESH_SUFFIXES))
-        else:
-            files.append(p)
-    seen: set[Path] = set()
-    return [f for f in files if not (f in seen or seen.add(f))]
-
-
-def mesh_problems(mesh: TriMesh) -> list[str]:
-    """Warnings about a readable mesh that may spoil correspondence (not errors)."""
-    from core.mesh import boundary_edges, n_components
-
-    problems = []
-    used = np.zeros(mesh.n_vertices, bool)
-    used[mesh.faces.ravel()] = True
-    if not used.all():
-        problems.append(f"{int((~used).sum())} vertices in no triangle")
-    n_boundary = len(boundary_edges(mesh.faces))
-    if n_boundary:
-        problems.append(f"open surface ({n_boundary} boundary edges)")
-    pieces = n_components(mesh.faces, mesh.n_vertices) - int((~used).sum())
-    if pieces > 1:
-        problems.append(f"{pieces} separate pieces")
-    area = np.linalg.norm(np.cross(mesh.vertices[mesh.faces[:, 1]] - mesh.vertices[mesh.faces[:, 0]],
-                                   mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]]),
-                          axis=1)
-    degenerate = int((area <= 1e-12 * max(float(area.max(initial=0.0)), 1e-300)).sum())
-    if degenerate:
-        problems.append(f"{degenerate} degenerate triangles")
-    return problems
-
-
 def load_entries(files: list[str | os.PathLike], progress: ProgressCallback | None = None
                  ) -> list[MeshEntry]:
     """Read each file; an unreadable file becomes an entry with ``mesh=None`` and its error."""
+    loaded, failures = load_meshes(files, progress)
+    meshes = {str(path): mesh for path, mesh in loaded}
     entries = []
-    for i, f in enumerate(files):
-        report(progress, i / max(len(files), 1), Path(f).name)
-        name = Path(f).name
-        try:
-            mesh = load_mesh(f)
-        except (ValueError, OSError) as exc:  # DataFileError and other unreadable input
-            problem = exc.problem if isinstance(exc, DataFileError) else \
-                f"{type(exc).__name__}: {exc}"
-            entries.append(MeshEntry(str(f), name, None, [problem], included=False))
+    for f in map(Path, files):
+        mesh = meshes.get(str(f))
+        if mesh is None:
+            entries.append(MeshEntry(str(f), f.name, None, [failures[str(f)]], included=False))
             continue
-        mesh.name = name
-        entries.append(MeshEntry(str(f), name, mesh, mesh_problems(mesh)))
-    report(progress, 1.0, f"{len(entries)} files read")
+        mesh.name = f.name
+        entries.append(MeshEntry(str(f), f.name, mesh, surface_problems(mesh.vertices, mesh.faces)))
     return entries
 
 

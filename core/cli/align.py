@@ -23,7 +23,7 @@ import numpy as np
 
 from core.alignment import METHODS, TRANSFORMS, align_shapes
 from core.correspondence import mesh_problem
-from core.io import MESH_SUFFIXES, DataFileError, TriMesh, atomic_write_json, load_mesh, save_mesh
+from core.io import MESH_SUFFIXES, TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.progress import StderrProgress
 
 COMMAND = "align"
@@ -42,15 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    paths = [Path(p) for p in args.meshes]
-    failures: dict[str, str] = {}
+    loaded, failures = load_meshes(args.meshes)
     meshes: list[tuple[Path, TriMesh]] = []
-    for path in paths:
-        try:
-            mesh = load_mesh(path)
-        except DataFileError as exc:
-            failures[str(path)] = exc.problem
-            continue
+    for path, mesh in loaded:
         problem = mesh_problem(mesh)
         if problem and "not used by any triangle" not in problem:
             failures[str(path)] = problem

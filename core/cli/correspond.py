@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
-from core.io import MESH_SUFFIXES, DataFileError, TriMesh, atomic_write_json, load_mesh, save_mesh
+from core.io import MESH_SUFFIXES, TriMesh, atomic_write_json, load_mesh, load_meshes, save_mesh
 from core.progress import StderrProgress
 
 COMMAND = "correspond"
@@ -67,19 +67,11 @@ def _output_path(out_dir: Path, source: Path, used: set[str]) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    paths = [Path(p) for p in args.meshes]
-    meshes: list[TriMesh] = []
-    load_failures: dict[str, str] = {}
-    loaded_paths: list[Path] = []
-    for path in paths:
-        try:
-            mesh = load_mesh(path)
-        except DataFileError as exc:
-            load_failures[str(path)] = exc.problem
-            continue
+    loaded, load_failures = load_meshes(args.meshes)
+    loaded_paths = [path for path, _ in loaded]
+    meshes: list[TriMesh] = [mesh for _, mesh in loaded]
+    for path, mesh in loaded:
         mesh.name = str(path)
-        meshes.append(mesh)
-        loaded_paths.append(path)
     if not meshes:
         raise ValueError("no input mesh could be read: "
                          + "; ".join(f"{k}: {v}" for k, v in load_failures.items()))
@@ -114,11 +106,11 @@ def run(args: argparse.Namespace) -> int:
         report["shapes"].append({"name": name, "ok": False, "residual_mm": None, "seconds": None,
                                  "error": problem, "output": None})
         report["failures"][name] = problem
-    report["inputs"] = [str(p) for p in paths]
+    report["inputs"] = [str(p) for p in args.meshes]
     atomic_write_json(args.out / REPORT_NAME, report)
     n_ok = len(written)
     mean = report["mean_residual_mm"]
-    print(f"{args.out}: {n_ok}/{len(paths)} meshes corresponded to {result.reference_name} "
+    print(f"{args.out}: {n_ok}/{len(args.meshes)} meshes corresponded to {result.reference_name} "
           f"({len(result.faces)} triangles), mean residual "
           f"{'n/a' if mean is None else f'{mean:.3f} mm'}, {result.timings['total']:.1f} s")
     for name, problem in report["failures"].items():
