@@ -474,7 +474,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     w_out = 0.0 if icp else outlier_weight
     k_near = 1 if icp else min(n_neighbors, n_vertices)
     use_normals = user_normals is not None and normal_weight > 0 and not icp
-    sigma2_min = float(min_sigma) ** 2
+    # a model's own noise variance (statismo's PPCA noiseVariance) floors the GMM variance too
+    sigma2_min = max(float(min_sigma) ** 2, float(model.info.get("noise_variance", 0.0) or 0.0))
 
     z = cache.shape(coef)  # base-frame shape (N, 3)
     x = scale * z @ rot.T + trans  # world vertices

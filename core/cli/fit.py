@@ -1,7 +1,7 @@
 """Fit a shape model to contour points and write the fitted surface.
 
-Reads a model (.npz, ``ssm-studio build``) and points in world RAS mm (CSV with header
-``x,y,z[,nx,ny,nz]`` or a 3D Slicer markups .mrk.json), runs the reconstruction engine
+Reads a model (.npz from ``ssm-studio build``, or a statismo/Scalismo .h5) and points in
+world RAS mm (CSV with header ``x,y,z[,nx,ny,nz]`` or a 3D Slicer markups .mrk.json), runs the reconstruction engine
 (``core.reconstruction.fit_points``: anisotropic or isotropic GMM, or ICP, with the model's
 Gaussian prior and a similarity/rigid/no pose) and writes the fitted mesh (.vtk, .vtp, .stl,
 .ply, .obj, .gii). ``--json`` also writes the coefficients, the pose, the per-iteration
@@ -22,7 +22,8 @@ HELP = "fit a shape model to contour points (GMM or ICP) and write the fitted su
 
 def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by ``fit`` and ``segment``."""
-    parser.add_argument("--model", required=True, help="shape model (.npz)")
+    parser.add_argument("--model", required=True,
+                        help="shape model (.npz, or a statismo/Scalismo .h5)")
     parser.add_argument("--points", required=True,
                         help="contour points in world RAS mm (.csv x,y,z[,nx,ny,nz] or .mrk.json)")
     parser.add_argument("--method", choices=METHODS, default="gmm-aniso",

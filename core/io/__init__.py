@@ -15,6 +15,10 @@ table of :mod:`core.io.registry` (suffix -> reader/writer), as nibabel and trime
 - :mod:`core.io.points`: CSV (header line, ``x,y,z`` or ``x,y,z,nx,ny,nz``, world RAS mm)
   and 3D Slicer markups JSON (.mrk.json; LPS or RAS on read, LPS on write as Slicer does);
 - :mod:`core.io.models`: shape models, the versioned ``.npz`` format of :func:`save_model`;
+  :mod:`core.io.statismo`: statismo/Scalismo ``.h5`` models (read and written by h5py);
+- images beyond NIfTI: :mod:`core.io.itk_image` (NRRD, MetaImage through SimpleITK, exact
+  LPS -> RAS), :mod:`core.io.nrrd` (NRRD header checks, our NRRD and Slicer ``.seg.nrrd``
+  writer), :mod:`core.io.dicom` (DICOM series with their geometry checked);
 - :mod:`core.io.atomic`: every save is atomic (a temporary file in the target folder, then
   renamed); :mod:`core.io.errors`: every load error is a :class:`DataFileError` naming the
   file and the problem.
@@ -29,6 +33,7 @@ from core.io.models import MODEL_FORMAT, MODEL_FORMAT_VERSION, load_model, save_
 from core.io.nifti import VOLUME_SUFFIXES
 from core.io.points import POINT_SUFFIXES, load_points, save_points
 from core.io.registry import FileFormat, file_suffix, lookup, register, suffixes
+from core.io.statismo import read_statismo, write_statismo  # registers .h5 models
 from core.io.volumes import load_volume, save_volume
 from core.types import PointSet, TriMesh, Volume
 

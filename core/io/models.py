@@ -11,7 +11,7 @@ import numpy as np
 
 from core.io.atomic import atomic_path, json_default
 from core.io.errors import DataFileError, require_file, why
-from core.io.registry import FileFormat, register
+from core.io.registry import FileFormat, lookup, register
 from core.shape_model import ShapeModel
 
 MODEL_FORMAT = "ssm-studio-model"
@@ -37,6 +37,9 @@ def save_model(path: str | os.PathLike, model: ShapeModel) -> None:
     ============== ============ =====================================================
     """
     path = Path(path)
+    fmt = lookup(path, "model")
+    if fmt is not None and fmt.write is not None and fmt.write is not save_model:
+        return fmt.write(path, model)  # another format (statismo .h5, core.io.statismo)
     header = {
         "format": MODEL_FORMAT,
         "format_version": MODEL_FORMAT_VERSION,
@@ -70,6 +73,9 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
     import zipfile
 
     path = require_file(path)
+    fmt = lookup(path, "model")
+    if fmt is not None and fmt.read is not None and fmt.read is not load_model:
+        return fmt.read(path)  # another format (statismo .h5, core.io.statismo)
     with open(path, "rb") as fh:
         if fh.read(4) != b"PK\x03\x04":
             raise DataFileError(path, "not a shape model file (not an .npz archive)")

@@ -1,31 +1,60 @@
-"""Volumes: the suffix dispatch for every image format (NIfTI in :mod:`core.io.nifti`)."""
+"""Volumes: the suffix dispatch for every image format.
+
+NIfTI in :mod:`core.io.nifti`; NRRD/NHDR and MetaImage (MHA/MHD) in :mod:`core.io.itk_image`
+and :mod:`core.io.nrrd` (with 3D Slicer's ``.seg.nrrd``); DICOM series in
+:mod:`core.io.dicom` (a folder, a ``.dcm`` file, or any file with the DICOM marker).
+"""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+import core.io.dicom  # noqa: F401  (registers .dcm)
+import core.io.itk_image  # noqa: F401  (registers .mha, .mhd)
 import core.io.nifti  # noqa: F401  (registers .nii and .nii.gz)
+import core.io.nrrd  # noqa: F401  (registers .nrrd, .seg.nrrd, .nhdr)
 from core.io.errors import DataFileError, require_file
 from core.io.registry import file_suffix, lookup, suffixes
 from core.types.volume import Volume
 
 
-def load_volume(path: str | os.PathLike) -> Volume:
+def is_dicom_path(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is read as a DICOM series: a folder, or a file that is not one of the
+    other image formats and has a ``.dcm`` name or the DICOM marker (DICOM files often have
+    no extension)."""
+    path = Path(path)
+    fmt = lookup(path, "volume")
+    if fmt is not None:
+        return fmt.suffix == ".dcm"  # a folder named like another format is refused as a folder
+    return path.is_dir() or (path.is_file() and core.io.dicom.is_dicom_file(path))
+
+
+def load_volume(path: str | os.PathLike, series: str | None = None,
+                notify: Callable[[str], None] | None = None) -> Volume:
     """Read a 3D image; the reader is chosen by suffix (see :func:`core.io.nifti.load_nifti`).
+
+    A DICOM folder or file (:func:`is_dicom_path`) is read by :func:`core.io.dicom.read_dicom`:
+    ``series`` picks a SeriesInstanceUID, and ``notify(message)`` is told which series was
+    taken when a folder holds several and ``series`` is None.
 
     Raises
     ------
     DataFileError
         Not found, empty, unknown suffix, or whatever the format's reader refuses.
     """
+    if Path(path).exists() and is_dicom_path(path):
+        return core.io.dicom.read_dicom(path, series=series, notify=notify)
     path = require_file(path)
+    if series is not None:
+        raise DataFileError(path, "a series UID applies to a DICOM folder or file only")
     fmt = lookup(path, "volume")
     if fmt is None or fmt.read is None:
-        raise DataFileError(path, f"not a NIfTI file name (expected "
-                                  f"{' or '.join(suffixes('volume'))}, got "
+        raise DataFileError(path, f"not an image file name (expected "
+                                  f"{', '.join(suffixes('volume'))} or a DICOM folder; got "
                                   f"'{file_suffix(path) or path.name}')")
     return fmt.read(path)
 
@@ -35,5 +64,6 @@ def save_volume(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray) -
     path = Path(path)
     fmt = lookup(path, "volume")
     if fmt is None or fmt.write is None:
-        raise DataFileError(path, f"volumes are written as {' or '.join(suffixes('volume'))}")
+        writable = [s for s in suffixes("volume") if lookup(Path("x" + s), "volume").write]
+        raise DataFileError(path, f"volumes are written as {', '.join(writable)}")
     fmt.write(path, data, affine)
