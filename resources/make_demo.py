@@ -44,6 +44,7 @@ import shutil
 import sys
 import time
 import warnings
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,7 @@ TEMPLATE_FILES = {
 }
 T1_FILE = RESOURCES / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 GM_FILE = RESOURCES / "mni_icbm152_gm_tal_nlin_sym_09a.nii.gz"
+WM_FILE = RESOURCES / "mni_icbm152_wm_tal_nlin_sym_09a.nii.gz"
 
 # Extraction of the base shape from the grey-matter probability map (MNI world mm).
 BOX_MIN = (-22.0, -30.0, -2.0)
@@ -102,6 +104,56 @@ TRANSLATION_SD_MM = 1.5
 TRANSLATION_CLIP_MM = 4.0
 VERTEX_COUNT_RANGE = (1800, 2300)
 CONTOUR_SPACING_MM = 2.0
+
+
+
+@dataclass(frozen=True)
+class StructureSpec:
+    """Where a structure is extracted from the template's grey-matter map (MNI world mm)."""
+
+    name: str                     # "caudate nucleus"
+    side: str                     # "left" / "right"
+    stem: str                     # file names: <stem>_00.vtk, <stem>_base.vtk
+    box_min: tuple[float, float, float]
+    box_max: tuple[float, float, float]
+    seed_point: tuple[float, float, float]
+    gm_threshold: float = GM_THRESHOLD
+    #: 0: one binary opening with the 6-neighbourhood (the caudate's rule); > 0: opening with a
+    #: ball of this radius (mm), which cuts bridges to neighbouring grey matter narrower than it
+    opening_radius_mm: float = 0.0
+    #: voxels with GM + WM probability below this are CSF and excluded (0: no test)
+    min_tissue: float = 0.0
+    #: a note shown with the model (what the extraction does not get right)
+    note: str = ""
+
+    @property
+    def label(self) -> str:
+        return f"{self.side} {self.name}"
+
+    def mirrored(self) -> "StructureSpec":
+        """The same structure in the other hemisphere (the template is left-right symmetric)."""
+        lo = (-self.box_max[0], self.box_min[1], self.box_min[2])
+        hi = (-self.box_min[0], self.box_max[1], self.box_max[2])
+        seed = (-self.seed_point[0], self.seed_point[1], self.seed_point[2])
+        return replace(self, side="right" if self.side == "left" else "left", box_min=lo,
+                       box_max=hi, seed_point=seed)
+
+
+LEFT_CAUDATE = StructureSpec("caudate nucleus", "left", "caudate", BOX_MIN, BOX_MAX, SEED_POINT)
+RIGHT_CAUDATE = LEFT_CAUDATE.mirrored()
+# The thalamus has GM probability 0.45-0.6 laterally in this template (mixed grey and white
+# matter) and touches other grey matter through thin bridges: GM > 0.5 without CSF, opened
+# with a 4 mm ball, keeps one egg-shaped component of ~5 cm^3 bounded by the internal capsule,
+# the lateral and third ventricles (looked at in the three planes of the T1).
+LEFT_THALAMUS = StructureSpec(
+    "thalamus", "left", "thalamus", (-34.0, -50.0, -18.0), (-1.0, 8.0, 30.0), (-11.0, -18.0, 7.0),
+    gm_threshold=0.5, opening_radius_mm=4.0, min_tissue=0.85,
+    note="approximate outline from the template's grey-matter map; the posterior pulvinar is "
+         "partly cut and the medial face follows the third ventricle at x = -1 mm")
+#: The model library (resources/models/): (spec, file name). Built by ``--library``.
+LIBRARY = ((LEFT_CAUDATE, "left_caudate.npz"), (RIGHT_CAUDATE, "right_caudate.npz"),
+           (LEFT_THALAMUS, "left_thalamus.npz"), (LEFT_THALAMUS.mirrored(), "right_thalamus.npz"))
+MODELS = RESOURCES / "models"
 
 # Demo model (when core.pipeline is available).
 PIPELINE_REFERENCE = 0        # correspondence reference: the first training mesh
@@ -170,8 +222,9 @@ def _uniform_remesh(poly, n_vertices: int):
         return clustering.create_mesh(moveclus=False, flipnorm=True, clean=True)
 
 
-def extract_base_shape() -> tuple[TriMesh, dict]:
-    """The left caudate from the GM probability map as a closed mesh in world RAS mm.
+def extract_base_shape(spec: StructureSpec = LEFT_CAUDATE) -> tuple[TriMesh, dict]:
+    """A structure (default: the left caudate) from the GM probability map as a closed mesh in
+    world RAS mm.
 
     Returns the mesh (~N_BASE_VERTICES vertices, outward-oriented, one component) and a dict
     describing the extraction (voxel count, voxel volume, parameters).
@@ -180,13 +233,23 @@ def extract_base_shape() -> tuple[TriMesh, dict]:
 
     gm = load_volume(GM_FILE)
     prob = gm.data.astype(np.float32) / 255.0
-    lo = np.rint(gm.world_to_voxel(np.array(BOX_MIN))).astype(int)
-    hi = np.rint(gm.world_to_voxel(np.array(BOX_MAX))).astype(int) + 1
+    lo = np.rint(gm.world_to_voxel(np.array(spec.box_min))).astype(int)
+    hi = np.rint(gm.world_to_voxel(np.array(spec.box_max))).astype(int) + 1
     box = prob[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    labels, _ = ndimage.label(ndimage.binary_opening(box > GM_THRESHOLD))
-    seed = tuple(np.rint(gm.world_to_voxel(np.array(SEED_POINT))).astype(int) - lo)
+    inside = box > spec.gm_threshold
+    if spec.min_tissue > 0:
+        wm = load_volume(WM_FILE).data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] / 255.0
+        inside &= (box + wm) > spec.min_tissue
+    if spec.opening_radius_mm > 0:
+        r = int(round(spec.opening_radius_mm / float(np.min(gm.spacing))))
+        grid = np.mgrid[-r:r + 1, -r:r + 1, -r:r + 1]
+        inside = ndimage.binary_opening(inside, (grid ** 2).sum(axis=0) <= r * r + 0.5)
+    else:
+        inside = ndimage.binary_opening(inside)
+    labels, _ = ndimage.label(inside)
+    seed = tuple(np.rint(gm.world_to_voxel(np.array(spec.seed_point))).astype(int) - lo)
     if labels[seed] == 0:
-        raise RuntimeError(f"seed {SEED_POINT} is not in grey matter > {GM_THRESHOLD}")
+        raise RuntimeError(f"seed {spec.seed_point} is not in grey matter > {spec.gm_threshold}")
     component = ndimage.binary_fill_holes(labels == labels[seed])
 
     pad = 3
@@ -204,13 +267,14 @@ def extract_base_shape() -> tuple[TriMesh, dict]:
     iso_mesh = TriMesh.from_polydata(iso)
     _, _, points, _ = closest_points_on_surface(iso_mesh.vertices, iso_mesh.faces,
                                                 np.asarray(remeshed.points))
-    base = TriMesh(points, TriMesh.from_polydata(remeshed).faces, "caudate_base")
+    base = TriMesh(points, TriMesh.from_polydata(remeshed).faces, f"{spec.stem}_base")
     _check_surface(base, "base shape")
     info = {
         "template_voxels": int(component.sum()),
         "template_voxel_volume_cm3": float(component.sum() * np.prod(gm.spacing) / 1000.0),
-        "box_min_mm": BOX_MIN, "box_max_mm": BOX_MAX, "seed_mm": SEED_POINT,
-        "gm_threshold": GM_THRESHOLD, "mask_smoothing_mm": MASK_SMOOTHING_MM,
+        "box_min_mm": spec.box_min, "box_max_mm": spec.box_max, "seed_mm": spec.seed_point,
+        "gm_threshold": spec.gm_threshold, "opening_radius_mm": spec.opening_radius_mm,
+        "min_tissue": spec.min_tissue, "mask_smoothing_mm": MASK_SMOOTHING_MM,
         "marching_cubes_spacing_mm": float(spacing[0]),
     }
     return base, info
@@ -544,9 +608,11 @@ def build_with_pipeline(meshes: list[TriMesh], truth: dict) -> ShapeModel | None
 # --------------------------------------------------------------------------------------
 
 
-def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO) -> dict:
-    """Regenerate the template copies in resources/ and everything in ``demo_dir``; returns
-    the JSON summary that is also written to ``demo_dir``/ground_truth.json."""
+def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO,
+              spec: StructureSpec = LEFT_CAUDATE) -> dict:
+    """Regenerate the template copies in resources/ and everything in ``demo_dir`` for the
+    structure ``spec`` (default: the left caudate); returns the JSON summary that is also
+    written to ``demo_dir``/ground_truth.json."""
     if importlib.util.find_spec("pyacvd") is None:
         raise SystemExit("make_demo.py needs pyacvd for the remeshing: pip install -e '.[demo]'")
     t_start = time.perf_counter()
@@ -555,7 +621,7 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     hashes = copy_template()
     rng = np.random.default_rng(seed)
 
-    base, extraction = extract_base_shape()
+    base, extraction = extract_base_shape(spec)
     base_volume = meshops.volume(base.vertices, base.faces)
     print(f"base shape: {base.n_vertices} vertices, {len(base.faces)} triangles, "
           f"{base_volume / 1000:.2f} cm^3 (template mask {extraction['template_voxel_volume_cm3']:.2f} cm^3)")
@@ -586,12 +652,12 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     counts = rng.choice(np.arange(VERTEX_COUNT_RANGE[0], VERTEX_COUNT_RANGE[1] + 1),
                         size=N_SHAPES, replace=False)
     mesh_dir.mkdir(parents=True, exist_ok=True)
-    for old in mesh_dir.glob("caudate_*.vtk"):
+    for old in mesh_dir.glob(f"{spec.stem}_*.vtk"):
         old.unlink()
     names, meshes, tris, barys = [], [], [], []
     for k in range(N_SHAPES):
         mesh, tri, bary = remesh_shape(posed[k], base.faces, int(counts[k]), rng)
-        name = f"caudate_{k:02d}.vtk"
+        name = f"{spec.stem}_{k:02d}.vtk"
         mesh.name = name
         save_mesh(mesh_dir / name, mesh)
         names.append(name)
@@ -610,9 +676,9 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     nearest_corner = np.argmax(remesh_bary, axis=1)
     remesh_nearest_vertex = base.faces[remesh_tri, nearest_corner]
 
-    save_mesh(demo_dir / "caudate_base.vtk", base)
-    heldout = TriMesh(posed[N_SHAPES], base.faces, "heldout_caudate.vtk")
-    save_mesh(demo_dir / "heldout_caudate.vtk", heldout)
+    save_mesh(demo_dir / f"{spec.stem}_base.vtk", base)
+    heldout = TriMesh(posed[N_SHAPES], base.faces, f"heldout_{spec.stem}.vtk")
+    save_mesh(demo_dir / f"heldout_{spec.stem}.vtk", heldout)
     contour, planes = contour_points(heldout.vertices, heldout.faces)
     save_points(demo_dir / "contour_points.csv", contour)
     print(f"contour points: {len(contour)} on the held-out shape in "
@@ -654,14 +720,14 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
             f"{k} {v:.2f}" for k, v in model.info["ground_truth_correspondence_error_mm"].items()))
 
     summary = {
-        "structure": STRUCTURE,
+        "structure": spec.label,
         "seed": seed,
         "real": {
             "image": T1_FILE.name,
             "grey_matter_map": GM_FILE.name,
             "template": "MNI ICBM152 2009a nonlinear symmetric (nilearn's uint8 copy)",
             "template_sha256": hashes,
-            "base_shape": "demo/caudate_base.vtk, extracted from the grey-matter map",
+            "base_shape": f"demo/{spec.stem}_base.vtk, extracted from the grey-matter map",
             "extraction": extraction,
             "base_n_vertices": base.n_vertices, "base_n_faces": int(len(base.faces)),
             "base_volume_cm3": base_volume / 1000.0,
@@ -686,7 +752,7 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
                  "rotation_axis": poses[k]["axis"], "rotation_deg": poses[k]["angle_deg"],
                  "translation_mm": poses[k]["translation"], "pose": poses[k]["matrix"]}
                 for k in range(N_SHAPES)],
-            "heldout": {"mesh": "heldout_caudate.vtk", "coefficients": coefficients[N_SHAPES],
+            "heldout": {"mesh": f"heldout_{spec.stem}.vtk", "coefficients": coefficients[N_SHAPES],
                         "pose": poses[N_SHAPES]["matrix"], "contour_planes": planes},
         },
         "conventions": {
@@ -713,6 +779,50 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     return summary
 
 
+def make_library(seed: int = SEED, models_dir: Path = MODELS,
+                 only: list[str] | None = None) -> list[Path]:
+    """Build the model library: one demo model per structure in ``LIBRARY``, each from its own
+    synthetic population around the structure extracted from the template, with the pipeline,
+    and labelled (structure name, side, colour, template space, demo) in its header.
+
+    The left caudate's model is the demo model (``resources/demo/model.npz``, built first if
+    missing); the others are built in a temporary folder of which only the model is kept.
+    """
+    import tempfile
+
+    from core.io import load_model
+    from core.model_library import MNI_TEMPLATE_SPACE, StructureInfo, default_color, with_structure
+
+    models_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for index, (spec, file_name) in enumerate(LIBRARY):
+        if only and file_name not in only:
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            if spec == LEFT_CAUDATE:
+                if not (DEMO / "model.npz").exists():
+                    make_demo(seed=seed)
+                source = DEMO / "model.npz"
+            else:
+                print(f"== {spec.label}")
+                make_demo(seed=seed + index, demo_dir=Path(tmp), spec=spec)
+                source = Path(tmp) / "model.npz"
+            model = load_model(source)
+        with_structure(model, StructureInfo(
+            name=spec.name, side=spec.side, color=default_color(spec.name),
+            template_space=MNI_TEMPLATE_SPACE, demo=True))
+        if spec.note:
+            model.info["structure_note"] = spec.note
+        model.info["demo_population"] = (
+            f"synthetic: {N_SHAPES} shapes = the {spec.label} extracted from the template's "
+            f"grey-matter map + {N_FACTORS} planted local bumps, random similarity pose, "
+            "independent remeshing (resources/make_demo.py)")
+        save_model(models_dir / file_name, model)
+        written.append(models_dir / file_name)
+        print(f"library: {models_dir / file_name} ({model.n_factors} factors)")
+    return written
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=SEED, help=f"random seed (default {SEED})")
@@ -720,8 +830,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="write the PCA stand-in model even if core.pipeline exists")
     parser.add_argument("--output", type=Path, default=DEMO,
                         help="folder for the generated demo files (default resources/demo)")
+    parser.add_argument("--library", action="store_true",
+                        help="also build the model library in resources/models/ (one demo "
+                             "model per structure)")
     args = parser.parse_args(argv)
     make_demo(seed=args.seed, use_pipeline=not args.no_pipeline, demo_dir=args.output)
+    if args.library:
+        make_library(seed=args.seed)
     return 0
 
 

@@ -7,32 +7,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from core.mesh import volume
+from analytic import sphere as icosphere
 from core.planning import (ACPCFrame, PlanningError, Trajectory, anchored_point,
                            anchored_point_weights, format_acpc, ray_surface_crossings,
                            structure_row, volume_centroid)
-
-
-def icosphere(radius: float, center, subdivisions: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Outward-oriented icosphere with all vertices on the sphere."""
-    t = (1 + 5 ** 0.5) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
-                 dtype=float)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
-                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
-                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-                  [8, 6, 7], [9, 8, 1]])
-    for _ in range(subdivisions):
-        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        uniq, inv = np.unique(e, axis=0, return_inverse=True)
-        mid = len(v) + inv.reshape(3, -1).T  # (F, 3): midpoints of edges 01, 12, 20
-        v = np.vstack([v, (v[uniq[:, 0]] + v[uniq[:, 1]]) / 2])
-        a, b, c = f.T
-        ab, bc, ca = mid.T
-        f = np.concatenate([np.stack([a, ab, ca], 1), np.stack([b, bc, ab], 1),
-                            np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)])
-    v = v / np.linalg.norm(v, axis=1, keepdims=True)
-    return v * radius + np.asarray(center, dtype=float), f
 
 
 def _synthetic_frame(seed: int = 0):

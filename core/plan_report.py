@@ -1,0 +1,237 @@
+"""The DBS plan of one patient as data and files: report, structure table, label map, markups.
+
+A plan is the patient's fitted structures (world RAS surfaces), the AC-PC landmarks and, per
+structure, a target and an entry point (``core.planning`` has the geometry). This module turns
+it into what planning and navigation tools read:
+
+- a JSON report (structure table, AC-PC frame, trajectories with length, ring/arc angles and
+  where each trajectory enters and leaves every structure);
+- a CSV structure table (volume mm^3, centroid in world RAS and AC-PC);
+- a multi-label map on the image grid, one label value per structure, with an ITK-SNAP label
+  description file next to it (names and colours; ITK-SNAP's documented text format);
+- the plan as 3D Slicer markups: a point list (AC, PC, midline, targets, entries; LPS as
+  Slicer writes) and one line markup per trajectory, in a single ``.mrk.json`` file as Slicer's
+  markups schema allows.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.io import atomic_write_json, atomic_write_text
+from core.planning import (ACPCFrame, Trajectory, anchored_point, anchored_point_weights,
+                           structure_row, volume_centroid)
+from core.segmentation import voxelize
+
+REPORT_FORMAT = "ssm-studio-plan"
+REPORT_VERSION = 1
+_LPS = np.array([-1.0, -1.0, 1.0])
+MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/main/Modules/Loadable/"
+                  "Markups/Resources/Schema/markups-schema-v1.0.3.json#")
+
+
+@dataclass
+class PlannedStructure:
+    """One fitted structure of the plan (world RAS mm)."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    color: tuple[float, float, float] = (0.95, 0.65, 0.10)
+    target: np.ndarray | None = None   # world; None: no target planned for this structure
+    entry: np.ndarray | None = None    # world; with a target, defines the trajectory
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def trajectory(self) -> Trajectory | None:
+        if self.target is None or self.entry is None:
+            return None
+        return Trajectory(self.entry, self.target)
+
+
+def model_target(model_mean: np.ndarray, faces: np.ndarray, fitted_model_frame: np.ndarray,
+                 stored_target=None) -> np.ndarray:
+    """Default target in the model frame that moves with the fitted surface.
+
+    With a target stored in the model file (model frame, relative to the mean shape) it is
+    anchored to the mean's nearest vertices and carried to the fitted shape; otherwise it is
+    the fitted shape's volume centroid. ``fitted_model_frame`` (N, 3) is the fitted instance
+    before the pose; map the result to world with the fit's pose.
+    """
+    if stored_target is None:
+        return volume_centroid(fitted_model_frame, faces)
+    idx, w = anchored_point_weights(model_mean, stored_target)
+    return anchored_point(fitted_model_frame, idx, w)
+
+
+def _vec(a) -> list[float] | None:
+    return None if a is None else [float(v) for v in np.asarray(a).reshape(3)]
+
+
+def trajectory_report(traj: Trajectory, structures: list[PlannedStructure],
+                      frame: ACPCFrame | None, extend_mm: float = 10.0) -> dict[str, Any]:
+    """Length, angles and per-structure (enter, leave) depths of one trajectory."""
+    out: dict[str, Any] = {"entry": _vec(traj.entry), "target": _vec(traj.target),
+                           "length_mm": traj.length, "direction": _vec(traj.direction)}
+    if frame is not None:
+        out["entry_acpc"] = _vec(frame.to_acpc(traj.entry))
+        out["target_acpc"] = _vec(frame.to_acpc(traj.target))
+        out.update(traj.angles(frame))
+    out["crossings"] = [
+        {"structure": s.name, "enter_mm": a, "leave_mm": b}
+        for s in structures for a, b in traj.segments_inside(s.vertices, s.faces, extend_mm)]
+    out["crossings"].sort(key=lambda c: c["enter_mm"])
+    return out
+
+
+def plan_report(structures: list[PlannedStructure], frame: ACPCFrame | None = None,
+                image: str | None = None) -> dict[str, Any]:
+    """The whole plan as a JSON-ready dict (see the module docstring)."""
+    doc: dict[str, Any] = {"format": REPORT_FORMAT, "format_version": REPORT_VERSION,
+                           "units": "mm", "coordinates": "world RAS"}
+    if image:
+        doc["image"] = image
+    if frame is not None:
+        doc["acpc"] = {"ac": _vec(frame.ac), "pc": _vec(frame.pc), "midline": _vec(frame.midline),
+                       "mcp": _vec(frame.origin), "ac_pc_distance_mm": frame.ac_pc_distance,
+                       "world_to_acpc": frame.matrix().tolist()}
+    rows = []
+    for s in structures:
+        row = structure_row(s.name, s.vertices, s.faces, frame)
+        row["color"] = list(s.color)
+        if s.target is not None:
+            row["target_world"] = _vec(s.target)
+            if frame is not None:
+                row["target_acpc"] = _vec(frame.to_acpc(s.target))
+        traj = s.trajectory
+        if traj is not None:
+            row["trajectory"] = trajectory_report(traj, structures, frame)
+        rows.append(row)
+    doc["structures"] = rows
+    return doc
+
+
+def save_plan_report(path: str | os.PathLike, report: dict[str, Any]) -> None:
+    atomic_write_json(path, report)
+
+
+def structure_table_csv(report: dict[str, Any]) -> str:
+    """The structure table of a report as CSV text (one row per structure)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    header = ["name", "volume_mm3", "centroid_r", "centroid_a", "centroid_s",
+              "centroid_lat", "centroid_ap", "centroid_vert"]
+    writer.writerow(header)
+    for row in report["structures"]:
+        acpc = row.get("centroid_acpc") or ["", "", ""]
+        writer.writerow([row["name"], f"{row['volume_mm3']:.1f}",
+                         *(f"{v:.3f}" for v in row["centroid_world"]),
+                         *(f"{v:.3f}" if v != "" else "" for v in acpc)])
+    return buf.getvalue()
+
+
+def save_structure_table(path: str | os.PathLike, report: dict[str, Any]) -> None:
+    atomic_write_text(path, structure_table_csv(report))
+
+
+def multi_label_map(structures: list[PlannedStructure], volume) -> np.ndarray:
+    """uint8 label map on ``volume``'s grid: structure i gets label i + 1.
+
+    Where two surfaces overlap, the voxel keeps the earlier structure's label (the structure
+    list's order is the user's priority), so every voxel has one label.
+    """
+    if len(structures) > 255:
+        raise ValueError("a uint8 label map holds at most 255 structures")
+    labels = np.zeros(volume.shape, dtype=np.uint8)
+    for i, s in enumerate(structures):
+        mask = voxelize(s.vertices, s.faces, volume) > 0
+        labels[mask & (labels == 0)] = i + 1
+    return labels
+
+
+def itksnap_label_description(structures: list[PlannedStructure]) -> str:
+    """ITK-SNAP's label description text: 'IDX R G B A VIS MSH "LABEL"', label 0 clear."""
+    lines = ["################################################",
+             "# ITK-SnAP Label Description File (written by SSM Studio)",
+             "# IDX   -R-  -G-  -B-  -A--  VIS MSH  LABEL",
+             "################################################",
+             '    0     0    0    0        0  0  0    "Clear Label"']
+    for i, s in enumerate(structures, start=1):
+        r, g, b = (int(round(255 * c)) for c in s.color)
+        name = s.name.replace('"', "'")
+        lines.append(f"{i:5d} {r:5d} {g:4d} {b:4d}        1  1  1    \"{name}\"")
+    return "\n".join(lines) + "\n"
+
+
+def _control_point(index: int, label: str, world) -> dict[str, Any]:
+    return {"id": str(index), "label": label,
+            "position": (np.asarray(world, dtype=np.float64) * _LPS).tolist(),
+            "orientation": [-1.0, -0.0, -0.0, -0.0, -1.0, -0.0, 0.0, 0.0, 1.0],
+            "selected": True, "locked": False, "visibility": True, "positionStatus": "defined"}
+
+
+def plan_markups(structures: list[PlannedStructure], frame: ACPCFrame | None) -> dict[str, Any]:
+    """3D Slicer markups document: the plan's points as a point list, each trajectory a line."""
+    points: list[tuple[str, np.ndarray]] = []
+    if frame is not None:
+        points += [("AC", frame.ac), ("PC", frame.pc), ("Midline", frame.midline)]
+    for s in structures:
+        if s.target is not None:
+            points.append((f"{s.name} target", s.target))
+        if s.entry is not None:
+            points.append((f"{s.name} entry", s.entry))
+    markups: list[dict[str, Any]] = [{
+        "type": "Fiducial", "name": "SSM Studio plan", "coordinateSystem": "LPS",
+        "coordinateUnits": "mm",
+        "controlPoints": [_control_point(i, label, p) for i, (label, p) in
+                          enumerate(points, start=1)]}]
+    for s in structures:
+        traj = s.trajectory
+        if traj is None:
+            continue
+        markups.append({
+            "type": "Line", "name": f"{s.name} trajectory", "coordinateSystem": "LPS",
+            "coordinateUnits": "mm",
+            "controlPoints": [_control_point(1, "entry", traj.entry),
+                              _control_point(2, "target", traj.target)]})
+    return {"@schema": MARKUPS_SCHEMA, "markups": markups}
+
+
+def save_plan_markups(path: str | os.PathLike, structures: list[PlannedStructure],
+                      frame: ACPCFrame | None) -> None:
+    atomic_write_json(path, plan_markups(structures, frame))
+
+
+def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], volume,
+                frame: ACPCFrame | None, image: str | None = None,
+                stem: str = "plan") -> list[Path]:
+    """Write every plan file into ``folder``; returns the paths written.
+
+    ``<stem>.json`` (report), ``<stem>_structures.csv``, ``<stem>.mrk.json`` (markups) and,
+    with an image volume, ``<stem>_labels.nii.gz`` + ``<stem>_labels.txt`` (ITK-SNAP label
+    descriptions). Surfaces are written by the caller (one mesh per structure).
+    """
+    from core.io import save_volume
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    report = plan_report(structures, frame, image)
+    written = [folder / f"{stem}.json", folder / f"{stem}_structures.csv",
+               folder / f"{stem}.mrk.json"]
+    save_plan_report(written[0], report)
+    save_structure_table(written[1], report)
+    save_plan_markups(written[2], structures, frame)
+    if volume is not None:
+        labels = folder / f"{stem}_labels.nii.gz"
+        save_volume(labels, multi_label_map(structures, volume), volume.affine)
+        names = folder / f"{stem}_labels.txt"
+        atomic_write_text(names, itksnap_label_description(structures))
+        written += [labels, names]
+    return written
