@@ -1,0 +1,237 @@
+"""How sure is a fit? The posterior over the shape coefficients and pose, and what it says in mm.
+
+The reconstruction (``core.reconstruction``; Bernard et al., Medical Image Analysis 2017) is a
+maximum a posteriori fit of a linear-Gaussian model. At the fit's final state we take the
+Laplace approximation of the posterior over theta = (a, pose), linearised around the MAP
+estimate, with point-to-plane measurements:
+
+    n_i^T (y_i - x_j(i)(theta)) ~ N(0, s_n^2)
+
+for each user point y_i and its nearest fitted vertex j(i) with normal n_i. Only the normal
+component is information: where along the surface a contour point "belongs" is not known (the
+tangential part of a nearest-vertex residual is an artefact of the tessellation, and counting
+it makes the posterior several times too confident; measured in the benchmark). Then
+
+    Sigma = ( sum_i g_i g_i^T / s_n^2 + Lambda )^-1,   g_i = J_i^T n_i
+
+with J_i = d x_j(i) / d theta: A Phi_j for the coefficients (A the linear part of the pose) and
+the similarity pose's derivatives (translation, small rotation, log scale about the fitted
+shape's centroid), and Lambda the prior precision: lambda diag(1 / coef_var) for the
+coefficients and the pose prior of the fit (``pose_sd``: rotation deg, translation mm, log
+scale) for the pose. The normal noise s_n^2 is estimated from the normal residuals with the
+degrees of freedom taken by the fit, sum_i r_i^2 / max(P - dof, 1), floored at
+``min_noise_mm``^2, where dof is the trace of the measurement part of the posterior (the
+effective number of parameters the points determine).
+
+From it:
+
+- ``vertex_sd``: each vertex's posterior SD along its surface normal (mm), sqrt(u^T Sigma u),
+  u = J_j^T n_j, plus the model's own noise (``model_noise_var``, e.g. statismo's PPCA noise):
+  how far the true surface may lie from the fitted one there;
+- ``point_covariance``: the 3x3 covariance of a point anchored to the surface (a target), and
+  ``ellipsoid`` its semi-axes at k standard deviations;
+- ``suggest_slice``: the axis-aligned plane, among the three view orientations, where the
+  summed normal variance of the vertices it cuts is largest: where a new contour removes the
+  most uncertainty.
+
+Coverage (the true surface within 2 SD at about 95 % of vertices on held-out shapes) is
+measured in ``benchmarks/bench_uncertainty.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from core.mesh import vertex_normals
+from core.shape_model import ShapeModel
+
+#: World axes of the three view orientations (normal of each slice plane): RAS x, y, z.
+VIEW_AXES = {"sagittal": 0, "coronal": 1, "axial": 2}
+#: Pose parameters of the posterior: translation (3, mm), rotation (3, rad), log scale (1).
+POSE_PARAMETERS = {"similarity": 7, "rigid": 6, "none": 0}
+DEFAULT_POSE_SD = (3.0, 1.0, 0.03)  # as core.reconstruction: deg, mm, log scale
+#: Widening of the Laplace SDs: the fit is an EM fit of the Gaussian mixture, not the
+#: point-to-plane MAP estimate the approximation is centred on, so its error is a little
+#: larger than the approximation says. Set from the tuning cases of
+#: ``benchmarks/bench_uncertainty.py --tune`` (cases kept apart from those it reports).
+SD_CALIBRATION = 1.42
+
+
+def _cross_matrices(v: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) matrices [v]_x with [v]_x w = v x w."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+@dataclass(frozen=True)
+class FitPosterior:
+    """Laplace posterior of a fit over (coefficients, pose); see the module docstring.
+
+    ``cov`` is (M + K, M + K) with K = 7 (similarity), 6 (rigid) or 0 pose parameters;
+    ``vertices`` (N, 3) and ``normals`` (N, 3) are the fitted surface in world.
+    """
+
+    model: ShapeModel
+    vertices: np.ndarray
+    normals: np.ndarray
+    jacobians: np.ndarray  # (N, 3, M + K)
+    cov: np.ndarray
+    noise_var: float
+    model_noise_var: float = 0.0
+
+    @property
+    def coef_cov(self) -> np.ndarray:
+        m = self.model.n_factors
+        return self.cov[:m, :m]
+
+    def vertex_sd(self) -> np.ndarray:
+        """(N,) posterior SD (mm) of the fitted surface along its normal at each vertex."""
+        u = np.einsum("na,nap->np", self.normals, self.jacobians)
+        var = np.einsum("np,pq,nq->n", u, self.cov, u) + self.model_noise_var
+        return SD_CALIBRATION * np.sqrt(np.maximum(var, 0.0))
+
+    def point_covariance(self, indices, weights) -> np.ndarray:
+        """3x3 world covariance of the anchored point sum_k weights_k x_{indices_k}."""
+        jac = np.einsum("k,kap->ap", np.asarray(weights, dtype=np.float64),
+                        self.jacobians[np.asarray(indices)])
+        cov = jac @ self.cov @ jac.T + self.model_noise_var * np.eye(3)
+        return SD_CALIBRATION ** 2 * 0.5 * (cov + cov.T)
+
+
+def _pose_jacobians(world: np.ndarray, pose_mode: str) -> np.ndarray:
+    """(N, 3, K) derivatives of world vertices by translation, rotation, log scale."""
+    k = POSE_PARAMETERS[pose_mode]
+    if k == 0:
+        return np.zeros((len(world), 3, 0))
+    rel = world - world.mean(axis=0)
+    jac = np.zeros((len(world), 3, k))
+    jac[:, :, :3] = np.eye(3)
+    jac[:, :, 3:6] = -_cross_matrices(rel)  # d(R x)/d omega = -[x]_x
+    if k == 7:
+        jac[:, :, 6] = rel
+    return jac
+
+
+def _pose_precision(pose_mode: str, pose_sd) -> np.ndarray:
+    k = POSE_PARAMETERS[pose_mode]
+    if k == 0:
+        return np.zeros((0, 0))
+    if pose_sd is None:
+        return np.zeros((k, k))
+    rot_deg, trans_mm, log_scale = pose_sd
+    sd = [trans_mm] * 3 + [np.radians(rot_deg)] * 3 + ([log_scale] if k == 7 else [])
+    return np.diag(1.0 / np.square(np.maximum(sd, 1e-12)))
+
+
+def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose: np.ndarray, *,
+                  pose_mode: str = "similarity", prior_weight: float = 1.0,
+                  pose_sd=DEFAULT_POSE_SD, min_noise_mm: float | None = None,
+                  model_noise_var: float = 0.0) -> FitPosterior:
+    """The Laplace posterior at a fit (module docstring).
+
+    ``coef`` and ``pose`` (4x4 model frame -> world) are the fit's final values
+    (``FitResult.coef``, ``.pose``); ``pose_mode`` and ``pose_sd`` the fit's pose options.
+    ``min_noise_mm`` (default: 1 % of the model's RMS radius) floors the estimated normal
+    noise: contours drawn on voxels are never more precise than that.
+    """
+    if pose_mode not in POSE_PARAMETERS:
+        raise ValueError(f"unknown pose mode {pose_mode!r}")
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pose = np.asarray(pose, dtype=np.float64)
+    world = model.instance(coef) @ pose[:3, :3].T + pose[:3, 3]
+    normals = vertex_normals(world, model.faces)
+    jac_a = np.einsum("ab,nbm->nam", pose[:3, :3], model.factors.transpose(1, 2, 0))
+    jac = np.concatenate([jac_a, _pose_jacobians(world, pose_mode)], axis=2)
+    prior = np.zeros((jac.shape[2], jac.shape[2]))
+    m = model.n_factors
+    prior[:m, :m] = prior_weight * np.diag(1.0 / model.coef_var)
+    prior[m:, m:] = _pose_precision(pose_mode, pose_sd)
+    if min_noise_mm is None:
+        centred = model.mean - model.mean.mean(axis=0)
+        min_noise_mm = 0.01 * float(np.sqrt((centred ** 2).sum(axis=1).mean()))
+    noise_var = float(min_noise_mm) ** 2
+    if len(points):
+        nearest = cKDTree(world).query(points)[1]
+        n = normals[nearest]
+        g = np.einsum("pa,pak->pk", n, jac[nearest])  # (P, M + K): J^T n per point
+        resid = np.einsum("pa,pa->p", n, points - world[nearest])
+        info = g.T @ g
+        # effective number of parameters the points determine: tr(info (info + s2 prior)^-1),
+        # with s2 from the plain residuals first
+        s2 = max(float(resid @ resid) / len(points), noise_var)
+        dof = float(np.trace(np.linalg.pinv(info + s2 * prior, hermitian=True) @ info))
+        noise_var = max(float(resid @ resid) / max(len(points) - dof, 1.0), noise_var)
+        precision = info / noise_var + prior
+    else:
+        precision = prior
+    precision = 0.5 * (precision + precision.T)
+    cov = np.linalg.pinv(precision, hermitian=True)
+    return FitPosterior(model, world, normals, jac, cov, noise_var, float(model_noise_var))
+
+
+@dataclass(frozen=True)
+class Ellipsoid:
+    """An uncertainty ellipsoid: centre, unit axes (rows) and semi-axis lengths (mm)."""
+
+    centre: np.ndarray
+    axes: np.ndarray
+    semi_axes: np.ndarray
+
+    @property
+    def radius_mm(self) -> float:
+        """The largest semi-axis (mm), the one number to show."""
+        return float(self.semi_axes.max())
+
+
+def ellipsoid(centre, covariance: np.ndarray, n_sd: float = 2.0) -> Ellipsoid:
+    """The ``n_sd`` standard-deviation ellipsoid of a 3D Gaussian."""
+    values, vectors = np.linalg.eigh(np.asarray(covariance, dtype=np.float64))
+    order = np.argsort(values)[::-1]
+    return Ellipsoid(np.asarray(centre, dtype=np.float64), vectors[:, order].T,
+                     n_sd * np.sqrt(np.maximum(values[order], 0.0)))
+
+
+@dataclass(frozen=True)
+class SliceSuggestion:
+    """Where to draw next: view orientation, plane position (world mm along its axis), score."""
+
+    view: str
+    depth: float
+    score: float
+
+
+def suggest_slice(vertices: np.ndarray, sd: np.ndarray, *, spacing: float = 1.0,
+                  drawn: list[tuple[str, float]] | None = None,
+                  exclusion: float | None = None) -> SliceSuggestion:
+    """The axis-aligned plane cutting the most posterior variance (module docstring).
+
+    ``vertices`` (N, 3) world and ``sd`` (N,) from :func:`vertex_sd`; candidate planes every
+    ``spacing`` mm across the surface in each view; planes within ``exclusion`` mm (default 2
+    spacings) of an already drawn one (``drawn``: (view, depth) pairs) are skipped.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    var = np.asarray(sd, dtype=np.float64) ** 2
+    exclusion = 2.0 * spacing if exclusion is None else exclusion
+    drawn = drawn or []
+    best = SliceSuggestion("axial", float(vertices[:, 2].mean()), -1.0)
+    for view, axis in VIEW_AXES.items():
+        coord = vertices[:, axis]
+        lo, hi = coord.min(), coord.max()
+        depths = np.arange(np.ceil(lo / spacing) * spacing, hi, spacing)
+        if len(depths) == 0:
+            continue
+        # variance of the vertices within half a spacing of each candidate plane
+        bins = np.clip(np.rint((coord - depths[0]) / spacing).astype(int), 0, len(depths) - 1)
+        score = np.bincount(bins, weights=var, minlength=len(depths))
+        for v, d in drawn:
+            if v == view:
+                score[np.abs(depths - d) < exclusion] = -1.0
+        k = int(np.argmax(score))
+        if score[k] > best.score:
+            best = SliceSuggestion(view, float(depths[k]), float(score[k]))
+    return best

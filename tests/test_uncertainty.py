@@ -1,0 +1,99 @@
+"""The fit's posterior: calibrated on a linear-Gaussian problem, shrinking with more contours."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from analytic import sphere
+from core.io import load_model, load_points
+from core.reconstruction import fit_points
+from core.shape_model import ShapeModel
+from core.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior, suggest_slice
+
+
+def _smooth_model(n_factors: int = 4) -> ShapeModel:
+    v, f = sphere(10.0, [0, 0, 0], 3)
+    u = v / 10.0
+    # low-order radial deformations: x, y, z and x*y along the normal
+    basis = np.stack([u[:, 0], u[:, 1], u[:, 2], u[:, 0] * u[:, 1]])[:n_factors]
+    factors = basis[:, :, None] * u[None]
+    return ShapeModel(v, factors, np.array([4.0, 2.25, 1.0, 0.25])[:n_factors], f)
+
+
+def test_posterior_is_calibrated_on_the_linear_gaussian_model():
+    """Point-to-plane measurements of a linear model with exact correspondences: the true
+    coefficients' Mahalanobis distance under the posterior follows chi2(M), i.e. the
+    covariance (with the estimated noise) is neither too wide nor too narrow."""
+    model = _smooth_model()
+    rng = np.random.default_rng(0)
+    sigma = 0.1
+    normals = model.mean / 10.0
+    d2, noise = [], []
+    for _ in range(200):
+        a = rng.normal(size=4) * np.sqrt(model.coef_var)
+        idx = rng.choice(model.n_vertices, 40, replace=False)
+        # the true surface moves along the normals only, so the fitted vertex normals are the
+        # sphere's and the points lie along them
+        pts = model.instance(a)[idx] + rng.normal(scale=sigma, size=(40, 1)) * normals[idx]
+        g = np.einsum("pa,pam->pm", normals[idx], model.factors.transpose(1, 2, 0)[idx])
+        r = np.einsum("pa,pa->p", normals[idx], pts - model.mean[idx])
+        h = g.T @ g / sigma ** 2 + np.diag(1 / model.coef_var)
+        a_map = np.linalg.solve(h, g.T @ r / sigma ** 2)
+        post = fit_posterior(model, pts, a_map, np.eye(4), pose_mode="none", min_noise_mm=1e-3)
+        err = a - a_map
+        d2.append(err @ np.linalg.solve(post.coef_cov, err))
+        noise.append(np.sqrt(post.noise_var))
+    assert np.median(noise) == pytest.approx(sigma, rel=0.1)
+    # 95 % of chi2(4) draws fall below its 0.95 quantile: binomial(200, 0.95) range
+    inside = np.mean(np.array(d2) < stats.chi2.ppf(0.95, 4))
+    assert 0.90 <= inside <= 0.99, inside
+
+
+def test_no_points_gives_the_prior():
+    model = _smooth_model()
+    post = fit_posterior(model, np.zeros((0, 3)), np.zeros(4), np.eye(4), pose_mode="none")
+    np.testing.assert_allclose(post.coef_cov, np.diag(model.coef_var), rtol=1e-9)
+    # vertex SD under the prior: factor 0 moves vertex (10, 0, 0) by u_x * n = 1 along its
+    # normal per unit coefficient (SD 2) and the other factors not at all
+    i = int(np.argmax(model.mean[:, 0]))
+    assert post.vertex_sd()[i] == pytest.approx(2.0 * SD_CALIBRATION, rel=1e-3)
+    with_pose = fit_posterior(model, np.zeros((0, 3)), np.zeros(4), np.eye(4))
+    assert with_pose.cov.shape == (11, 11)
+    # the pose prior adds 1 mm translation SD in every direction
+    assert with_pose.vertex_sd()[i] > post.vertex_sd()[i]
+
+
+def test_target_ellipsoid_and_slice_suggestion():
+    model = _smooth_model()
+    post = fit_posterior(model, np.zeros((0, 3)), np.zeros(4), np.eye(4), pose_mode="none")
+    i = int(np.argmax(model.mean[:, 0]))
+    e = ellipsoid(model.mean[i], post.point_covariance([i], [1.0]))
+    # vertex (10, 0, 0) moves along x by factors 0 (SD 2) and 3 (u_x u_y = 0 there): 2 SD = 4 mm
+    assert e.radius_mm == pytest.approx(4.0 * SD_CALIBRATION, rel=1e-3)
+    np.testing.assert_allclose(np.abs(e.axes[0]), [1, 0, 0], atol=1e-6)
+    sd = post.vertex_sd()
+    s = suggest_slice(model.mean, sd, spacing=1.0)
+    # factor 0 (the largest prior variance) moves the x-poles most: a sagittal plane wins
+    assert s.view == "sagittal"
+    again = suggest_slice(model.mean, sd, spacing=1.0, drawn=[(s.view, s.depth)])
+    assert again.view != s.view or abs(again.depth - s.depth) >= 2.0
+
+
+@pytest.mark.parametrize("method", ["gmm-aniso", "icp"])
+def test_spread_shrinks_as_contours_are_added(resources_dir, method):
+    demo = resources_dir / "demo"
+    model = load_model(demo / "model.npz")
+    pts = load_points(demo / "contour_points.csv")
+    planes = json.loads((demo / "ground_truth.json").read_text())["synthetic"]["heldout"][
+        "contour_planes"]
+    ends = np.cumsum([p["n_points"] for p in planes])  # sagittal, coronal, axial contours
+    spreads = []
+    for end in ends:
+        fit = fit_points(model, pts.points[:end], pts.normals[:end], method=method)
+        post = fit_posterior(model, pts.points[:end], fit.coef, fit.pose, pose_mode=fit.pose_mode)
+        spreads.append(post.vertex_sd().mean())
+    assert spreads[0] > spreads[1] > spreads[2] > 0, spreads
