@@ -7,7 +7,8 @@ it into what planning and navigation tools read:
 - a JSON report (structure table, AC-PC frame, trajectories with length, ring/arc angles and
   where each trajectory enters and leaves every structure);
 - a CSV structure table (volume mm^3, centroid in world RAS and AC-PC);
-- a multi-label map on the image grid, one label value per structure, with an ITK-SNAP label
+- a multi-label map on the image grid, one label value per structure: as a 3D Slicer
+  Segmentation (``.seg.nrrd``, names and colours) and as NIfTI with an ITK-SNAP label
   description file next to it (names and colours; ITK-SNAP's documented text format);
 - the plan as 3D Slicer markups: a point list (AC, PC, midline, targets, entries; LPS as
   Slicer writes) and one line markup per trajectory, in a single ``.mrk.json`` file as Slicer's
@@ -215,10 +216,13 @@ def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], v
     """Write every plan file into ``folder``; returns the paths written.
 
     ``<stem>.json`` (report), ``<stem>_structures.csv``, ``<stem>.mrk.json`` (markups) and,
-    with an image volume, ``<stem>_labels.nii.gz`` + ``<stem>_labels.txt`` (ITK-SNAP label
-    descriptions). Surfaces are written by the caller (one mesh per structure).
+    with an image volume, the multi-label map twice: ``<stem>_labels.seg.nrrd`` (a 3D Slicer
+    Segmentation with each structure's name and colour) and ``<stem>_labels.nii.gz`` +
+    ``<stem>_labels.txt`` (ITK-SNAP label descriptions). Surfaces are written by the caller
+    (one mesh per structure).
     """
     from core.io import save_volume
+    from core.io.nrrd import Segment, write_segmentation
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -229,9 +233,13 @@ def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], v
     save_structure_table(written[1], report)
     save_plan_markups(written[2], structures, frame)
     if volume is not None:
+        label_map = multi_label_map(structures, volume)
+        segmentation = folder / f"{stem}_labels.seg.nrrd"
+        write_segmentation(segmentation, label_map, volume.affine,
+                           [Segment(i + 1, s.name, s.color) for i, s in enumerate(structures)])
         labels = folder / f"{stem}_labels.nii.gz"
-        save_volume(labels, multi_label_map(structures, volume), volume.affine)
+        save_volume(labels, label_map, volume.affine)
         names = folder / f"{stem}_labels.txt"
         atomic_write_text(names, itksnap_label_description(structures))
-        written += [labels, names]
+        written += [segmentation, labels, names]
     return written

@@ -9,6 +9,7 @@ import pytest
 
 from analytic import sphere as icosphere
 from core.io import Volume, load_points, load_volume
+from core.io.nrrd import segmentation_fields
 from core.plan_report import (PlannedStructure, export_plan, itksnap_label_description,
                               model_target, multi_label_map, plan_report)
 from core.planning import ACPCFrame
@@ -83,6 +84,12 @@ def test_export_writes_everything_and_markups_read_back_in_ras(plan, tmp_path):
     labels = load_volume(tmp_path / "plan_labels.nii.gz")
     np.testing.assert_allclose(labels.affine, affine)
     assert set(np.unique(labels.data)) == {0, 1, 2}
+    segments = segmentation_fields(tmp_path / "plan_labels.seg.nrrd")
+    assert [(seg["Name"], seg["LabelValue"]) for seg in segments] == [("sphere A", "1"),
+                                                                    ("sphere B", "2")]
+    seg_labels = load_volume(tmp_path / "plan_labels.seg.nrrd")
+    np.testing.assert_allclose(seg_labels.affine, affine, atol=1e-9)
+    np.testing.assert_array_equal(seg_labels.data, labels.data)
     table = (tmp_path / "plan_structures.csv").read_text().splitlines()
     assert table[0].startswith("name,volume_mm3") and table[1].startswith("sphere A,")
 
