@@ -88,6 +88,7 @@ class Snapshot:
     points: Points
     coef: np.ndarray | None
     pose: np.ndarray | None
+    placement: np.ndarray | None = None
 
 
 @dataclass
@@ -125,6 +126,9 @@ class SegmentationState(QObject):
         self.model_path: Path | None = None
         self.coef: np.ndarray | None = None
         self.pose: np.ndarray | None = None
+        # The pose the user set (model file's placement, Place here, a restored session's
+        # pose): the fit starts there and its pose prior is centred on it.
+        self.placement: np.ndarray | None = None
         self.points = Points()
         self.crosshair = np.zeros(3)
         self.window = 1.0
@@ -189,6 +193,7 @@ class SegmentationState(QObject):
         self.model_path = Path(path) if path else None
         self.coef = np.zeros(model.n_factors) if coef is None else np.asarray(coef, float).copy()
         self.pose = model.world_transform.copy() if pose is None else np.asarray(pose, float).copy()
+        self.placement = self.pose.copy()
         self.fit_info = FitInfo()
         self._surface_version += 1
         self.model_changed.emit()
@@ -231,6 +236,7 @@ class SegmentationState(QObject):
         centroid = self.surface_vertices().mean(axis=0)
         pose = self.pose.copy()
         pose[:3, 3] += np.asarray(xyz, dtype=np.float64) - centroid
+        self.placement = pose.copy()
         self.set_surface(self.coef, pose)
         self.edited.emit("pose")
 
@@ -239,6 +245,7 @@ class SegmentationState(QObject):
         if self.model is None:
             return
         self.checkpoint()
+        self.placement = self.model.world_transform.copy()
         self.set_surface(np.zeros(self.model.n_factors), self.model.world_transform)
         self.edited.emit("pose")
 
@@ -294,7 +301,8 @@ class SegmentationState(QObject):
     def _snapshot(self) -> Snapshot:
         return Snapshot(self.points,
                         None if self.coef is None else self.coef.copy(),
-                        None if self.pose is None else self.pose.copy())
+                        None if self.pose is None else self.pose.copy(),
+                        None if self.placement is None else self.placement.copy())
 
     def checkpoint(self) -> None:
         """Record the current state as one undo step (call before an undoable edit)."""
@@ -332,6 +340,8 @@ class SegmentationState(QObject):
         points_differ = snap.points is not self.points
         self.points = snap.points
         if self.model is not None and snap.coef is not None and len(snap.coef) == self.model.n_factors:
+            if snap.placement is not None:
+                self.placement = snap.placement.copy()
             self.set_surface(snap.coef, snap.pose)
         if points_differ:
             self.points_changed.emit()

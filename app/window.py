@@ -614,6 +614,7 @@ class MainWindow(QMainWindow):
         normals = self.point_normals()
         settings = self.fit_panel.settings
         init = self._warm_start()
+        placement = None if state.placement is None else state.placement.copy()
         edit_time = time.perf_counter()
 
         def job(progress):
@@ -622,6 +623,7 @@ class MainWindow(QMainWindow):
 
             result = fit_points(model, points, normals, method=settings["method"],
                                 pose=settings["pose"], prior_weight=settings["prior_weight"],
+                                placement=placement, pose_spread=settings["pose_spread"],
                                 init=init, callback=callback)
             return result, edit_time
 
@@ -823,7 +825,8 @@ class MainWindow(QMainWindow):
         fit = dict(session.fit or {})
         self.fit_panel.blockSignals(True)
         try:
-            self.fit_panel.set_settings(fit.get("method"), fit.get("pose"), fit.get("prior_weight"))
+            self.fit_panel.set_settings(fit.get("method"), fit.get("pose"), fit.get("prior_weight"),
+                                        fit.get("pose_spread"))
         finally:
             self.fit_panel.blockSignals(False)
         xyz = np.asarray(session.points, dtype=np.float64).reshape(-1, 3)

@@ -90,6 +90,7 @@ with D the fitted world similarity (identity for ``pose="none"``).
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -304,9 +305,10 @@ def _check_extent(points: np.ndarray, vertices: np.ndarray, factor: float) -> No
 class _ModelCache:
     """Model quantities in the 'base' frame (model frame mapped by world_transform)."""
 
-    def __init__(self, model: ShapeModel):
+    def __init__(self, model: ShapeModel, key: tuple):
         t0 = model.world_transform
-        self.key = (id(model.mean), id(model.factors), t0.tobytes())
+        self.key = key
+        self.sources = (model.mean, model.factors, model.coef_var, model.faces)  # ids stay unique
         self.t0 = t0.copy()
         self.mean = model.mean @ t0[:3, :3].T + t0[:3, 3]  # (N, 3)
         self.factors = model.factors @ t0[:3, :3].T  # (M, N, 3)
@@ -331,11 +333,31 @@ class _ModelCache:
         return self.mean + (coef @ self.basis_t).reshape(-1, 3)
 
 
+def _is_frozen(array: np.ndarray) -> bool:
+    """True when no one can write to ``array``'s memory (it and every base are read-only)."""
+    while isinstance(array, np.ndarray):
+        if array.flags.writeable:
+            return False
+        array = array.base
+    return array is None or isinstance(array, bytes)
+
+
+def _content_key(array: np.ndarray) -> tuple:
+    """Identity of a frozen array; a digest of the content of a writable one (in-place edits)."""
+    if _is_frozen(array):
+        return ("id", id(array), array.shape)
+    data = np.ascontiguousarray(array)
+    return ("blake2b", array.shape, array.dtype.str,
+            hashlib.blake2b(data.data, digest_size=16).digest())
+
+
 def _cache(model: ShapeModel) -> _ModelCache:
-    key = (id(model.mean), id(model.factors), model.world_transform.tobytes())
+    """The fit's precomputed model quantities, rebuilt whenever the model's content changed."""
+    key = tuple(_content_key(np.asarray(getattr(model, name)))
+                for name in ("mean", "factors", "coef_var", "faces", "world_transform"))
     cached = model.__dict__.get("_fit_cache")
     if cached is None or cached.key != key:
-        cached = _ModelCache(model)
+        cached = _ModelCache(model, key)
         model.__dict__["_fit_cache"] = cached
     return cached
 
@@ -353,9 +375,51 @@ def _rotation_log(rot: np.ndarray) -> np.ndarray:
     return angle / (2.0 * np.sin(angle)) * skew
 
 
-def _procrustes(wj: np.ndarray, ybar: np.ndarray, z: np.ndarray,
-                with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
-    """Weighted similarity (Umeyama) with y ~ s R z + t from per-vertex sums (Eq. 3)."""
+def _solve_shape(lhs: np.ndarray, rhs: np.ndarray, bound: np.ndarray | None) -> np.ndarray:
+    """Minimise a^T lhs a / 2 - rhs^T a (lhs symmetric positive semi-definite).
+
+    With a prior (``bound`` None) lhs is positive definite: Cholesky. Without one
+    (``prior_weight=0``) the data may leave directions free or barely constrained: the
+    minimum-norm solution (pseudo-inverse), and if it leaves the box |a_m| <= bound_m, the
+    exact box-constrained minimiser (bounded least squares on the Cholesky factor).
+    """
+    if bound is None:
+        return np.linalg.solve(lhs, rhs)
+    vals, vecs = np.linalg.eigh(lhs)
+    keep = vals > 1e-10 * max(float(vals.max()), 1e-300)
+    coef = vecs[:, keep] @ ((vecs[:, keep].T @ rhs) / vals[keep])
+    if np.all(np.abs(coef) <= bound):
+        return coef
+    from scipy.optimize import lsq_linear
+
+    # lhs = F^T F with F = diag(sqrt(vals)) V^T: minimise |F a - F^+T rhs|^2 in the box
+    root = np.sqrt(np.maximum(vals, 0.0))
+    f_mat = root[:, None] * vecs.T
+    target = np.where(keep, (vecs.T @ rhs) / np.where(keep, root, 1.0), 0.0)
+    return lsq_linear(f_mat, target, bounds=(-bound, bound), method="bvls").x
+
+
+def _similarity_parts(delta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(scale, rotation, translation) of a 4x4 similarity (nearest rotation by SVD)."""
+    lin = delta[:3, :3]
+    scale = float(abs(np.linalg.det(lin)) ** (1.0 / 3.0))
+    u, _, vt = np.linalg.svd(lin / scale)
+    return scale, u @ vt, delta[:3, 3].copy()
+
+
+def _checked_transform(matrix, name: str) -> np.ndarray:
+    t = np.asarray(matrix, dtype=np.float64)
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        raise ValueError(f"{name} must be a finite 4x4 transform, got shape {t.shape}")
+    if abs(np.linalg.det(t[:3, :3])) < 1e-12:
+        raise ValueError(f"{name} is singular (its 3x3 part has determinant 0)")
+    return t
+
+
+def _procrustes(wj: np.ndarray, ybar: np.ndarray, z: np.ndarray, with_scale: bool,
+                fixed_scale: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted similarity (Umeyama) with y ~ s R z + t from per-vertex sums (Eq. 3);
+    without ``with_scale`` the scale is ``fixed_scale``."""
     total = wj.sum()
     mu_y = ybar.sum(axis=0) / total
     mu_z = (wj[:, None] * z).sum(axis=0) / total
@@ -368,18 +432,19 @@ def _procrustes(wj: np.ndarray, ybar: np.ndarray, z: np.ndarray,
         var_z = float((wj * ((z - mu_z) ** 2).sum(axis=1)).sum())
         scale = float((sv * d).sum() / max(var_z, 1e-300))
     else:
-        scale = 1.0
+        scale = float(fixed_scale)
     return scale, rot, mu_y - scale * rot @ mu_z
 
 
 def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None = None, *,
-               method: str = "gmm-aniso", pose: str = "similarity", prior_weight: float = 1.0,
+               placement: np.ndarray | None = None, method: str = "gmm-aniso", pose: str = "similarity", prior_weight: float = 1.0,
                init: FitResult | None = None, max_iter: int = 100, tol: float = 1e-5,
                xtol: float = 1e-2, outlier_weight: float = 0.0, anisotropy: float = 10.0,
                normal_weight: float = 2.0, n_neighbors: int = 6, max_neighbors: int = 48,
                min_sigma: float = 0.3, adaptive_anisotropy: bool = True,
                max_distance_factor: float = 1.0, pose_first: bool = False,
                pose_sd: tuple[float, float, float] | None = (3.0, 1.0, 0.03),
+               pose_spread: float = 1.0, coef_bound: float = 5.0,
                callback: Callable[[int, float], None] | None = None) -> FitResult:
     """Fit ``model`` to user points by EM on the model-centred Gaussian mixture.
 
@@ -391,12 +456,20 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         User points in world coordinates (mm).
     normals : (P, 3) array, optional
         Outward unit normals at the points (rows of zeros: unknown). Used in the E-step.
+    placement : (4, 4) array, optional
+        The pose the user set (model frame -> world, e.g. the GUI's *Place here*): the cold
+        start, the pose of ``pose="none"`` (and the scale of ``"rigid"``), and the centre of
+        the pose prior. Default: ``model.world_transform``.
     method : {"gmm-aniso", "gmm-iso", "icp"}
         Anisotropic GMM, isotropic GMM, or ICP with the same prior.
     pose : {"similarity", "rigid", "none"}
         Which world transform is estimated on top of ``model.world_transform``.
     prior_weight : float
-        lambda, the weight of the Gaussian shape prior a ~ N(0, diag(coef_var)).
+        lambda, the weight of the Gaussian shape prior a ~ N(0, diag(coef_var)). 0: no
+        prior; the coefficients are then the minimum-norm least-squares ones, bounded to
+        +-``coef_bound`` standard deviations.
+    coef_bound : float
+        The box |a_m| <= coef_bound sqrt(coef_var_m) used when ``prior_weight`` is 0.
     init : FitResult, optional
         Warm start (previous fit of the same model).
     max_iter, tol, xtol : int, float, float
@@ -419,11 +492,14 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         Floor of the GMM standard deviation (mm), about the expected point noise.
     pose_sd : (rotation deg, translation mm, log scale), optional
         Standard deviations of a Gaussian prior on the fitted pose's deviation from the
-        model's placement ``model.world_transform`` (also on a warm start):
+        placement (``placement``, default ``model.world_transform``; also on a warm start):
         it keeps an underdetermined fit (one or two contours) from sliding or scaling away,
         and is outweighed by the data wherever the points constrain the pose. Widen it (or
         pass None) when the model is placed only roughly. GMM methods only (the pose step is
         then the linearised one, also for ``gmm-iso``).
+    pose_spread : float
+        Multiplies the three standard deviations of ``pose_sd`` (the Fit panel's "pose prior
+        spread"); 0 removes the pose prior (like ``pose_sd=None``).
     pose_first : bool
         On a cold start, run pose-only EM to convergence before fitting the shape.
     max_distance_factor : float
@@ -450,24 +526,34 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     faces = cache.faces
 
     # State: world similarity D = (scale, rot, trans) applied after world_transform; coef.
+    # The placement (the pose the user set) is D0: the cold start and the pose prior's centre.
+    if placement is None:
+        place_scale, place_rot, place_trans = 1.0, np.eye(3), np.zeros(3)
+    else:
+        place_scale, place_rot, place_trans = _similarity_parts(
+            _checked_transform(placement, "placement") @ np.linalg.inv(cache.t0))
     if init is None:
         coef = np.zeros(n_factors)
-        scale, rot, trans = 1.0, np.eye(3), np.zeros(3)
+        scale, rot, trans = place_scale, place_rot.copy(), place_trans.copy()
     else:
         coef = np.asarray(init.coef, dtype=np.float64).copy()
-        delta = np.asarray(init.pose, dtype=np.float64) @ np.linalg.inv(cache.t0)
-        lin = delta[:3, :3]
-        scale = float(abs(np.linalg.det(lin)) ** (1.0 / 3.0))
-        u, _, vt = np.linalg.svd(lin / scale)
-        rot = u @ vt
-        trans = delta[:3, 3].copy()
-        if pose == "none":
-            scale, rot, trans = 1.0, np.eye(3), np.zeros(3)
-        elif pose == "rigid":
-            scale = 1.0
+        scale, rot, trans = _similarity_parts(np.asarray(init.pose, dtype=np.float64)
+                                              @ np.linalg.inv(cache.t0))
+    if pose == "none":  # shape only, at the placement
+        scale, rot, trans = place_scale, place_rot.copy(), place_trans.copy()
+    elif pose == "rigid":
+        scale = place_scale
 
+    # Without a prior (prior_weight=0), the coefficients are bounded to +-coef_bound SD.
+    shape_bound = None if prior_weight > 0 else float(coef_bound) * np.sqrt(model.coef_var)
     aniso = method == "gmm-aniso"
     icp = method == "icp"
+    if not pose_spread >= 0:
+        raise ValueError(f"pose_spread must be >= 0, got {pose_spread}")
+    if pose_sd is not None and pose_spread > 0:
+        pose_sd = tuple(float(v) * pose_spread for v in pose_sd)
+    else:
+        pose_sd = None
     if icp:
         pose_sd = None  # the ICP baseline keeps its closed-form Procrustes step
     eta = anisotropy if aniso else 1.0
@@ -555,6 +641,14 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     # Cold start with a pose to fit: pose-only EM first (the shape would otherwise absorb
     # the misalignment while s2 is large), then pose and shape together.
     centre0 = cache.mean.mean(axis=0)
+    placed_centre = place_scale * place_rot @ centre0 + place_trans
+
+    def pose_deviation(scale: float, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+        """Deviation of the pose from the placement: log scale ratio, rotation vector, and the
+        displacement of the model's centre (mm); the pose prior's argument (Eq. 6)."""
+        return np.concatenate([[np.log(scale / place_scale)], _rotation_log(rot @ place_rot.T),
+                               scale * rot @ centre0 + trans - placed_centre])
+
     if pose_sd is not None:
         rot_sd, trans_sd, log_scale_sd = (float(v) for v in pose_sd)
         pose_precision = 1.0 / np.array([log_scale_sd] + [np.deg2rad(rot_sd)] * 3 + [trans_sd] * 3) ** 2
@@ -588,8 +682,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
             denom = s
         prior = 0.5 * prior_weight * float(coef @ (cache.inv_var * coef))
         if pose_sd is not None and pose != "none":  # Eq. 6, the pose prior
-            dev = np.concatenate([[np.log(scale)], _rotation_log(rot),
-                                  scale * rot @ centre0 + trans - centre0])
+            dev = pose_deviation(scale, rot, trans)
             prior += 0.5 * float((pose_precision * dev**2).sum())
         resp = ex / denom
         resp[resp < 1e-4] = 0.0  # negligible pairs: fewer vertices in the M-step
@@ -623,8 +716,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         # M-step, pose (Eq. 3).
         if pose != "none":
             if not aniso and pose_sd is None:
-                scale_new, rot, trans = _procrustes(wj, ybar, zv, with_scale=pose == "similarity")
-                scale = scale_new if pose == "similarity" else 1.0
+                scale, rot, trans = _procrustes(wj, ybar, zv, with_scale=pose == "similarity",
+                                                fixed_scale=place_scale)
             else:
                 xj = scale * zv @ rot.T + trans
                 centre = (wj[:, None] * xj).sum(axis=0) / wj.sum()
@@ -657,8 +750,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                     jac_p[4:, 0] = q0
                     jac_p[4:, 1:4] = -np.array([[0, -q0[2], q0[1]], [q0[2], 0, -q0[0]], [-q0[1], q0[0], 0]])
                     jac_p[4:, 4:] = np.eye(3)
-                    r0 = np.concatenate([[np.log(scale)], _rotation_log(rot),
-                                         scale * rot @ centre0 + trans - centre0])
+                    r0 = pose_deviation(scale, rot, trans)
                     if pose == "rigid":
                         jac_p = jac_p[1:, 1:]
                         r0, prec = r0[1:], pose_precision[1:]
@@ -695,7 +787,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                 r = r + (eta - 1.0) * n_b * np.einsum("jc,jc->j", n_b, r)[:, None]
             rhs = phi.reshape(n_factors, -1) @ r.reshape(-1)
             lhs[np.diag_indices(n_factors)] += prior_weight * sigma2_b * cache.inv_var
-            coef = np.linalg.solve(lhs, rhs)
+            coef = _solve_shape(lhs, rhs, shape_bound)
 
         # New vertices; variance update on the same pairs (Eq. 4 of s2); refresh pairs if moved.
         x_new = scale * cache.shape(coef) @ rot.T + trans

@@ -21,6 +21,18 @@ from typing import Any
 import numpy as np
 
 
+def _frozen(array: np.ndarray) -> np.ndarray:
+    """A read-only version of ``array`` (the array itself if no one can write to it)."""
+    base = array
+    while isinstance(base, np.ndarray):
+        if base.flags.writeable:
+            array = array.copy()
+            array.setflags(write=False)
+            return array
+        base = base.base
+    return array
+
+
 @dataclass
 class ShapeModel:
     """A point distribution model with its mesh topology and world placement.
@@ -66,6 +78,11 @@ class ShapeModel:
         problem = self.validate()
         if problem:
             raise ValueError(problem)
+        # The geometry is immutable (read-only copies): whoever caches work on the model
+        # (the fit's snapshot, core.reconstruction) can trust that an array it saw is unchanged.
+        # To change a model, assign new arrays (or build a new ShapeModel).
+        for name in ("mean", "factors", "coef_var", "faces"):
+            setattr(self, name, _frozen(getattr(self, name)))
 
     def validate(self) -> str | None:
         """Return a description of the first inconsistency found, or None if consistent."""

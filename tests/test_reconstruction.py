@@ -240,3 +240,111 @@ def test_adaptive_anisotropy_follows_the_noise_and_the_coverage(family):
     eta_sparse = fit_points(model, sparse.points, sparse.normals).anisotropy
     eta_dense = fit_points(model, dense.points, dense.normals).anisotropy
     assert eta_sparse > 1.5 * eta_dense, (eta_sparse, eta_dense)
+
+
+def _translation(shift) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, 3] = shift
+    return t
+
+
+def test_pose_prior_is_centred_on_the_placement(family):
+    """Issue 11 defect 1: the anatomy sits 30 mm from the model file's placement and the user
+    placed the model there (GUI *Place here*): a one-contour fit with ``placement=`` ends as
+    close as with a model whose stored placement is already there (the prior at the
+    placement), and closer than the fit whose prior stays at ``model.world_transform``."""
+    shapes, faces, _ = family
+    errors = {"placement": [], "stored": [], "init only": []}
+    for case in range(3):
+        model = pca_model(np.delete(shapes, case, axis=0), faces)
+        placed = _translation([30.0, 0.0, 0.0])
+        rng = np.random.default_rng(300 + case)
+        truth = _apply(_similarity(rng, np.deg2rad(2.0), 1.0, 0.5) @ placed, shapes[case])
+        user = simulate_user(truth, faces, 1, orientations="axial", rng=rng)
+        moved = pca_model(np.delete(shapes, case, axis=0), faces)
+        moved.world_transform = placed
+        start = FitResult(coef=np.zeros(model.n_factors), pose=placed,
+                          vertices=model.world_instance() + placed[:3, 3])
+        fits = {"placement": fit_points(model, user.points, user.normals, placement=placed),
+                "stored": fit_points(moved, user.points, user.normals),
+                "init only": fit_points(model, user.points, user.normals, init=start)}
+        for name, fit in fits.items():
+            errors[name].append(_mean_surface_distance(fit.vertices, truth, faces))
+    at_placement, stored = np.mean(errors["placement"]), np.mean(errors["stored"])
+    assert at_placement <= 1.1 * stored, errors
+    assert np.mean(errors["init only"]) > 2.0 * at_placement, errors  # the defect it fixes
+
+
+def test_placement_is_the_pose_of_a_shape_only_fit(family):
+    _, _, model = family
+    placed = _similarity(np.random.default_rng(8), np.deg2rad(20.0), 1.1, 25.0)
+    truth = _apply(placed, model.instance(np.sqrt(model.coef_var) * 0.5))
+    fit = fit_points(model, truth[::4], pose="none", placement=placed, min_sigma=0.01)
+    assert fit.pose == pytest.approx(placed)
+    assert np.linalg.norm(fit.vertices - truth, axis=1).max() < 0.05
+    with pytest.raises(ValueError, match="placement"):
+        fit_points(model, truth[::4], placement=np.eye(3))
+
+
+def test_fit_cache_follows_the_model_content(family):
+    """Issue 11 defect 2: changing coef_var (or any model array) must change the fit."""
+    shapes, faces, _ = family
+    model = pca_model(shapes[1:], faces)
+    user = simulate_user(shapes[0], faces, 3, rng=np.random.default_rng(9))
+    first = fit_points(model, user.points, user.normals)
+    model.coef_var = model.coef_var * 1e-6  # a new array: the prior now pins the mean shape
+    tight = fit_points(model, user.points, user.normals)
+    assert np.abs(tight.coef).max() < 0.05 * np.abs(first.coef).max()
+    with pytest.raises(ValueError, match="read-only"):
+        model.factors[0, 0, 0] = 1.0  # the model's arrays are immutable: no silent stale cache
+    writable = np.array(model.coef_var) * 1e6  # the original variances, in a writable array
+    model.coef_var = writable
+    again = fit_points(model, user.points, user.normals)
+    assert np.allclose(again.coef, first.coef, atol=1e-8)
+    writable *= 1e-6  # in place, on a writable array: seen through the content digest
+    assert np.abs(fit_points(model, user.points, user.normals).coef).max() < 0.05 * np.abs(first.coef).max()
+
+
+@pytest.mark.parametrize("method", ["gmm-aniso", "gmm-iso", "icp"])
+def test_prior_weight_zero_fits_without_a_singular_matrix(family, method):
+    """Issue 11 defect 6: prior_weight=0 ("no prior") with fewer constraints than factors."""
+    shapes, faces, model = family
+    user = simulate_user(shapes[0], faces, 1, orientations="axial", rng=np.random.default_rng(10))
+    fit = fit_points(model, user.points[:6], user.normals[:6], pose="none", prior_weight=0.0,
+                     method=method)
+    assert np.all(np.isfinite(fit.coef)) and np.all(np.isfinite(fit.vertices))
+    # six points leave most factors free: bounded to the documented +-5 SD, not 190 SD
+    assert np.all(np.abs(fit.coef) <= 5.0 * np.sqrt(model.coef_var) * (1 + 1e-9))
+    assert fit.residual_mm < 0.5
+    # dense exact data: without a prior the model instance is recovered exactly
+    coef = np.sqrt(model.coef_var) * np.linspace(-2.0, 2.0, model.n_factors)
+    truth = model.world_instance(coef)
+    dense = fit_points(model, truth, pose="none", prior_weight=0.0, method=method, min_sigma=0.01)
+    assert np.linalg.norm(dense.vertices - truth, axis=1).max() < 0.02
+
+
+def test_fit_cli_placement_centres_the_start_and_the_prior(tmp_path, family):
+    """``ssm-studio fit --placement x,y,z`` (or a 4x4 file) is passed to fit_points."""
+    import json
+
+    from core.cli import main
+    from core.io import save_model, save_points
+
+    shapes, faces, model = family
+    save_model(tmp_path / "model.npz", model)
+    shift = np.array([30.0, 0.0, 0.0])
+    truth = shapes[0] + shift
+    user = simulate_user(truth, faces, 1, orientations="axial", rng=np.random.default_rng(11))
+    save_points(tmp_path / "pts.csv", user.points, user.normals)
+    centre = model.world_instance().mean(axis=0) + shift
+    np.savetxt(tmp_path / "placement.txt", _translation(shift))
+    common = ["fit", "--model", str(tmp_path / "model.npz"), "--points", str(tmp_path / "pts.csv"),
+              "--out", str(tmp_path / "fitted.vtk")]
+    for value, name in ((",".join(f"{v:.6f}" for v in centre), "a.json"),
+                        (str(tmp_path / "placement.txt"), "b.json")):
+        assert main(common + ["--placement", value, "--json", str(tmp_path / name)]) == 0
+    direct = fit_points(model, user.points, user.normals, placement=_translation(shift))
+    for name in ("a.json", "b.json"):
+        pose = np.array(json.loads((tmp_path / name).read_text())["pose"])
+        assert np.abs(pose - direct.pose).max() < 1e-4
+    assert main(common + ["--placement", str(tmp_path / "missing.txt")]) == 2

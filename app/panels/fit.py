@@ -45,6 +45,17 @@ class FitPanel(QWidget):
         form.addRow("Method", self.method)
         form.addRow("Pose", self.pose)
         form.addRow("Prior weight", self.prior)
+        self.pose_spread = QDoubleSpinBox()  # recon: the pose prior's spread (issue 11)
+        self.pose_spread.setRange(0.0, 100.0)
+        self.pose_spread.setDecimals(1)
+        self.pose_spread.setSingleStep(0.5)
+        self.pose_spread.setValue(1.0)
+        self.pose_spread.setSpecialValueText("off")
+        self.pose_spread.setSuffix(" x")
+        self.pose_spread.setToolTip("Spread of the pose prior around your placement (Place here), "
+                                    "times the default (3 deg, 1 mm, 3 % scale); larger lets the "
+                                    "fit move the model further, off = no pose prior")
+        form.addRow("Pose prior spread", self.pose_spread)
         layout.addLayout(form)
         row = QHBoxLayout()
         self.auto = QCheckBox("Refit on every edit")
@@ -62,6 +73,7 @@ class FitPanel(QWidget):
         for widget in (self.method, self.pose):
             widget.currentIndexChanged.connect(self.settings_changed)
         self.prior.valueChanged.connect(self.settings_changed)
+        self.pose_spread.valueChanged.connect(self.settings_changed)
         self.refit_button.clicked.connect(self.refit_requested)
         state.fit_info_changed.connect(self._show)
         self._show()
@@ -69,10 +81,11 @@ class FitPanel(QWidget):
     @property
     def settings(self) -> dict:
         return {"method": self.method.currentData(), "pose": self.pose.currentData(),
-                "prior_weight": float(self.prior.value())}
+                "prior_weight": float(self.prior.value()),
+                "pose_spread": float(self.pose_spread.value())}
 
     def set_settings(self, method: str | None = None, pose: str | None = None,
-                     prior_weight: float | None = None) -> None:
+                     prior_weight: float | None = None, pose_spread: float | None = None) -> None:
         for combo, key in ((self.method, method), (self.pose, pose)):
             if key is not None:
                 index = combo.findData(key)
@@ -81,6 +94,8 @@ class FitPanel(QWidget):
                 combo.setCurrentIndex(index)
         if prior_weight is not None:
             self.prior.setValue(float(prior_weight))
+        if pose_spread is not None:
+            self.pose_spread.setValue(float(pose_spread))
 
     def _show(self) -> None:
         info = self.state.fit_info

@@ -11,7 +11,10 @@ objective, the stopping reason and the mean point-to-surface residual.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
+
+import numpy as np
 
 from core.io import TriMesh, atomic_write_json, load_model, load_points, save_mesh
 from core.reconstruction import METHODS, POSES, FitResult, fit_points
@@ -35,10 +38,52 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--outlier-weight", type=float, default=0.0,
                         help="uniform outlier weight in [0, 1) (default 0)")
     parser.add_argument("--max-iter", type=int, default=100, help="EM iteration limit (default 100)")
+    parser.add_argument("--placement", default=None,
+                        help="where the model is placed before fitting (the start and the centre of "
+                             "the pose prior): 'x,y,z' moves the model's mean shape centre to that "
+                             "world point (like the GUI's Place here), or a file with a 4x4 model -> "
+                             "world matrix (.txt/.csv rows, .npy, or .json); default: the model's "
+                             "stored placement")
+    parser.add_argument("--pose-spread", type=float, default=1.0,
+                        help="spread of the pose prior around the placement, times the default "
+                             "(3 deg, 1 mm, 3%% scale); 0 = no pose prior (default 1)")
     parser.add_argument("--no-normals", action="store_true",
                         help="ignore the normals in the points file")
     parser.add_argument("--json", type=Path, default=None,
                         help="also write the fit result (coefficients, pose, objective) as JSON")
+
+
+def placement_from_arg(text: str | None, model) -> np.ndarray | None:
+    """The --placement value as a 4x4 model -> world matrix (None: the model's own)."""
+    if text is None:
+        return None
+    parts = text.split(",")
+    if len(parts) == 3 and not Path(text).exists():
+        try:
+            target = np.array([float(v) for v in parts])
+        except ValueError:
+            raise ValueError(f"--placement {text!r}: expected x,y,z in mm or a matrix file") from None
+        placement = model.world_transform.copy()
+        placement[:3, 3] += target - model.world_instance().mean(axis=0)
+        return placement
+    path = Path(text)
+    if not path.exists():
+        raise ValueError(f"{path}: file not found (--placement)")
+    try:
+        if path.suffix.lower() == ".npy":
+            matrix = np.load(path, allow_pickle=False)
+        elif path.suffix.lower() == ".json":
+            data = json.loads(path.read_text())
+            matrix = np.asarray(data.get("placement", data.get("matrix")) if isinstance(data, dict)
+                                else data, dtype=np.float64)
+        else:
+            matrix = np.loadtxt(path, delimiter="," if path.suffix.lower() == ".csv" else None)
+        matrix = np.asarray(matrix, dtype=np.float64)
+    except (ValueError, OSError, TypeError) as exc:
+        raise ValueError(f"{path}: not a 4x4 matrix ({exc})") from None
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ValueError(f"{path}: expected a finite 4x4 matrix, got shape {matrix.shape}")
+    return matrix
 
 
 def fit_from_args(args: argparse.Namespace):
@@ -46,10 +91,12 @@ def fit_from_args(args: argparse.Namespace):
     model = load_model(args.model)
     points = load_points(args.points)
     normals = None if args.no_normals else points.normals
+    placement = placement_from_arg(getattr(args, "placement", None), model)
     try:
         result = fit_points(model, points.points, normals, method=args.method, pose=args.pose,
                             prior_weight=args.prior_weight, outlier_weight=args.outlier_weight,
-                            max_iter=args.max_iter)
+                            max_iter=args.max_iter, placement=placement,
+                            pose_spread=getattr(args, "pose_spread", 1.0))
     except ValueError as exc:
         raise ValueError(f"{args.points}: {exc}") from None
     return model, result
