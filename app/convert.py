@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pyvista as pv
 
@@ -30,11 +32,10 @@ def face_camera_to(plotter, vertices: np.ndarray, faces: np.ndarray, vertex: int
 
     camera = plotter.camera
     focal = np.asarray(camera.focal_point)
-    distance = np.linalg.norm(np.asarray(camera.position) - focal)
-    normal = vertex_normals(np.asarray(vertices, dtype=np.float64), np.asarray(faces))[vertex]
-    if not np.all(np.isfinite(normal)) or np.linalg.norm(normal) < 1e-9:
-        return
-    direction = normal / np.linalg.norm(normal)
+    distance = math.dist(camera.position, camera.focal_point)
+    direction = vertex_normals(np.asarray(vertices, dtype=np.float64), np.asarray(faces))[vertex]
+    if not np.all(np.isfinite(direction)) or not np.any(direction):
+        return                       # unit normals, or zero for a degenerate neighbourhood
     up = np.asarray(camera.up)
     if abs(float(np.dot(up, direction))) > 0.95:
         up = np.eye(3)[int(np.argmin(np.abs(direction)))]

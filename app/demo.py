@@ -42,6 +42,17 @@ def demo_image() -> Path | None:
     return _first([Path(nilearn.__file__).parent / "datasets" / "data" / f"{T1_NAME}_converted.nii.gz"])
 
 
+def require_demo_image() -> Path:
+    """:func:`demo_image`, or a DataFileError saying what is missing."""
+    image = demo_image()
+    if image is None:
+        from core.io import DataFileError
+
+        raise DataFileError(resources_dir(), "no demo image found (resources/ is incomplete "
+                            "and nilearn is not installed)")
+    return image
+
+
 def demo_model() -> Path | None:
     """The demo shape model (``resources/demo/model.npz``)."""
     root = resources_dir()

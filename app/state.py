@@ -1,29 +1,46 @@
-"""The segmentation workspace's state: image, model, contour points, fit and crosshair.
+"""The segmentation workspace model: image, crosshair, window/level and a list of structures.
 
-No widgets here. :class:`SegmentationState` is a QObject whose setters validate, change the
-data and emit one signal; views and panels listen and redraw, and never change each other.
-Edits that the user can undo (points, manual coefficients, placement) go through
-:meth:`SegmentationState.checkpoint` first, which pushes a snapshot on the undo stack.
+Plain Python, no Qt (napari's ``ViewerModel`` is the pattern; a test checks that this module
+imports no Qt). :class:`WorkspaceState` holds the image and the structures being segmented;
+each :class:`Structure` has its own shape model, placement (pose), coefficients, contour
+points, last fit read-out and undo history. One structure is *active*: drawing, the factor
+sliders, the refit and undo act on it.
 
-Contour points are kept with the slice they were drawn on (frame name and depth), in
-drawing order; their normals are derived per slice from the contour tangent and the slice
-normal (``core.planes.contour_normals``).
+Every setter validates, changes the data and emits one event from :attr:`WorkspaceState.events`
+(see :mod:`app.events`); views and panels subscribe and redraw, and never change each other.
+Events about "the" model, points, surface, fit and history are those of the active
+structure (so a view written for one structure keeps working); ``structure_changed(structure,
+what)`` reports a change of any structure, and ``structures`` / ``active`` a change of the
+list or of the active one. Edits the user can undo go through :meth:`Structure.checkpoint`
+first, which pushes a snapshot on that structure's undo stack.
+
+Contour points are kept with the slice they were drawn on (frame name and depth), in drawing
+order; their normals are derived per slice from the contour tangent and the slice normal,
+and oriented by the current surface (``core.planes.slice_contour_normals``).
 """
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QObject, Signal
 
+from app.events import EmitterGroup
 from core.io import Volume
-from core.planes import FRAMES, SliceSampler, auto_window, contour_normals
+from core.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
 from core.shape_model import ShapeModel
 
 FRAME_NAMES = ("axial", "coronal", "sagittal")
 MAX_HISTORY = 200
+
+# Distinct, colour-blind-friendly structure colours (RGB 0-255); the first is the
+# historical orange of the single-structure workspace.
+STRUCTURE_COLORS = ((255, 170, 0), (0, 200, 255), (230, 80, 200), (120, 220, 60),
+                    (255, 90, 70), (160, 130, 255), (240, 230, 80), (60, 220, 190))
+SIDES = ("", "left", "right", "midline")
 
 
 @dataclass(frozen=True)
@@ -53,34 +70,26 @@ class Points:
         """Mask (P,) of points drawn on the slice (frame, depth)."""
         return (self.frame == frame) & (np.abs(self.depth - depth) <= tolerance)
 
+    def slice_ids(self) -> np.ndarray:
+        """(P,) int: one label per distinct slice (frame, depth to 1 um)."""
+        if len(self) == 0:
+            return np.zeros(0, dtype=np.int64)
+        keys = np.stack([self.frame.astype(np.float64), np.round(self.depth, 3)], axis=1)
+        return np.unique(keys, axis=0, return_inverse=True)[1].reshape(-1)
+
+    def n_slices(self) -> int:
+        return int(len(np.unique(self.slice_ids())))
+
     def normals(self, surface: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(P, 3) unit in-plane normals, NaN rows for single points on their slice.
 
-        Per slice, from the drawing order (``core.planes.contour_normals``: outwards from the
-        points' centroid). With ``surface`` = (vertices (N, 3), vertex normals (N, 3)) of the
-        current fit, each slice's sign is instead the one agreeing with the surface normals
-        at the nearest vertices (majority vote): right also for an open stroke along one
-        side of the structure, where the centroid rule is ambiguous.
+        Per slice, from the drawing order (outwards from the points' centroid); with
+        ``surface`` = (vertices (N, 3), vertex normals (N, 3)) of the current fit, each
+        slice's sign is the one agreeing with the surface (``core.planes.slice_contour_normals``).
         """
-        out = np.full((len(self), 3), np.nan)
-        if len(self) == 0:
-            return out
-        keys = np.stack([self.frame.astype(np.float64), np.round(self.depth, 3)], axis=1)
-        groups = np.unique(keys, axis=0)
-        nearest = None
-        if surface is not None:
-            from scipy.spatial import cKDTree
-
-            _, nearest = cKDTree(surface[0]).query(self.xyz)
-        for f, d in groups:
-            idx = np.flatnonzero((keys[:, 0] == f) & (keys[:, 1] == d))
-            normals = contour_normals(self.xyz[idx], FRAMES[FRAME_NAMES[int(f)]].n)
-            if nearest is not None:
-                agree = np.nansum(np.einsum("ij,ij->i", normals, surface[1][nearest[idx]]))
-                if agree < 0:
-                    normals = -normals
-            out[idx] = normals
-        return out
+        plane_normals = np.array([FRAMES[name].n for name in FRAME_NAMES], dtype=np.float64)
+        return slice_contour_normals(self.xyz, self.slice_ids(), plane_normals[self.frame],
+                                     surface)
 
 
 @dataclass(frozen=True)
@@ -103,25 +112,31 @@ class FitInfo:
     fit_seconds: float = float("nan")      # the fit alone, in the worker
     message: str = ""
 
+    @classmethod
+    def from_result(cls, result, seconds: float) -> FitInfo:
+        """The read-out of a ``core.reconstruction.FitResult`` applied ``seconds`` after the edit."""
+        return cls(residual_mm=float(result.residual_mm), n_iter=int(result.n_iter),
+                   converged=bool(result.converged), stop_reason=result.stop_reason,
+                   seconds=float(seconds), fit_seconds=float(result.elapsed_s))
 
-class SegmentationState(QObject):
-    """Evented state of the segmentation workspace (see module docstring)."""
 
-    image_changed = Signal()
-    model_changed = Signal()
-    points_changed = Signal()
-    surface_changed = Signal()
-    crosshair_changed = Signal()
-    window_changed = Signal()
-    history_changed = Signal()
-    fit_info_changed = Signal()
-    edited = Signal(str)          # any user edit (for autosave); argument: what changed
+_ids = itertools.count(1)
 
-    def __init__(self, parent: QObject | None = None):
-        super().__init__(parent)
-        self.volume: Volume | None = None
-        self.sampler: SliceSampler | None = None
-        self.image_path: Path | None = None
+
+class Structure:
+    """One structure of the workspace: its model, fit, contour points and undo history.
+
+    Changes are reported to the owning :class:`WorkspaceState` (which emits the events);
+    a structure on its own (not in a workspace) reports to nobody.
+    """
+
+    def __init__(self, name: str = "", side: str = "", color: tuple[int, int, int] | None = None):
+        self.id = next(_ids)
+        self.name = name
+        self.side = side
+        self.color = tuple(int(c) for c in (color or STRUCTURE_COLORS[0]))
+        self.visible = True
+        self.locked = False
         self.model: ShapeModel | None = None
         self.model_path: Path | None = None
         self.coef: np.ndarray | None = None
@@ -130,61 +145,48 @@ class SegmentationState(QObject):
         # pose): the fit starts there and its pose prior is centred on it.
         self.placement: np.ndarray | None = None
         self.points = Points()
-        self.crosshair = np.zeros(3)
-        self.window = 1.0
-        self.level = 0.5
-        self.data_range = (0.0, 1.0)
         self.fit_info = FitInfo()
+        self.last_fit = None                   # core FitResult of the current surface (warm start)
+        self.model_version = 0                 # bumped when the model is replaced
         self._undo: list[Snapshot] = []
         self._redo: list[Snapshot] = []
         self._vertices_cache: tuple[int, np.ndarray] | None = None
+        self._normals_cache: tuple[int, np.ndarray] | None = None
+        self._factor_cache: tuple[tuple[int, int], np.ndarray] | None = None
         self._surface_version = 0
+        self._notify: Callable[[Structure, str], None] = lambda structure, what: None
 
-    # -- image ---------------------------------------------------------------------------
-    def set_image(self, volume: Volume, path: str | Path | None = None) -> None:
-        self.volume = volume
-        self.sampler = SliceSampler(volume)
-        self.image_path = Path(path) if path else volume.path
-        finite = np.asarray(volume.data)[:: max(1, volume.data.size // 500_000)]
-        self.data_range = (float(np.nanmin(finite)), float(np.nanmax(finite)))
-        self.window, self.level = auto_window(volume.data)
-        bounds = volume.world_bounds()
-        self.crosshair = self._snap(bounds.mean(axis=0))
-        self.image_changed.emit()
-        self.window_changed.emit()
-        self.crosshair_changed.emit()
+    def __repr__(self) -> str:
+        return f"<Structure {self.id} {self.label!r}: {len(self.points)} points>"
 
-    def set_window(self, window: float, level: float) -> None:
-        self.window = max(float(window), 1e-6)
-        self.level = float(level)
-        self.window_changed.emit()
+    @property
+    def label(self) -> str:
+        """Name with side, as the structure list shows it."""
+        name = self.name or "(unnamed)"
+        return f"{name} ({self.side})" if self.side else name
 
-    # -- crosshair -----------------------------------------------------------------------
-    def _snap(self, xyz: np.ndarray) -> np.ndarray:
-        xyz = np.asarray(xyz, dtype=np.float64).copy()
-        if self.sampler is not None and self.sampler.aligned:
-            for name in FRAME_NAMES:
-                frame = FRAMES[name]
-                axis = int(np.argmax(np.abs(frame.n)))
-                xyz[axis] = self.sampler.snap_depth(frame, frame.depth(xyz)) * np.sign(frame.n[axis])
-        return xyz
-
-    def set_crosshair(self, xyz: np.ndarray) -> None:
-        """Move the crosshair (world mm); snapped to voxel centres for axis-aligned images."""
-        xyz = self._snap(xyz)
-        if self.volume is not None:
-            lo, hi = self.volume.world_bounds()
-            xyz = np.clip(xyz, lo, hi)
-        if np.allclose(xyz, self.crosshair):
-            return
-        self.crosshair = xyz
-        self.crosshair_changed.emit()
-
-    def step_slice(self, frame_name: str, steps: int) -> None:
-        """Move the crosshair ``steps`` slices along the view's normal."""
-        frame = FRAMES[frame_name]
-        step = self.sampler.step(frame) if self.sampler else 1.0
-        self.set_crosshair(self.crosshair + steps * step * np.asarray(frame.n))
+    # -- properties --------------------------------------------------------------------------
+    def set_properties(self, *, name: str | None = None, side: str | None = None,
+                       color: tuple[int, int, int] | None = None, visible: bool | None = None,
+                       locked: bool | None = None) -> None:
+        """Rename, recolour, show/hide, lock/unlock; emits ``structure_changed(s, "properties")``."""
+        if side is not None and side not in SIDES:
+            raise ValueError(f"side must be one of {', '.join(repr(s) for s in SIDES)}; got {side!r}")
+        if color is not None:
+            color = tuple(int(c) for c in color)
+            if len(color) != 3 or not all(0 <= c <= 255 for c in color):
+                raise ValueError(f"colour must be three values 0-255, got {color}")
+            self.color = color
+        if name is not None:
+            self.name = str(name).strip()
+        if side is not None:
+            self.side = side
+        if visible is not None:
+            self.visible = bool(visible)
+        if locked is not None:
+            self.locked = bool(locked)
+        self._notify(self, "properties")
+        self._notify(self, "edited")
 
     # -- model, coefficients and pose ----------------------------------------------------
     def set_model(self, model: ShapeModel, path: str | Path | None = None,
@@ -195,10 +197,15 @@ class SegmentationState(QObject):
         self.pose = model.world_transform.copy() if pose is None else np.asarray(pose, float).copy()
         self.placement = self.pose.copy()
         self.fit_info = FitInfo()
+        self.last_fit = None
+        self.model_version += 1
         self._surface_version += 1
-        self.model_changed.emit()
-        self.surface_changed.emit()
-        self.fit_info_changed.emit()
+        if not self.name:
+            self.name = str(model.info.get("structure") or (self.model_path.stem if self.model_path
+                                                            else "structure"))
+        self._notify(self, "model")
+        self._notify(self, "surface")
+        self._notify(self, "fit_info")
 
     def surface_vertices(self) -> np.ndarray | None:
         """World vertices (N, 3) of the current instance, or None without a model."""
@@ -210,9 +217,30 @@ class SegmentationState(QObject):
             self._vertices_cache = (self._surface_version, world)
         return self._vertices_cache[1]
 
+    def surface_normals(self) -> np.ndarray | None:
+        """Vertex normals (N, 3) of the current instance (cached with it)."""
+        if self.model is None:
+            return None
+        if self._normals_cache is None or self._normals_cache[0] != self._surface_version:
+            from core.mesh import vertex_normals
+
+            self._normals_cache = (self._surface_version,
+                                   vertex_normals(self.surface_vertices(), self.model.faces))
+        return self._normals_cache[1]
+
+    def factor_displacement(self, index: int) -> np.ndarray:
+        """How far factor ``index`` moves each vertex at one prior SD, (N,) mm (cached)."""
+        key = (self.model_version, int(index))
+        if self._factor_cache is None or self._factor_cache[0] != key:
+            factor = self.model.factors[index]
+            move = float(np.sqrt(self.model.coef_var[index])) * np.sqrt(
+                np.einsum("ij,ij->i", factor, factor))
+            self._factor_cache = (key, move)
+        return self._factor_cache[1]
+
     def set_surface(self, coef: np.ndarray, pose: np.ndarray,
                     vertices: np.ndarray | None = None) -> None:
-        """Replace coefficients and pose (e.g. by a refit or a slider); emits surface_changed."""
+        """Replace coefficients and pose (e.g. by a refit or a slider); emits surface."""
         if self.model is None:
             return
         self.coef = np.asarray(coef, dtype=np.float64).copy()
@@ -220,13 +248,21 @@ class SegmentationState(QObject):
         self._surface_version += 1
         if vertices is not None and np.shape(vertices) == self.model.mean.shape:
             self._vertices_cache = (self._surface_version, np.asarray(vertices, dtype=np.float64))
-        self.surface_changed.emit()
+        self._notify(self, "surface")
 
     def set_coefficient(self, index: int, value: float) -> None:
         coef = self.coef.copy()
         coef[index] = value
         self.set_surface(coef, self.pose)
-        self.edited.emit("coef")
+        self._notify(self, "edited")
+
+    def reset_coefficients(self) -> None:
+        """Back to the mean shape, keeping the pose (undoable)."""
+        if self.model is None:
+            return
+        self.checkpoint()
+        self.set_surface(np.zeros(self.model.n_factors), self.pose)
+        self._notify(self, "edited")
 
     def place_at(self, xyz: np.ndarray) -> None:
         """Translate the model so that its centroid sits at world point ``xyz`` (undoable)."""
@@ -237,8 +273,9 @@ class SegmentationState(QObject):
         pose = self.pose.copy()
         pose[:3, 3] += np.asarray(xyz, dtype=np.float64) - centroid
         self.placement = pose.copy()
+        self.last_fit = None
         self.set_surface(self.coef, pose)
-        self.edited.emit("pose")
+        self._notify(self, "edited")
 
     def reset_placement(self) -> None:
         """Back to the model's stored world placement and zero coefficients (undoable)."""
@@ -247,55 +284,47 @@ class SegmentationState(QObject):
         self.checkpoint()
         self.placement = self.model.world_transform.copy()
         self.set_surface(np.zeros(self.model.n_factors), self.model.world_transform)
-        self.edited.emit("pose")
+        self._notify(self, "edited")
 
     def set_fit_info(self, info: FitInfo) -> None:
         self.fit_info = info
-        self.fit_info_changed.emit()
+        self._notify(self, "fit_info")
+
+    def point_normals(self) -> np.ndarray:
+        """(P, 3) normals of the contour points, oriented by the current surface; 0 = unknown."""
+        surface = None
+        if self.model is not None:
+            surface = (self.surface_vertices(), self.surface_normals())
+        return np.nan_to_num(self.points.normals(surface), nan=0.0)
 
     # -- points --------------------------------------------------------------------------
-    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True) -> None:
-        """Append a contour point drawn on slice (frame, depth). ``checkpoint`` starts an undo step."""
-        if checkpoint:
-            self.checkpoint()
-        self.points = self.points.append(xyz, FRAME_NAMES.index(frame_name), depth)
-        self.points_changed.emit()
-        self.edited.emit("points")
-
-    def remove_point(self, index: int) -> None:
-        if not 0 <= index < len(self.points):
-            return
-        self.checkpoint()
-        self.points = self.points.remove(index)
-        self.points_changed.emit()
-        self.edited.emit("points")
-
-    def clear_slice(self, frame_name: str, depth: float) -> int:
-        """Remove the points of one slice; returns how many were removed."""
-        tol = 0.5 * (self.sampler.step(FRAMES[frame_name]) if self.sampler else 1.0)
-        mask = self.points.on_slice(FRAME_NAMES.index(frame_name), depth, tol)
-        if not mask.any():
-            return 0
-        self.checkpoint()
-        self.points = self.points.remove(mask)
-        self.points_changed.emit()
-        self.edited.emit("points")
-        return int(mask.sum())
-
-    def clear_points(self) -> None:
-        if len(self.points) == 0:
-            return
-        self.checkpoint()
-        self.points = Points()
-        self.points_changed.emit()
-        self.edited.emit("points")
-
-    def set_points(self, points: Points, checkpoint: bool = True) -> None:
+    def set_points(self, points: Points, checkpoint: bool = True, edited: bool = True) -> None:
+        """Replace the contour points (one undo step unless ``checkpoint`` is False)."""
         if checkpoint:
             self.checkpoint()
         self.points = points
-        self.points_changed.emit()
-        self.edited.emit("points")
+        self._notify(self, "points")
+        if edited:
+            self._notify(self, "edited")
+
+    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True) -> None:
+        """Append a contour point drawn on slice (frame, depth). ``checkpoint`` starts an undo step."""
+        self.set_points(self.points.append(xyz, FRAME_NAMES.index(frame_name), depth), checkpoint)
+
+    def remove_point(self, index: int) -> None:
+        if 0 <= index < len(self.points):
+            self.set_points(self.points.remove(index))
+
+    def clear_slice(self, frame_name: str, depth: float, tolerance: float) -> int:
+        """Remove the points of one slice; returns how many were removed."""
+        mask = self.points.on_slice(FRAME_NAMES.index(frame_name), depth, tolerance)
+        if mask.any():
+            self.set_points(self.points.remove(mask))
+        return int(mask.sum())
+
+    def clear_points(self) -> None:
+        if len(self.points):
+            self.set_points(Points())
 
     # -- undo / redo ---------------------------------------------------------------------
     def _snapshot(self) -> Snapshot:
@@ -309,7 +338,7 @@ class SegmentationState(QObject):
         self._undo.append(self._snapshot())
         del self._undo[:-MAX_HISTORY]
         self._redo.clear()
-        self.history_changed.emit()
+        self._notify(self, "history")
 
     def can_undo(self) -> bool:
         return bool(self._undo)
@@ -334,7 +363,7 @@ class SegmentationState(QObject):
     def clear_history(self) -> None:
         self._undo.clear()
         self._redo.clear()
-        self.history_changed.emit()
+        self._notify(self, "history")
 
     def _restore(self, snap: Snapshot) -> None:
         points_differ = snap.points is not self.points
@@ -344,6 +373,261 @@ class SegmentationState(QObject):
                 self.placement = snap.placement.copy()
             self.set_surface(snap.coef, snap.pose)
         if points_differ:
-            self.points_changed.emit()
-        self.history_changed.emit()
-        self.edited.emit("undo")
+            self._notify(self, "points")
+        self._notify(self, "history")
+        self._notify(self, "edited")
+
+
+# Per-structure changes re-emitted as the workspace's events of the active structure.
+_ACTIVE_EVENTS = ("model", "points", "surface", "fit_info", "history")
+
+
+class WorkspaceState:
+    """Evented state of the segmentation workspace (see the module docstring).
+
+    Events (``state.events.<name>.connect(callback)``): ``image``, ``window``, ``crosshair``;
+    ``structures`` (added/removed), ``active`` (another structure is active),
+    ``structure_changed(structure, what)`` with what in model/points/surface/fit_info/
+    history/properties; of the active structure: ``model``, ``points``, ``surface``,
+    ``fit_info``, ``history``; ``edited(what)`` after any user edit (for autosave).
+    """
+
+    def __init__(self) -> None:
+        self.events = EmitterGroup(
+            image=(), window=(), crosshair=(), structures=(), active=(),
+            structure_changed=("structure", "what"), model=(), points=(), surface=(),
+            fit_info=(), history=(), edited=("what",))
+        self.volume: Volume | None = None
+        self.sampler: SliceSampler | None = None
+        self.image_path: Path | None = None
+        self.crosshair = np.zeros(3)
+        self.window = 1.0
+        self.level = 0.5
+        self.data_range = (0.0, 1.0)
+        self.structures: list[Structure] = []
+        self._active: Structure | None = None
+        self.add_structure(Structure())
+
+    # -- structures ----------------------------------------------------------------------
+    @property
+    def active(self) -> Structure:
+        return self._active
+
+    def add_structure(self, structure: Structure | None = None, activate: bool = True) -> Structure:
+        """Append a structure (a new empty one by default) and make it active."""
+        structure = structure or Structure()
+        if structure in self.structures:
+            raise ValueError(f"{structure.label} is already in the workspace")
+        if structure.color == STRUCTURE_COLORS[0] and self.structures:
+            used = {s.color for s in self.structures}
+            structure.color = next((c for c in STRUCTURE_COLORS if c not in used),
+                                   STRUCTURE_COLORS[len(self.structures) % len(STRUCTURE_COLORS)])
+        structure._notify = self._on_structure
+        self.structures.append(structure)
+        self.events.structures()
+        if activate or self._active is None:
+            self.set_active(structure)
+        return structure
+
+    def remove_structure(self, structure: Structure) -> None:
+        """Remove a structure; the last one is replaced by an empty structure."""
+        if structure not in self.structures:
+            raise ValueError(f"{structure.label} is not in the workspace")
+        index = self.structures.index(structure)
+        self.structures.remove(structure)
+        structure._notify = lambda s, what: None
+        if not self.structures:
+            self.add_structure(Structure(), activate=True)
+            return
+        self.events.structures()
+        if structure is self._active:
+            self.set_active(self.structures[min(index, len(self.structures) - 1)])
+        self.events.edited("structures")
+
+    def set_active(self, structure: Structure | int) -> None:
+        if isinstance(structure, (int, np.integer)):
+            structure = self.structures[int(structure)]
+        if structure not in self.structures:
+            raise ValueError(f"{structure.label} is not in the workspace")
+        if structure is self._active:
+            return
+        self._active = structure
+        self.events.active()
+        for name in _ACTIVE_EVENTS:
+            getattr(self.events, name)()
+
+    def structure_by_id(self, structure_id: int) -> Structure | None:
+        return next((s for s in self.structures if s.id == structure_id), None)
+
+    def _on_structure(self, structure: Structure, what: str) -> None:
+        if what == "edited":
+            self.events.edited("structure" if structure is not self._active else "points")
+            return
+        self.events.structure_changed(structure, what)
+        if structure is self._active and what in _ACTIVE_EVENTS:
+            getattr(self.events, what)()
+
+    # -- the active structure, under the single-structure names ----------------------------
+    @property
+    def model(self) -> ShapeModel | None:
+        return self._active.model
+
+    @property
+    def model_path(self) -> Path | None:
+        return self._active.model_path
+
+    @property
+    def coef(self) -> np.ndarray | None:
+        return self._active.coef
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        return self._active.pose
+
+    @property
+    def placement(self) -> np.ndarray | None:
+        return self._active.placement
+
+    @property
+    def points(self) -> Points:
+        return self._active.points
+
+    @property
+    def fit_info(self) -> FitInfo:
+        return self._active.fit_info
+
+    def set_model(self, model: ShapeModel, path: str | Path | None = None,
+                  coef: np.ndarray | None = None, pose: np.ndarray | None = None) -> None:
+        self._active.set_model(model, path, coef=coef, pose=pose)
+
+    def surface_vertices(self) -> np.ndarray | None:
+        return self._active.surface_vertices()
+
+    def set_surface(self, coef, pose, vertices=None) -> None:
+        self._active.set_surface(coef, pose, vertices)
+
+    def set_coefficient(self, index: int, value: float) -> None:
+        self._active.set_coefficient(index, value)
+
+    def place_at(self, xyz: np.ndarray) -> None:
+        self._active.place_at(xyz)
+
+    def reset_placement(self) -> None:
+        self._active.reset_placement()
+
+    def set_fit_info(self, info: FitInfo) -> None:
+        self._active.set_fit_info(info)
+
+    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True) -> None:
+        self._active.add_point(xyz, frame_name, depth, checkpoint=checkpoint)
+
+    def remove_point(self, index: int) -> None:
+        self._active.remove_point(index)
+
+    def clear_slice(self, frame_name: str, depth: float) -> int:
+        """Remove the active structure's points of one slice; returns how many."""
+        tol = 0.5 * (self.sampler.step(FRAMES[frame_name]) if self.sampler else 1.0)
+        return self._active.clear_slice(frame_name, depth, tol)
+
+    def clear_points(self) -> None:
+        self._active.clear_points()
+
+    def set_points(self, points: Points, checkpoint: bool = True) -> None:
+        self._active.set_points(points, checkpoint=checkpoint)
+
+    def checkpoint(self) -> None:
+        self._active.checkpoint()
+
+    def can_undo(self) -> bool:
+        return self._active.can_undo()
+
+    def can_redo(self) -> bool:
+        return self._active.can_redo()
+
+    def undo(self) -> bool:
+        return self._active.undo()
+
+    def redo(self) -> bool:
+        return self._active.redo()
+
+    def clear_history(self) -> None:
+        for structure in self.structures:
+            structure.clear_history()
+
+    # -- image ---------------------------------------------------------------------------
+    def set_image(self, volume: Volume, path: str | Path | None = None) -> None:
+        self.volume = volume
+        self.sampler = SliceSampler(volume)
+        self.image_path = Path(path) if path else volume.path
+        finite = np.asarray(volume.data)[:: max(1, volume.data.size // 500_000)]
+        self.data_range = (float(np.nanmin(finite)), float(np.nanmax(finite)))
+        self.window, self.level = auto_window(volume.data)
+        bounds = volume.world_bounds()
+        self.crosshair = self._snap(bounds.mean(axis=0))
+        self.events.image()
+        self.events.window()
+        self.events.crosshair()
+
+    def set_window(self, window: float, level: float) -> None:
+        self.window = max(float(window), 1e-6)
+        self.level = float(level)
+        self.events.window()
+
+    def window_preset(self, kind: str | None) -> tuple[float, float]:
+        """(window, level) of a preset: None = auto (1-99.5 %), "full", "contrast", "bright"."""
+        if self.volume is None:
+            return self.window, self.level
+        lo, hi = self.data_range
+        if kind is None:
+            return auto_window(self.volume.data)
+        if kind == "full":
+            return hi - lo, (hi + lo) / 2
+        if kind == "contrast":
+            window, level = auto_window(self.volume.data, 30.0, 95.0)
+            return 0.8 * window, level
+        if kind == "bright":
+            return auto_window(self.volume.data, 1.0, 90.0)
+        raise ValueError(f"unknown window preset {kind!r}")
+
+    # -- crosshair -----------------------------------------------------------------------
+    def _snap(self, xyz: np.ndarray) -> np.ndarray:
+        xyz = np.asarray(xyz, dtype=np.float64).copy()
+        if self.sampler is not None and self.sampler.aligned:
+            for name in FRAME_NAMES:
+                frame = FRAMES[name]
+                axis = int(np.argmax(np.abs(frame.n)))
+                xyz[axis] = self.sampler.snap_depth(frame, frame.depth(xyz)) * np.sign(frame.n[axis])
+        return xyz
+
+    def set_crosshair(self, xyz: np.ndarray) -> None:
+        """Move the crosshair (world mm); snapped to voxel centres for axis-aligned images."""
+        xyz = self._snap(xyz)
+        if self.volume is not None:
+            lo, hi = self.volume.world_bounds()
+            xyz = np.clip(xyz, lo, hi)
+        if np.allclose(xyz, self.crosshair):
+            return
+        self.crosshair = xyz
+        self.events.crosshair()
+
+    def step_slice(self, frame_name: str, steps: int) -> None:
+        """Move the crosshair ``steps`` slices along the view's normal."""
+        frame = FRAMES[frame_name]
+        step = self.sampler.step(frame) if self.sampler else 1.0
+        self.set_crosshair(self.crosshair + steps * step * np.asarray(frame.n))
+
+    def describe(self, point: np.ndarray) -> str:
+        """Status-bar text for a world point: RAS mm, voxel index, intensity."""
+        volume = self.volume
+        if volume is None:
+            return ""
+        ijk = volume.world_to_voxel(point)
+        value = volume.value_at(point) if bool(volume.contains_voxel(ijk)) else None
+        idx = np.rint(ijk).astype(int)
+        text = (f"R {point[0]:+.1f}  A {point[1]:+.1f}  S {point[2]:+.1f} mm   "
+                f"voxel ({idx[0]}, {idx[1]}, {idx[2]})   ")
+        return text + (f"value {value:.4g}" if value is not None else "outside the image")
+
+
+# The name the single-structure code used.
+SegmentationState = WorkspaceState

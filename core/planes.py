@@ -287,3 +287,47 @@ def contour_normals(points: np.ndarray, plane_normal: np.ndarray) -> np.ndarray:
     if valid.any() and np.sum(np.einsum("ij,ij->i", normal[valid], outward[valid])) < 0:
         normal = -normal
     return normal
+
+
+def slice_contour_normals(points: np.ndarray, slice_ids: np.ndarray, plane_normals: np.ndarray,
+                          surface: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """In-plane normals of contour points drawn on several slices, (P, 3); NaN = unknown.
+
+    Each slice's points (same ``slice_ids``, in drawing order) get :func:`contour_normals`.
+    With ``surface`` = (vertices (N, 3), vertex normals (N, 3)) of the current fit, each
+    slice's sign is instead the one agreeing with the surface normals at the points' nearest
+    vertices (majority vote): right also for an open stroke along one side of a structure,
+    where the centroid rule of :func:`contour_normals` is ambiguous.
+
+    Parameters
+    ----------
+    points : (P, 3) ndarray
+        Contour points, world mm, in drawing order.
+    slice_ids : (P,) int ndarray
+        Which slice each point was drawn on (any labels).
+    plane_normals : (P, 3) ndarray
+        Normal of each point's slice plane.
+    surface : tuple of two (N, 3) ndarrays, optional
+        Vertices and unit vertex normals of the surface that orients the normals.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    slice_ids = np.asarray(slice_ids).reshape(-1)
+    plane_normals = np.asarray(plane_normals, dtype=np.float64).reshape(-1, 3)
+    out = np.full((len(points), 3), np.nan)
+    if len(points) == 0:
+        return out
+    nearest = None
+    if surface is not None:
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(np.asarray(surface[0], dtype=np.float64)).query(points)
+        surface_normals = np.asarray(surface[1], dtype=np.float64)
+    for label in np.unique(slice_ids):
+        idx = np.flatnonzero(slice_ids == label)
+        normals = contour_normals(points[idx], plane_normals[idx[0]])
+        if nearest is not None:
+            agree = np.nansum(np.einsum("ij,ij->i", normals, surface_normals[nearest[idx]]))
+            if agree < 0:
+                normals = -normals
+        out[idx] = normals
+    return out

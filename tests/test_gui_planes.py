@@ -111,3 +111,32 @@ def test_contour_normals_point_outwards():
         radial = (order - [3, -2, 5]) / 10
         assert np.all(np.einsum("ij,ij->i", normals, radial) > 0.95)
     assert np.isnan(contour_normals(circle[:1], [0, 0, 1])).all()
+
+
+def test_slice_contour_normals_take_the_surface_side_for_open_strokes():
+    """Two slices of a sphere, each an open quarter arc drawn in either direction: the normals
+    take the side of the surface's normals at the nearest vertices."""
+    from core.planes import slice_contour_normals
+
+    t = np.linspace(0.0, np.pi / 2, 8)
+    rows, ids = [], []
+    for k, z in enumerate((-3.0, 4.0)):
+        r = np.sqrt(100.0 - z * z)
+        arc = np.stack([r * np.cos(t), r * np.sin(t), np.full_like(t, z)], axis=1)
+        rows.append(arc if k == 0 else arc[::-1])        # drawn in either direction
+        ids += [k] * len(t)
+    points = np.vstack(rows)
+    plane_normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    phi, theta = np.meshgrid(np.linspace(0, 2 * np.pi, 60), np.linspace(0.05, np.pi - 0.05, 30))
+    sphere = 10 * np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                            np.cos(theta)], axis=-1).reshape(-1, 3)
+    got = slice_contour_normals(points, np.array(ids), plane_normals, (sphere, sphere / 10))
+    radial = points.copy()
+    radial[:, 2] = 0
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    assert np.all(np.einsum("ij,ij->i", got, radial) > 0.95)
+    # the surface decides the side: with its normals turned inwards, so are the points'
+    inward = slice_contour_normals(points, np.array(ids), plane_normals, (sphere, -sphere / 10))
+    assert np.all(np.einsum("ij,ij->i", inward, radial) < -0.95)
+    alone = slice_contour_normals(points[:1], np.array([0]), plane_normals[:1])
+    assert np.isnan(alone).all()

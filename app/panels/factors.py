@@ -14,7 +14,7 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QGridLayout, QLabel, QPushButton, QScrollArea, QSlider,
                                QVBoxLayout, QWidget)
 
-from app.state import SegmentationState
+from app.state import WorkspaceState
 
 STEPS_PER_SD = 100
 MAX_SD = 3.0
@@ -29,7 +29,7 @@ class FactorsPanel(QWidget):
 
     factor_touched = Signal(int)
 
-    def __init__(self, state: SegmentationState, parent: QWidget | None = None):
+    def __init__(self, state: WorkspaceState, parent: QWidget | None = None):
         super().__init__(parent)
         self.state = state
         self.sliders: list[QSlider] = []
@@ -51,8 +51,8 @@ class FactorsPanel(QWidget):
         self.reset_button.setToolTip("Set every coefficient to 0 (undoable)")
         self.reset_button.clicked.connect(self.reset)
         layout.addWidget(self.reset_button)
-        state.model_changed.connect(self._rebuild)
-        state.surface_changed.connect(self._sync)
+        state.events.model.connect(self._rebuild)
+        state.events.surface.connect(self._sync)
         self._rebuild()
 
     def _rebuild(self) -> None:
@@ -120,7 +120,5 @@ class FactorsPanel(QWidget):
     def reset(self) -> None:
         if self.state.model is None:
             return
-        self.state.checkpoint()
-        self.state.set_surface(np.zeros(self.state.model.n_factors), self.state.pose)
-        self.state.edited.emit("coef")
+        self.state.active.reset_coefficients()
         self.factor_touched.emit(-1)

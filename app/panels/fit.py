@@ -8,7 +8,7 @@ from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout,
                                QLabel, QPushButton, QVBoxLayout, QWidget)
 
-from app.state import SegmentationState
+from app.state import WorkspaceState
 
 METHODS = (("gmm-aniso", "GMM, anisotropic (slides along surface)"),
            ("gmm-iso", "GMM, isotropic"),
@@ -24,7 +24,7 @@ class FitPanel(QWidget):
     settings_changed = Signal()
     refit_requested = Signal()
 
-    def __init__(self, state: SegmentationState, parent: QWidget | None = None):
+    def __init__(self, state: WorkspaceState, parent: QWidget | None = None):
         super().__init__(parent)
         self.state = state
         layout = QVBoxLayout(self)
@@ -75,7 +75,7 @@ class FitPanel(QWidget):
         self.prior.valueChanged.connect(self.settings_changed)
         self.pose_spread.valueChanged.connect(self.settings_changed)
         self.refit_button.clicked.connect(self.refit_requested)
-        state.fit_info_changed.connect(self._show)
+        state.events.fit_info.connect(self._show)
         self._show()
 
     @property

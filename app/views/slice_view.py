@@ -17,16 +17,19 @@ slice, Ctrl+wheel = zoom. Keys: Page Up/Down and Up/Down arrows step slices.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from PySide6.QtCore import QLineF, QPointF, QRectF, Qt, Signal
 from PySide6.QtGui import QColor, QFont, QImage, QPainter, QPen
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
-from app.state import FRAME_NAMES, SegmentationState
+from app.state import FRAME_NAMES, Structure, WorkspaceState
 from core.planes import FRAMES, SliceImage, window_to_uint8
 from core.slicing import intersect_plane
 
-CONTOUR_COLOR = QColor(255, 170, 0)          # model cross-section (orange)
+CONTOUR_COLOR = QColor(255, 170, 0)          # model cross-section (orange: the first structure)
+INACTIVE_ALPHA = 120                         # other structures' contours are dimmed
 POINT_COLOR = QColor(0, 230, 255)            # contour points on this slice (cyan)
 POINT_NEAR_COLOR = QColor(0, 230, 255, 90)   # points one slice away
 CROSSHAIR_COLOR = QColor(60, 200, 60, 150)
@@ -45,7 +48,7 @@ class SliceView(QWidget):
     activated = Signal(str)           # this view got the user's attention (frame name)
     message = Signal(str)
 
-    def __init__(self, state: SegmentationState, frame_name: str, parent: QWidget | None = None):
+    def __init__(self, state: WorkspaceState, frame_name: str, parent: QWidget | None = None):
         super().__init__(parent)
         if frame_name not in FRAME_NAMES:
             raise ValueError(f"unknown view '{frame_name}', expected one of {FRAME_NAMES}")
@@ -58,19 +61,20 @@ class SliceView(QWidget):
         self.center: np.ndarray | None = None  # (U, V) at the widget centre, None = image centre
         self._slice: SliceImage | None = None
         self._qimage: QImage | None = None
-        self._segments_uv: np.ndarray | None = None
+        self._segments: dict[int, np.ndarray | None] = {}   # structure id -> (S, 2, 2) (U, V)
         self._drag: dict | None = None
         self.setMinimumSize(160, 160)
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.setMouseTracking(True)
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
         self.setAttribute(Qt.WidgetAttribute.WA_OpaquePaintEvent)
-        state.image_changed.connect(self._on_image)
-        state.crosshair_changed.connect(self._on_crosshair)
-        state.window_changed.connect(self._on_window)
-        state.surface_changed.connect(self._on_surface)
-        state.model_changed.connect(self._on_surface)
-        state.points_changed.connect(self.update)
+        events = state.events
+        events.image.connect(self._on_image)
+        events.crosshair.connect(self._on_crosshair)
+        events.window.connect(self._on_window)
+        events.structure_changed.connect(self._on_structure)
+        events.structures.connect(self._on_surface)
+        events.active.connect(self.update)
         if state.volume is not None:
             self._on_image()
 
@@ -98,6 +102,18 @@ class SliceView(QWidget):
         self._recompute_contours()
         self.update()
 
+    def _on_structure(self, structure: Structure, what: str) -> None:
+        if what in ("surface", "model"):
+            self._recompute_contours(structure)
+            self.update()
+        elif what in ("points", "properties"):
+            self.update()
+
+    @property
+    def _segments_uv(self) -> np.ndarray | None:
+        """The active structure's cross-section segments (S, 2, 2) in (U, V), or None."""
+        return self._segments.get(self.state.active.id)
+
     def _resample(self) -> None:
         if self.state.sampler is None:
             self._slice, self._qimage = None, None
@@ -116,14 +132,19 @@ class SliceView(QWidget):
         # own the pixels (grey goes out of scope); RGB32 is blitted without per-paint conversion
         self._qimage = image.convertToFormat(QImage.Format.Format_RGB32)
 
-    def _recompute_contours(self) -> None:
-        vertices = self.state.surface_vertices()
-        if vertices is None:
-            self._segments_uv = None
-            return
+    def _recompute_contours(self, structure: Structure | None = None) -> None:
+        """Cross-sections of one structure's surface with this slice (all if None)."""
+        structures = self.state.structures if structure is None else [structure]
+        if structure is None:
+            self._segments = {}
         n = np.asarray(self.frame.n)
-        segments = intersect_plane(vertices, self.state.model.faces, self.depth * n, n)
-        self._segments_uv = (segments @ self.frame.axes[:2].T) if len(segments) else None
+        for s in structures:
+            vertices = s.surface_vertices()
+            if vertices is None:
+                self._segments[s.id] = None
+                continue
+            segments = intersect_plane(vertices, s.model.faces, self.depth * n, n)
+            self._segments[s.id] = (segments @ self.frame.axes[:2].T) if len(segments) else None
 
     # -- view transform ----------------------------------------------------------------------
     def _base(self) -> tuple[float, np.ndarray]:
@@ -191,17 +212,37 @@ class SliceView(QWidget):
                            QLineF(x, 0, x, y - gap), QLineF(x, y + gap, x, self.height())])
 
     def _paint_contours(self, painter: QPainter) -> None:
-        if self._segments_uv is None:
-            return
-        xy = self.plane_to_screen(self._segments_uv).reshape(-1, 4)
-        painter.setPen(QPen(CONTOUR_COLOR, 1.6))
-        painter.drawLines([QLineF(a, b, c, d) for a, b, c, d in xy.tolist()])
+        """Every visible structure in its colour; the active one last, the others dimmed."""
+        active = self.state.active
+        for s in sorted(self.state.structures, key=lambda s: s is active):
+            segments = self._segments.get(s.id)
+            if segments is None or not s.visible:
+                continue
+            color = QColor(*s.color)
+            if s is not active:
+                color.setAlpha(INACTIVE_ALPHA)
+            xy = self.plane_to_screen(segments).reshape(-1, 4)
+            painter.setPen(QPen(color, 1.6 if s is active else 1.2))
+            painter.drawLines([QLineF(a, b, c, d) for a, b, c, d in xy.tolist()])
 
     def _paint_points(self, painter: QPainter) -> None:
-        pts = self.state.points
-        if len(pts) == 0:
-            return
         step = self._step()
+        active = self.state.active
+        for s in self.state.structures:            # other structures' points: small, dimmed
+            if s is active or not s.visible or len(s.points) == 0:
+                continue
+            here = s.points.on_slice(self.frame_index, self.depth, step / 2)
+            if here.any():
+                color = QColor(*s.color)
+                color.setAlpha(INACTIVE_ALPHA)
+                painter.setPen(Qt.PenStyle.NoPen)
+                painter.setBrush(color)
+                for x, y in self.world_to_screen(s.points.xyz[here]):
+                    painter.drawEllipse(QPointF(x, y), 2.5, 2.5)
+        pts = active.points
+        if len(pts) == 0 or not active.visible:
+            painter.setBrush(Qt.BrushStyle.NoBrush)
+            return
         depth_gap = np.abs(pts.depth - self.depth)
         same = pts.frame == self.frame_index
         here = same & (depth_gap <= step / 2)
@@ -307,7 +348,7 @@ class SliceView(QWidget):
             self.state.set_crosshair(self.screen_to_world(x, y))
         elif kind == "draw":
             world = self.screen_to_world(x, y)
-            if drag["last"] is None or np.linalg.norm(world - drag["last"]) >= DRAW_SPACING_MM:
+            if drag["last"] is None or math.dist(world, drag["last"]) >= DRAW_SPACING_MM:
                 drag["last"] = self.add_point_at(x, y, checkpoint=drag["last"] is None)
         elif kind == "window":
             dx, dy = x - drag["xy"][0], y - drag["xy"][1]
@@ -362,6 +403,11 @@ class SliceView(QWidget):
     def add_point_at(self, x: float, y: float, checkpoint: bool = True) -> np.ndarray | None:
         """Add a contour point on this slice under widget pixel (x, y); returns it (world)."""
         world = self.screen_to_world(x, y)
+        active = self.state.active
+        if active.locked or not active.visible:
+            self.message.emit(f"{active.label} is {'locked' if active.locked else 'hidden'}: "
+                              "unlock or show it in the structure list to draw")
+            return None
         if self.state.volume is not None:
             lo, hi = self.state.volume.world_bounds()
             if np.any(world < lo - 1e-6) or np.any(world > hi + 1e-6):
@@ -378,13 +424,13 @@ class SliceView(QWidget):
         here = np.flatnonzero(pts.on_slice(self.frame_index, self.depth, self._step() / 2))
         if here.size == 0:
             return None
-        d = np.linalg.norm(self.world_to_screen(pts.xyz[here]) - [x, y], axis=1)
+        d = np.hypot(*(self.world_to_screen(pts.xyz[here]) - [x, y]).T)
         best = int(np.argmin(d))
         return int(here[best]) if d[best] <= radius_px else None
 
     def delete_point_near(self, x: float, y: float) -> bool:
         index = self.point_near(x, y)
-        if index is None:
+        if index is None or self.state.active.locked:
             return False
         self.state.remove_point(index)
         return True

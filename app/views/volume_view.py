@@ -8,6 +8,7 @@ short single-shot timer so that scrolling or refits never queue several renders.
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -17,20 +18,24 @@ from PySide6.QtWidgets import QVBoxLayout, QWidget
 from pyvistaqt import QtInteractor
 
 from app.convert import face_camera_to, points_polydata, surface_polydata
-from app.state import FRAME_NAMES, SegmentationState
+from app.state import FRAME_NAMES, Structure, WorkspaceState
 from core.planes import FRAMES, window_to_uint8
 
 PLANE_OPACITY = 0.75  # slice planes in 3D: the image stays readable, the surface shows through
 
-SURFACE_COLOR = (1.0, 0.67, 0.0)
+SURFACE_COLOR = (1.0, 0.67, 0.0)      # the first structure's colour (orange)
+SURFACE_OPACITY = 0.65
+INACTIVE_OPACITY = 0.3                # the other structures are dimmed
+VIEW_DIRECTION = np.array([-0.55, 0.75, 0.45]) / math.sqrt(0.55**2 + 0.75**2 + 0.45**2)
+FACTOR_SCALARS = "factor displacement (mm per SD)"
 MAX_DEFER_S = 0.5
 POINT_COLOR = (0.0, 0.9, 1.0)
 
 
 class VolumeView(QWidget):
-    """3D view bound to a :class:`SegmentationState`."""
+    """3D view bound to a :class:`WorkspaceState`: one surface per visible structure."""
 
-    def __init__(self, state: SegmentationState, parent: QWidget | None = None):
+    def __init__(self, state: WorkspaceState, parent: QWidget | None = None):
         super().__init__(parent)
         self.state = state
         layout = QVBoxLayout(self)
@@ -39,35 +44,64 @@ class VolumeView(QWidget):
         layout.addWidget(self.plotter.interactor)
         self.plotter.set_background((0.08, 0.08, 0.12), top=(0.25, 0.27, 0.33))
         self.plotter.add_axes(xlabel="R", ylabel="A", zlabel="S", line_width=2)
-        self._surface_actor = None
-        self._surface_mesh: pv.PolyData | None = None
+        # structure id -> (actor, mesh, style) with style = (colour, opacity, factor)
+        self._surfaces: dict[int, tuple[object, pv.PolyData, tuple]] = {}
         self._points_actor = None
         self._points_mesh: pv.PolyData | None = None
         self._plane_keys: dict[str, tuple] = {}
         self.defer = lambda: False      # e.g. "a refit is running": postpone non-urgent renders
         self._pending_since: float | None = None
         self._factor: int | None = None
-        self._surface_style_changed = False
         self._plane_actors: dict[str, object] = {}
         self._plane_meshes: dict[str, pv.PolyData] = {}
         self._dirty: set[str] = set()
+        self._dirty_surfaces: set[int] = set()
+        self._new_models: set[int] = set()     # structures whose mesh must be rebuilt
         self._camera_set = False
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
         self._timer.setInterval(60)
         self._timer.timeout.connect(self._flush)
-        state.image_changed.connect(lambda: self._mark("planes", "camera"))
-        state.crosshair_changed.connect(lambda: self._mark("planes"))
-        state.window_changed.connect(lambda: self._mark("planes"))
-        state.model_changed.connect(self._on_model)
-        state.surface_changed.connect(lambda: self._mark("surface"))
-        state.points_changed.connect(lambda: self._mark("points"))
+        events = state.events
+        events.image.connect(self._on_image)
+        events.crosshair.connect(self._on_planes)
+        events.window.connect(self._on_planes)
+        events.structure_changed.connect(self._on_structure)
+        events.structures.connect(self._on_structures)
+        events.active.connect(self._on_active)
         self._mark("planes", "surface", "points", "camera")
 
-    def _on_model(self) -> None:
+    @property
+    def _surface_mesh(self) -> pv.PolyData | None:
+        """The active structure's surface mesh (None if it has none shown)."""
+        entry = self._surfaces.get(self.state.active.id)
+        return None if entry is None else entry[1]
+
+    def _on_image(self) -> None:
+        self._mark("planes", "camera")
+
+    def _on_planes(self) -> None:
+        self._mark("planes")
+
+    def _on_structures(self) -> None:
+        self._mark("surface", "points")
+
+    def _on_active(self) -> None:
         self._factor = None
-        self._surface_style_changed = True
-        self._mark("surface", "camera")
+        self._mark("surface", "points")
+
+    def _on_structure(self, structure: Structure, what: str) -> None:
+        if what == "model":
+            if structure is self.state.active:
+                self._factor = None
+            self._new_models.add(structure.id)
+            self._dirty_surfaces.add(structure.id)
+            self._mark("camera" if structure is self.state.active else "surface")
+        elif what in ("surface", "properties"):
+            self._dirty_surfaces.add(structure.id)
+            self._mark("points" if what == "properties" else "surface")
+        elif what == "points" and structure is self.state.active:
+            self._mark("points")
 
     def _mark(self, *what: str) -> None:
         """Schedule an update: debounced (a burst of scroll steps renders once at its end),
@@ -98,8 +132,8 @@ class VolumeView(QWidget):
         self._pending_since = None
         if "planes" in dirty:
             self._update_planes()
-        if "surface" in dirty:
-            self._update_surface()
+        if "surface" in dirty or "camera" in dirty or self._dirty_surfaces:
+            self._update_surfaces()
         if "points" in dirty:
             self._update_points()
         if "camera" in dirty or not self._camera_set:
@@ -140,7 +174,7 @@ class VolumeView(QWidget):
                 actor.texture = texture
 
     def show_factor(self, index: int | None) -> None:
-        """Colour the surface by how far factor ``index`` moves each vertex (None: plain).
+        """Colour the active surface by how far factor ``index`` moves each vertex (None: plain).
 
         With a local-support model (SPLOCS, LSF, Varimax) this shows the one region that a
         factor slider moves.
@@ -149,54 +183,66 @@ class VolumeView(QWidget):
         if index == self._factor:
             return
         self._factor = index
-        self._surface_style_changed = True
+        self._dirty_surfaces.add(self.state.active.id)
         self._mark("surface")
 
-    def _update_surface(self) -> None:
-        vertices = self.state.surface_vertices()
-        model = self.state.model
-        if vertices is None:
-            if self._surface_actor is not None:
-                self.plotter.remove_actor(self._surface_actor)
-                self._surface_actor, self._surface_mesh = None, None
-            return
-        if self._factor is not None and self._factor >= model.n_factors:
+    def _update_surfaces(self) -> None:
+        """Add, restyle, move or remove each structure's surface actor."""
+        active = self.state.active
+        model = active.model
+        if self._factor is not None and (model is None or self._factor >= model.n_factors):
             self._factor = None
-        same_mesh = self._surface_mesh is not None and self._surface_mesh.n_points == len(vertices)
-        if same_mesh and not self._surface_style_changed:
-            self._surface_mesh.points = vertices
-            self._surface_mesh.compute_normals(inplace=True, cell_normals=False, split_vertices=False)
-            return
-        self._surface_style_changed = False
-        self._surface_mesh = surface_polydata(vertices, model.faces)
-        if self._factor is None:
-            self._surface_actor = self.plotter.add_mesh(
-                self._surface_mesh, color=SURFACE_COLOR, opacity=0.65, smooth_shading=True,
-                name="surface", reset_camera=False, specular=0.3)
-        else:
-            sd = float(np.sqrt(model.coef_var[self._factor]))
-            self._surface_mesh["factor displacement (mm per SD)"] = \
-                sd * np.linalg.norm(model.factors[self._factor], axis=1)
-            self._surface_actor = self.plotter.add_mesh(
-                self._surface_mesh, scalars="factor displacement (mm per SD)", cmap="plasma",
-                clim=[0.0, max(float(self._surface_mesh["factor displacement (mm per SD)"].max()), 1e-6)],
-                opacity=1.0, smooth_shading=True, name="surface", reset_camera=False,
-                scalar_bar_args={"title": f"F{self._factor + 1} mm/SD", "vertical": True,
-                                 "position_x": 0.84, "position_y": 0.1, "height": 0.6,
-                                 "width": 0.07, "color": "white", "fmt": "%.1f"})
-            # turn the view to the factor's region (it may face away from the camera), and let
-            # the slice planes, which may stand in front of it, fade while it is shown
-            face_camera_to(self.plotter, vertices, model.faces,
-                           int(np.argmax(self._surface_mesh["factor displacement (mm per SD)"])))
+        present = {s.id for s in self.state.structures}
+        for sid in [sid for sid in self._surfaces if sid not in present]:
+            self.plotter.remove_actor(self._surfaces.pop(sid)[0])
+        dirty, self._dirty_surfaces = self._dirty_surfaces, set()
+        rebuild, self._new_models = self._new_models, set()
+        for s in self.state.structures:
+            vertices = s.surface_vertices()
+            entry = self._surfaces.get(s.id)
+            if vertices is None or not s.visible:
+                if entry is not None:
+                    self.plotter.remove_actor(self._surfaces.pop(s.id)[0])
+                continue
+            style = (s.color, s is active, self._factor if s is active else None)
+            if entry is not None and entry[2] == style and s.id not in rebuild:
+                if s.id in dirty:
+                    entry[1].points = vertices
+                    entry[1].compute_normals(inplace=True, cell_normals=False, split_vertices=False)
+                continue
+            self._surfaces[s.id] = self._add_surface(s, vertices, style)
         if self._factor is None:
             for name in list(self.plotter.scalar_bars.keys()):
                 self.plotter.remove_scalar_bar(name)
         for actor in self._plane_actors.values():
             actor.prop.opacity = PLANE_OPACITY if self._factor is None else 0.2
 
+    def _add_surface(self, s: Structure, vertices: np.ndarray, style: tuple) -> tuple:
+        color, is_active, factor = style
+        mesh = surface_polydata(vertices, s.model.faces)
+        name = f"surface-{s.id}"
+        if factor is None:
+            actor = self.plotter.add_mesh(
+                mesh, color=tuple(c / 255 for c in color), smooth_shading=True, name=name,
+                opacity=SURFACE_OPACITY if is_active else INACTIVE_OPACITY,
+                reset_camera=False, specular=0.3)
+            return actor, mesh, style
+        mesh[FACTOR_SCALARS] = s.factor_displacement(factor)
+        actor = self.plotter.add_mesh(
+            mesh, scalars=FACTOR_SCALARS, cmap="plasma",
+            clim=[0.0, max(float(mesh[FACTOR_SCALARS].max()), 1e-6)],
+            opacity=1.0, smooth_shading=True, name=name, reset_camera=False,
+            scalar_bar_args={"title": f"F{factor + 1} mm/SD", "vertical": True,
+                             "position_x": 0.84, "position_y": 0.1, "height": 0.6,
+                             "width": 0.07, "color": "white", "fmt": "%.1f"})
+        # turn the view to the factor's region (it may face away from the camera), and let
+        # the slice planes, which may stand in front of it, fade while it is shown
+        face_camera_to(self.plotter, vertices, s.model.faces, int(np.argmax(mesh[FACTOR_SCALARS])))
+        return actor, mesh, style
+
     def _update_points(self) -> None:
         pts = self.state.points
-        if len(pts) == 0:
+        if len(pts) == 0 or not self.state.active.visible:
             if self._points_actor is not None:
                 self.plotter.remove_actor(self._points_actor)
                 self._points_actor, self._points_mesh = None, None
@@ -210,20 +256,18 @@ class VolumeView(QWidget):
             render_points_as_spheres=True, name="points", reset_camera=False)
 
     def reset_camera(self) -> None:
-        """Look at the model (or the image) from anterior-left-superior."""
+        """Look at the active structure (or the image) from anterior-left-superior."""
         vertices = self.state.surface_vertices()
         if vertices is not None:
             center = vertices.mean(axis=0)
-            radius = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-            distance = max(radius * 2.8, 90.0)
+            distance = max(math.dist(vertices.max(axis=0), vertices.min(axis=0)) * 2.8, 90.0)
         elif self.state.volume is not None:
             lo, hi = self.state.volume.world_bounds()
-            center, distance = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) * 1.6
+            center, distance = (lo + hi) / 2, math.dist(hi, lo) * 1.6
         else:
             return
-        direction = np.array([-0.55, 0.75, 0.45])
-        direction /= np.linalg.norm(direction)
-        self.plotter.camera_position = [tuple(center + distance * direction), tuple(center), (0, 0, 1)]
+        self.plotter.camera_position = [tuple(center + distance * VIEW_DIRECTION), tuple(center),
+                                        (0, 0, 1)]
         self.plotter.reset_camera_clipping_range()
         self._camera_set = True
 

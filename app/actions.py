@@ -1,0 +1,135 @@
+"""The main window's actions, menus and toolbar (what each menu entry and key calls)."""
+
+from __future__ import annotations
+
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QAction, QActionGroup, QKeySequence
+from PySide6.QtWidgets import QMainWindow, QMessageBox, QToolBar
+
+from app.panels.tools import WINDOW_PRESETS
+from core import __version__
+
+SHORTCUTS = [
+    ("Ctrl+O", "Open image"), ("Ctrl+M", "Load model"), ("Ctrl+Shift+O", "Open session"),
+    ("Ctrl+S", "Save session"), ("Ctrl+E", "Export label map, mesh and points"),
+    ("Ctrl+Z", "Undo"), ("Ctrl+Shift+Z", "Redo"),
+    ("Delete", "Remove the point under the cursor (else the last point)"),
+    ("Page Up / Page Down, wheel", "Next / previous slice in the active view"),
+    ("N / D / W", "Tool: navigate / draw contour / window-level"),
+    ("P", "Place the model at the crosshair"), ("R", "Reset the views"),
+    ("Left click (navigate)", "Move the crosshair"),
+    ("Left click or drag (draw)", "Add contour points on the slice"),
+    ("Ctrl+left click (draw)", "Delete the point under the cursor"),
+    ("Shift+left drag", "Window/level"), ("Right drag / Ctrl+wheel", "Zoom"),
+    ("Middle drag", "Pan"),
+]
+
+ABOUT = (f"<b>SSM Studio {__version__}</b><br>Shape-model-based interactive segmentation of "
+         "deep brain structures.<br>Slice views in world RAS coordinates, radiological "
+         "convention (patient right on screen left).")
+
+
+def show_shortcuts(parent) -> None:
+    rows = "".join(f"<tr><td><b>{k}</b></td><td>&nbsp;&nbsp;{v}</td></tr>" for k, v in SHORTCUTS)
+    QMessageBox.information(parent, "Keyboard and mouse", f"<table>{rows}</table>")
+
+
+def _action(window: QMainWindow, text: str, slot, shortcut=None, tip: str = "") -> QAction:
+    action = QAction(text, window)
+    if shortcut is not None:
+        action.setShortcut(QKeySequence(shortcut))
+    if tip:
+        action.setToolTip(tip)
+        action.setStatusTip(tip)
+    action.triggered.connect(slot)
+    window.addAction(action)
+    return action
+
+
+def create_actions(w) -> None:
+    """Create the ``act_*`` actions and ``tool_actions`` of main window ``w``."""
+    key, state = QKeySequence.StandardKey, w.state
+
+    def a(*args):
+        return _action(w, *args)
+
+    w.act_open_image = a("&Open image…", lambda: w.open_dialog("image"), key.Open,
+                        "Open a NIfTI image (.nii, .nii.gz)")
+    w.act_load_model = a("Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
+                        "Load a shape model (.npz)")
+    w.act_open_session = a("Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
+    w.act_save_session = a("&Save session", w.save_session, key.Save)
+    w.act_save_session_as = a("Save session &as…", lambda: w.save_session(ask=True))
+    w.act_export = a("&Export all…", w.export_all_dialog, "Ctrl+E",
+                    "Export the label map (NIfTI), the surface mesh and the points")
+    w.act_export_labels = a("Export label map…", lambda: w.export_dialog("labels"))
+    w.act_export_mesh = a("Export surface mesh…", lambda: w.export_dialog("mesh"))
+    w.act_export_points = a("Export points…", lambda: w.export_dialog("points"))
+    w.act_import_points = a("Import points…", lambda: w.open_dialog("points"))
+    w.act_quit = a("&Quit", w.close, key.Quit)
+    w.act_undo = a("&Undo", w.undo, "Ctrl+Z")
+    w.act_redo = a("&Redo", w.redo, "Ctrl+Shift+Z")
+    w.act_delete = a("&Delete point", w.delete_point, key.Delete,
+                    "Remove the point under the cursor, else the last point")
+    w.act_clear_slice = a("Clear &slice", w.clear_active_slice, None,
+                         "Remove the points of the active view's slice")
+    w.act_clear_points = a("Clear &all points", state.clear_points)
+    w.act_place = a("&Place model here", w.place_here, "P",
+                       "Move the model so that its centre is at the crosshair")
+    w.act_reset_pose = a("Reset model pose", state.reset_placement, None,
+                        "Back to the model's stored position and mean shape")
+    w.act_next_slice = a("Next slice", lambda: state.step_slice(w.active_view, 1),
+                        QKeySequence(Qt.Key.Key_PageUp))
+    w.act_prev_slice = a("Previous slice", lambda: state.step_slice(w.active_view, -1),
+                        QKeySequence(Qt.Key.Key_PageDown))
+    w.act_reset_views = a("&Reset views", w.reset_views, "R")
+    w.act_shortcuts = a("&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
+    w.act_about = a("&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
+    w.tool_group = QActionGroup(w)
+    w.tool_actions = {}
+    for tool, text, shortcut in (("navigate", "Navigate", "N"), ("draw", "Draw contour", "D"),
+                                 ("window", "Window/level", "W")):
+        action = a(text, lambda checked=False, t=tool: w.set_tool(t), shortcut)
+        action.setCheckable(True)
+        w.tool_group.addAction(action)
+        w.tool_actions[tool] = action
+    w.tool_actions["navigate"].setChecked(True)
+
+
+def create_menus(w) -> None:
+    """The menu bar of main window ``w``."""
+    bar = w.menuBar()
+    menus = {
+        "&File": (w.act_open_image, w.act_load_model, None, w.act_open_session,
+                  w.act_save_session, w.act_save_session_as, None,
+                  w.act_import_points, w.act_export, w.act_export_labels,
+                  w.act_export_mesh, w.act_export_points, None, w.act_quit),
+        "&Edit": (w.act_undo, w.act_redo, None, w.act_delete, w.act_clear_slice,
+                  w.act_clear_points, None, w.act_place, w.act_reset_pose),
+        "&View": (*w.tool_actions.values(), None, w.act_next_slice,
+                  w.act_prev_slice, w.act_reset_views),
+    }
+    for title, actions in menus.items():
+        menu = bar.addMenu(title)
+        for act in actions:
+            menu.addSeparator() if act is None else menu.addAction(act)
+        if title == "&View":
+            presets = menu.addMenu("Window/level preset")
+            for name in WINDOW_PRESETS:
+                presets.addAction(name, lambda n=name: w.apply_window_preset(n))
+    help_menu = bar.addMenu("&Help")
+    help_menu.addAction(w.act_shortcuts)
+    help_menu.addAction(w.act_about)
+
+
+def create_toolbar(w) -> QToolBar:
+    """The main toolbar of main window ``w``."""
+    bar = QToolBar("Main")
+    bar.setObjectName("main-toolbar")
+    bar.setMovable(False)
+    for act in (w.act_open_image, w.act_load_model, w.act_save_session, w.act_export,
+                None, *w.tool_actions.values(), None, w.act_undo, w.act_redo,
+                w.act_place, w.act_reset_views):
+        bar.addSeparator() if act is None else bar.addAction(act)
+    w.addToolBar(Qt.ToolBarArea.TopToolBarArea, bar)
+    return bar

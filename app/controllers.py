@@ -1,0 +1,209 @@
+"""Session and export logic of the segmentation workspace (3D Slicer's *Logic*; no Qt).
+
+The window's actions call these with file paths; they read and write through ``core`` and
+change the :class:`app.state.WorkspaceState`, raise ``ValueError``/``OSError`` (a
+``core.io.DataFileError`` names the file) for the window to show, and return the one-line
+message for the status bar. The refit, which needs a worker thread, is in
+:mod:`app.refit`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from app.state import FRAME_NAMES, Points, Structure, WorkspaceState
+from core.io import load_model, load_volume, save_mesh, save_points, save_volume
+
+
+class SessionController:
+    """What is open: the image, the structures' models, the session file and its recovery."""
+
+    def __init__(self, state: WorkspaceState):
+        self.state = state
+
+    # -- image and models --------------------------------------------------------------
+    def open_image(self, path: str | os.PathLike) -> str:
+        """Load a NIfTI image (raises DataFileError); the crosshair goes to the model."""
+        volume = load_volume(path)
+        self.state.set_image(volume, path)
+        self.center_on_model()
+        return (f"Opened {Path(path).name}: {volume.shape[0]}x{volume.shape[1]}x"
+                f"{volume.shape[2]} voxels, {' '.join(f'{s:.2g}' for s in volume.spacing)} mm")
+
+    def open_model(self, path: str | os.PathLike, coef=None, pose=None,
+                   structure: Structure | None = None) -> str:
+        """Load a shape model into ``structure`` (the active one) at its stored placement."""
+        model = load_model(path)
+        structure = structure or self.state.active
+        structure.set_model(model, path, coef=coef, pose=pose)
+        structure.clear_history()
+        self.center_on_model()
+        centre = structure.surface_vertices().mean(axis=0)
+        if self.state.volume is not None:
+            lo, hi = self.state.volume.world_bounds()
+            if np.any(centre < lo) or np.any(centre > hi):
+                return (f"Model {Path(path).name} lies outside the image: "
+                        "use 'Place here' to move it to the crosshair")
+        return (f"Loaded model {Path(path).name}: {model.method}, "
+                f"{model.n_factors} factors, {model.n_vertices} vertices")
+
+    def center_on_model(self) -> None:
+        vertices = self.state.surface_vertices()
+        if vertices is not None and self.state.volume is not None:
+            self.state.set_crosshair(vertices.mean(axis=0))
+
+    # -- sessions ----------------------------------------------------------------------
+    def to_session(self, fit_settings: dict):
+        """The current work as a :class:`core.session.Session` (the active structure's)."""
+        from core.session import Session
+
+        state = self.state
+        s = state.active
+        pts = s.points
+        return Session(
+            image_path=state.image_path, model_path=s.model_path,
+            points=pts.xyz.copy(), normals=s.point_normals() if len(pts) else None,
+            point_slices=[(FRAME_NAMES[int(f)], float(d)) for f, d in zip(pts.frame, pts.depth)],
+            coef=None if s.coef is None else s.coef.copy(),
+            pose=None if s.pose is None else s.pose.copy(),
+            fit=dict(fit_settings), window=(state.window, state.level),
+            crosshair=state.crosshair.copy(), info={"written_by": "ssm-studio"},
+        )
+
+    def apply(self, session) -> dict:
+        """Restore image, model, points, window and crosshair; returns the fit settings.
+
+        The stored fit is shown as it was saved (no refit), and the undo history starts
+        empty.
+        """
+        if session.image_path is not None:
+            self.open_image(session.image_path)
+        structure = self.state.active
+        if session.model_path is not None:
+            self.open_model(session.model_path, coef=session.coef, pose=session.pose,
+                            structure=structure)
+        xyz = np.asarray(session.points, dtype=np.float64).reshape(-1, 3)
+        slices = session.point_slices or [("axial", float(p[2])) for p in xyz]
+        frames = [FRAME_NAMES.index(name if isinstance(name, str)
+                                    else ("sagittal", "coronal", "axial")[int(name)])
+                  for name, _ in slices]
+        points = Points(xyz.copy(), np.asarray(frames, dtype=np.int64).reshape(-1),
+                        np.asarray([float(d) for _, d in slices]).reshape(-1))
+        structure.set_points(points, checkpoint=False, edited=False)
+        if session.window is not None:
+            self.state.set_window(*session.window)
+        if session.crosshair is not None:
+            self.state.set_crosshair(session.crosshair)
+        self.state.clear_history()
+        return dict(session.fit or {})
+
+    @staticmethod
+    def read(path: str | os.PathLike):
+        from core import session as sessions
+
+        return sessions.load_session(path)
+
+    def save(self, path: str | os.PathLike, fit_settings: dict) -> str:
+        from core import session as sessions
+
+        if self.state.image_path is None:
+            raise ValueError("nothing to save: open an image first")
+        sessions.save_session(path, self.to_session(fit_settings))
+        return f"Saved session {Path(path).name}"
+
+    @staticmethod
+    def pending_recovery():
+        """(session, question to ask) left by a run that did not exit normally, or None.
+
+        An unreadable recovery file is discarded, then its error raised.
+        """
+        from core import session as sessions
+
+        try:
+            session = sessions.read_recovery()
+        except (ValueError, OSError):
+            sessions.clear_recovery()
+            raise
+        if session is None:
+            return None
+        n_points = len(np.asarray(session.points).reshape(-1, 3))
+        return session, (f"SSM Studio did not close normally last time. Restore the unsaved "
+                         f"session ({n_points} contour point(s))?")
+
+    @staticmethod
+    def clear_recovery() -> None:
+        from core import session as sessions
+
+        sessions.clear_recovery()
+
+    def write_recovery(self, fit_settings: dict) -> None:
+        from core import session as sessions
+
+        sessions.write_recovery(self.to_session(fit_settings))
+
+
+class ExportController:
+    """Label map, surface mesh and points out; points in."""
+
+    def __init__(self, state: WorkspaceState):
+        self.state = state
+
+    def label_map(self, structure: Structure | None = None) -> np.ndarray:
+        """The fitted surface as a uint8 label map on the image grid (1 inside)."""
+        from core.segmentation import voxelize
+
+        s = structure or self.state.active
+        if s.model is None or self.state.volume is None:
+            raise ValueError("need an image and a fitted model to export a label map")
+        volume = self.state.volume
+        return voxelize(s.surface_vertices(), s.model.faces, volume.shape, volume.affine)
+
+    def export_labels(self, path: str | os.PathLike) -> str:
+        labels = self.label_map()
+        save_volume(path, labels.astype(np.uint8), self.state.volume.affine)
+        return f"Exported label map {Path(path).name}: {int(labels.sum())} voxels inside"
+
+    def export_mesh(self, path: str | os.PathLike) -> str:
+        from core.io import TriMesh
+
+        s = self.state.active
+        if s.model is None:
+            raise ValueError("no model loaded: nothing to export")
+        save_mesh(path, TriMesh(s.surface_vertices(), s.model.faces))
+        return f"Exported surface {Path(path).name}"
+
+    def export_points(self, path: str | os.PathLike) -> str:
+        s = self.state.active
+        if len(s.points) == 0:
+            raise ValueError("no contour points to export")
+        save_points(path, s.points.xyz, s.point_normals())
+        return f"Exported {len(s.points)} points to {Path(path).name}"
+
+    def export_all(self, folder: str | os.PathLike) -> list[Path]:
+        """Label map, mesh and points (CSV and Slicer markups) into ``folder``."""
+        folder = Path(folder)
+        written = []
+        if self.state.model is not None and self.state.volume is not None:
+            written.append(folder / "segmentation.nii.gz")
+            self.export_labels(written[-1])
+            written.append(folder / "surface.vtk")
+            self.export_mesh(written[-1])
+        if len(self.state.points):
+            for name in ("points.csv", "points.mrk.json"):
+                written.append(folder / name)
+                self.export_points(written[-1])
+        return written
+
+    def import_points(self, path: str | os.PathLike) -> str:
+        """Add points from CSV / Slicer markups; each is assigned to the nearest axial slice."""
+        from core.io import load_points
+
+        pset = load_points(path)
+        points = self.state.points
+        for xyz in pset.points:
+            points = points.append(xyz, 0, float(xyz[2]))
+        self.state.set_points(points, checkpoint=True)
+        return f"Imported {len(pset)} point(s) from {Path(path).name}"
