@@ -19,6 +19,7 @@ import nibabel as nib
 import numpy as np
 import pytest
 import pyvista as pv
+import vtk
 
 from core import io
 from core.io import DataFileError, PointSet, TriMesh
@@ -914,11 +915,18 @@ def test_failed_mesh_save_keeps_previous_file(tmp_path, monkeypatch):
     io.save_mesh(target, sphere_mesh())
     before = target.read_bytes()
 
-    def failing_save(self, filename, *args, **kwargs):
-        Path(filename).write_bytes(b"# vtk DataFile Version 5.1\npartial")
-        raise OSError("disk full")
+    class FailingWriter:  # stands in for vtkPolyDataWriter: writes part of the file, fails
+        def SetFileName(self, filename):
+            self.filename = filename
 
-    monkeypatch.setattr(pv.PolyData, "save", failing_save)
+        def Write(self):
+            Path(self.filename).write_bytes(b"# vtk DataFile Version 4.2\npartial")
+            raise OSError("disk full")
+
+        def __getattr__(self, name):  # the other setters do nothing
+            return lambda *args: None
+
+    monkeypatch.setattr(vtk, "vtkPolyDataWriter", FailingWriter)
     with pytest.raises(OSError, match="disk full"):
         io.save_mesh(target, sphere_mesh())
     assert target.read_bytes() == before

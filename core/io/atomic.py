@@ -1,7 +1,10 @@
 """Atomic saves: write to a temporary file beside the target, then rename it over.
 
 A killed or failing writer never leaves a truncated file at the target path: the previous
-file stays until the rename, which POSIX and NTFS make atomic within one folder.
+file stays until the rename, which POSIX and NTFS make atomic within one folder. A killed
+writer does leave its hidden temporary file (``.NAME.<pid>.XXXX.tmp.EXT``): the next save
+of the same name removes those of processes that are no longer running, and folder
+expansion (:func:`core.io.meshes.expand_mesh_paths`) never reads hidden or temporary files.
 """
 
 from __future__ import annotations
@@ -9,7 +12,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,6 +32,66 @@ def _current_umask() -> int:
 
 _UMASK = _current_umask()
 
+# .<name>.<pid>.<random>.tmp<suffix>; older versions wrote .<name>.<random>.tmp<suffix>
+_TEMP_PATTERN = re.compile(r"^\.(?P<name>.+?)\.(?:(?P<pid>\d+)\.)?[^.]+\.tmp(?:\.[^/]*)?$")
+_STALE_WITHOUT_PID_S = 3600.0
+
+
+def is_temporary_name(name: str) -> bool:
+    """Whether ``name`` is one of :func:`atomic_path`'s temporary files."""
+    return bool(_TEMP_PATTERN.match(name))
+
+
+def _safe_name(name: str) -> str:
+    """File name text usable inside a temporary name by every writer (ASCII, no spaces).
+
+    VTK's writers cannot open names that are not valid UTF-8 (lone surrogates from a
+    non-UTF-8 file system name); the temporary file only needs to be recognisable.
+    """
+    return re.sub(r"[^A-Za-z0-9_+=-]", "_", name.rsplit(".", 1)[0])[:60] or "file"
+
+
+def _process_gone(pid: int) -> bool:
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, OSError):
+        return False
+    return False
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Remove temporary files left beside ``path`` by killed writers; returns them.
+
+    A temporary file is stale when the process that made it has ended (its pid is in the
+    name), or, for names without a pid, when it is older than an hour.
+    """
+    path = Path(path)
+    removed = []
+    prefix = f".{_safe_name(path.name)}."
+    try:
+        candidates = [p for p in path.parent.iterdir() if p.name.startswith(prefix)]
+    except OSError:
+        return removed
+    for candidate in candidates:
+        match = _TEMP_PATTERN.match(candidate.name)
+        if not match:
+            continue
+        try:
+            if match["pid"] is not None:
+                stale = _process_gone(int(match["pid"]))
+            else:
+                stale = time.time() - candidate.stat().st_mtime > _STALE_WITHOUT_PID_S
+            if stale:
+                candidate.unlink()
+                removed.append(candidate)
+        except OSError:
+            continue
+    return removed
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterator[Path]:
@@ -39,8 +104,9 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{file_suffix(path)}",
-                               dir=path.parent)
+    remove_stale_temporaries(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{_safe_name(path.name)}.{os.getpid()}.",
+                               suffix=f".tmp{file_suffix(path)}", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:

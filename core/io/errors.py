@@ -6,7 +6,11 @@ the file and the problem; library exceptions are translated, never passed on.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import stat
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -16,7 +20,42 @@ class DataFileError(ValueError):
     def __init__(self, path: str | os.PathLike, problem: str):
         self.path = str(path)
         self.problem = problem
-        super().__init__(f"{self.path}: {problem}")
+        super().__init__(f"{display_path(path)}: {problem}")
+
+
+class DataFileWarning(UserWarning):
+    """Something a reader noticed and worked around; the message names the file."""
+
+
+def display_path(path: str | os.PathLike) -> str:
+    """``path`` as printable text: bytes of a non-UTF-8 file name shown as U+FFFD.
+
+    Such names reach Python as lone surrogates (PEP 383), which cannot be encoded as UTF-8,
+    so a message holding them would fail to print or to be written into a JSON report.
+    """
+    text = os.fspath(path)
+    if isinstance(text, bytes):
+        text = os.fsdecode(text)
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
+@contextlib.contextmanager
+def warnings_as_notes(path: str | os.PathLike) -> Iterator[None]:
+    """Catch the warnings libraries (nibabel, numpy) raise while reading ``path`` and re-issue
+    each as one :class:`DataFileWarning` naming the file (not a two-line stderr report)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    seen = set()
+    for item in caught:
+        text = " ".join(str(item.message).split())[:300]
+        if isinstance(item.message, DataFileWarning):
+            note = text
+        else:
+            note = f"{display_path(path)}: {text}"
+        if note not in seen:
+            seen.add(note)
+            warnings.warn(DataFileWarning(note), stacklevel=3)
 
 
 def why(exc: BaseException, path: Path | None = None) -> str:
@@ -24,6 +63,7 @@ def why(exc: BaseException, path: Path | None = None) -> str:
     text = str(exc)
     if path is not None:
         text = text.replace(str(path), "the file")
+    text = display_path(text)
     text = " ".join(text.split())
     return text[:300] if text else type(exc).__name__
 
@@ -31,11 +71,22 @@ def why(exc: BaseException, path: Path | None = None) -> str:
 def require_file(path: str | os.PathLike) -> Path:
     """``path`` as a Path if it is a readable, non-empty file; else a DataFileError."""
     path = Path(path)
-    if not path.exists():
-        raise DataFileError(path, "file not found")
-    if path.is_dir():
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise DataFileError(path, "file not found") from None
+    except OSError as exc:  # a loop of links, a name too long, a folder not searchable
+        raise DataFileError(path, f"cannot access the file ({why(exc, path)})") from None
+    mode = info.st_mode
+    if stat.S_ISDIR(mode):
         raise DataFileError(path, "is a folder, not a file")
-    if path.stat().st_size == 0:
+    if stat.S_ISFIFO(mode):
+        raise DataFileError(path, "is a named pipe (FIFO), not a regular file")
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        raise DataFileError(path, "is a device, not a regular file")
+    if stat.S_ISSOCK(mode):
+        raise DataFileError(path, "is a socket, not a regular file")
+    if info.st_size == 0:
         raise DataFileError(path, "file is empty (0 bytes)")
     if not os.access(path, os.R_OK):
         raise DataFileError(path, "permission denied (the file is not readable)")

@@ -1,8 +1,12 @@
 """NIfTI-1 and NIfTI-2 volumes (.nii, .nii.gz) through nibabel.
 
 Kept with nibabel's best voxel->world affine (sform if set, else qform; RAS, mm), oblique
-affines included. The header is checked by us first so that truncated, non-NIfTI,
-.hdr/.img pair and CIFTI files get precise errors.
+affines included, and with both orientation records (:class:`NiftiOrientation`) so that a
+label map written on the image's grid gets the image's own sform, qform and codes. The
+header is checked by us first so that truncated, non-NIfTI, .hdr/.img pair and CIFTI files
+get precise errors, and the data size it declares is checked against the file size and the
+memory before anything is allocated. A .nii.gz is decompressed once, by us, to its end, so
+that a damaged deflate stream is caught by the gzip CRC instead of yielding wrong voxels.
 """
 
 from __future__ import annotations
@@ -10,14 +14,16 @@ from __future__ import annotations
 import gzip
 import os
 import zlib
+from math import prod
 from pathlib import Path
 
 import numpy as np
 
 from core.io.atomic import atomic_path
 from core.io.errors import DataFileError, require_file, why
+from core.io.limits import DEFLATE_MAX_RATIO, check_declared_size
 from core.io.registry import FileFormat, file_suffix, register
-from core.types.volume import Volume
+from core.types.volume import NiftiOrientation, Volume
 
 VOLUME_SUFFIXES = (".nii", ".nii.gz")
 
@@ -38,6 +44,47 @@ def _read_head(path: Path, n_bytes: int) -> bytes:
             raise DataFileError(path, f"truncated or corrupt gzip data ({exc})") from None
     with open(path, "rb") as fh:
         return fh.read(n_bytes)
+
+
+def _check_data_size(path: Path, image_class, head: bytes) -> int:
+    """The bytes header + voxel data take, after checking them against file and memory."""
+    import io as _bytes_io
+
+    try:
+        header = image_class.header_class.from_fileobj(_bytes_io.BytesIO(head), check=False)
+        shape = [int(s) for s in header.get_data_shape()]
+        itemsize = int(header.get_data_dtype().itemsize)
+        offset = int(header.get_data_offset())
+    except Exception as exc:  # nibabel raises many types for bad headers
+        raise DataFileError(path, f"invalid NIfTI header ({type(exc).__name__}: "
+                                  f"{why(exc, path)})") from None
+    if any(s < 0 for s in shape):
+        raise DataFileError(path, f"invalid NIfTI header (negative dimension in {tuple(shape)})")
+    n_bytes = prod(shape) * itemsize
+    what = f"{'x'.join(map(str, shape))} voxels"
+    size = path.stat().st_size
+    if path.name.lower().endswith(".gz"):
+        check_declared_size(path, n_bytes, what, max_ratio=DEFLATE_MAX_RATIO)
+    else:
+        check_declared_size(path, n_bytes, what, stored=max(size - offset, 0),
+                            truncated="image data are truncated or corrupt")
+    return offset + n_bytes
+
+
+def _gunzip_checked(path: Path, keep: int) -> bytes:
+    """The first ``keep`` decompressed bytes; the rest is decompressed and discarded so
+    that the CRC and length at the end of the gzip stream are verified."""
+    try:
+        with gzip.open(path, "rb") as fh:
+            data = fh.read(keep)
+            while fh.read(1 << 22):
+                pass
+    except gzip.BadGzipFile as exc:
+        raise DataFileError(path, f"corrupt gzip data ({why(exc, path)}): the image would "
+                                  "be wrong, it is not read") from None
+    except (EOFError, zlib.error) as exc:
+        raise DataFileError(path, f"truncated or corrupt gzip data ({why(exc, path)})") from None
+    return data
 
 
 def _nifti_class(path: Path):
@@ -99,8 +146,14 @@ def load_nifti(path: str | os.PathLike) -> Volume:
         raise DataFileError(path, f"not a NIfTI file name (expected .nii or .nii.gz, got "
                                   f"'{file_suffix(path) or path.name}')")
     image_class = _nifti_class(path)
+    needed = _check_data_size(path, image_class, _read_head(path, _NIFTI2_HEADER_SIZE))
     try:
-        img = image_class.from_filename(str(path))
+        if path.name.lower().endswith(".gz"):
+            img = image_class.from_bytes(_gunzip_checked(path, needed))
+        else:
+            img = image_class.from_filename(str(path))
+    except DataFileError:
+        raise
     except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
         raise DataFileError(path, f"truncated or corrupt gzip data ({why(exc, path)})") from None
     except Exception as exc:  # nibabel raises many types for bad headers
@@ -148,15 +201,27 @@ def load_nifti(path: str | os.PathLike) -> Volume:
         data = data.astype(data.dtype.newbyteorder("="))
     if data.dtype.kind == "f" and not np.all(np.isfinite(data)):
         data = np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0)
-    return Volume(data=data, affine=affine, path=path)
+    header = img.header
+    sform, sform_code = header.get_sform(coded=True)
+    qform, qform_code = header.get_qform(coded=True)
+    orientation = NiftiOrientation(
+        sform=np.asarray(header.get_sform(), np.float64), sform_code=int(sform_code),
+        qform=np.asarray(header.get_qform(), np.float64), qform_code=int(qform_code),
+        pixdim=np.asarray(header["pixdim"][:4], np.float64))
+    return Volume(data=data, affine=affine, path=path, orientation=orientation)
 
 
-def save_nifti(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray) -> None:
+def save_nifti(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray, *,
+               like: Volume | None = None) -> None:
     """Write a 3D array as NIfTI-1 with ``affine`` as sform and qform (code 1, scanner).
 
     The sform keeps the affine exactly (to float32 precision); the qform holds its nearest
     rotation (a qform cannot store shear). Booleans are written as uint8, 64-bit integers as
     int32 when their range allows it (many tools cannot read 64-bit NIfTI), else float64.
+
+    ``like``: the image this array lies on (a label map of it). When it came from a NIfTI
+    file on the same grid, its own sform, qform and codes are written instead, so that every
+    viewer (ITK reads the qform where nibabel reads the sform) puts the two in one place.
     """
     import nibabel as nib
 
@@ -177,10 +242,26 @@ def save_nifti(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray) ->
         fits = data.size == 0 or (data.min() >= info.min and data.max() <= info.max)
         data = data.astype(np.int32 if fits else np.float64)
     img = nib.Nifti1Image(data, affine)
-    img.set_sform(affine, code=1)
-    img.set_qform(affine, code=1)
+    orientation = _orientation_of(like, data.shape, affine)
+    if orientation is None:
+        img.set_sform(affine, code=1)
+        img.set_qform(affine, code=1)
+    else:
+        img.set_qform(orientation.qform, code=orientation.qform_code)
+        img.set_sform(orientation.sform, code=orientation.sform_code)
+        img.header["pixdim"][:4] = orientation.pixdim
     with atomic_path(path) as tmp:
         nib.save(img, str(tmp))
+
+
+def _orientation_of(like: Volume | None, shape: tuple, affine: np.ndarray
+                    ) -> NiftiOrientation | None:
+    """``like``'s NIfTI records if ``like`` is on the grid being written, else None."""
+    if like is None or like.orientation is None or tuple(like.shape) != tuple(shape):
+        return None
+    if not np.allclose(like.affine, affine, atol=1e-6, rtol=1e-7):
+        return None
+    return like.orientation
 
 
 for _suffix in VOLUME_SUFFIXES:

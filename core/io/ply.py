@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from core.io.atomic import atomic_path
 from core.io.errors import DataFileError
 from core.io.polygons import polygons_to_triangles
+from core.io.vtk_meshes import space_in_text
 from core.types.trimesh import TriMesh
 
 # PLY scalar type names (both spellings of the PLY spec) -> numpy type codes.
@@ -165,21 +167,24 @@ def _ply_ascii_element(path: Path, lines: list[bytes], start: int,
     return out, start + n
 
 
-def load_ply(path: Path) -> TriMesh:
-    """Read a PLY surface (ascii or binary): 'vertex' x, y, z and 'face' vertex_indices."""
+def load_ply(path: Path) -> tuple[TriMesh, str | None]:
+    """Read a PLY surface (ascii or binary): 'vertex' x, y, z and 'face' vertex_indices.
+
+    Returns the mesh and the ``SPACE=`` tag of its comments (3D Slicer), or None.
+    """
     raw = path.read_bytes()
     fmt, elements, body_start = _parse_ply_header(path, raw)
-    data: dict[str, dict] = {}
-    if fmt == "ascii":
-        lines = [ln for ln in raw[body_start:].splitlines() if ln.strip()]
-        line = 0
-        for element in elements:
-            data[element.name], line = _ply_ascii_element(path, lines, line, element)
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        body, pos = memoryview(raw)[body_start:], 0
-        for element in elements:
-            data[element.name], pos = _ply_binary_element(path, body, pos, element, order)
+    face_element = next((e for e in elements if e.name == "face"), None)
+    if face_element is not None:
+        for name, _, count_type in face_element.properties:
+            if name in ("vertex_indices", "vertex_index") and count_type is None:
+                raise DataFileError(path, f"PLY face property '{name}' is a scalar, a face "
+                                          "needs a list of vertex indices")
+    try:
+        data = _read_ply_body(path, raw, fmt, elements, body_start)
+    except (ValueError, TypeError, IndexError, OverflowError) as exc:
+        raise DataFileError(path, f"corrupt PLY data ({' '.join(str(exc).split())[:120]})") \
+            from None
     vertex = data.get("vertex")
     if vertex is None or not all(k in vertex for k in "xyz"):
         raise DataFileError(path, "PLY file has no 'vertex' element with x, y, z")
@@ -191,4 +196,42 @@ def load_ply(path: Path) -> TriMesh:
     if key is None:
         raise DataFileError(path, "mesh has no triangles (no 'face' element: points only)")
     faces = polygons_to_triangles(face[key])
-    return TriMesh(vertices, faces, path.name)
+    header = raw[:body_start]
+    comments = b"\n".join(ln for ln in header.splitlines() if ln.startswith(b"comment"))
+    return TriMesh(vertices, faces, path.name), space_in_text(comments)
+
+
+def _read_ply_body(path: Path, raw: bytes, fmt: str, elements: list[_PlyElement],
+                   body_start: int) -> dict[str, dict]:
+    data: dict[str, dict] = {}
+    if fmt == "ascii":
+        lines = [ln for ln in raw[body_start:].splitlines() if ln.strip()]
+        line = 0
+        for element in elements:
+            data[element.name], line = _ply_ascii_element(path, lines, line, element)
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        body, pos = memoryview(raw)[body_start:], 0
+        for element in elements:
+            data[element.name], pos = _ply_binary_element(path, body, pos, element, order)
+    return data
+
+
+def save_ply(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
+             space: str = "RAS") -> None:
+    """Binary PLY through VTK's writer, with a ``comment SPACE=<space>`` line."""
+    import vtk
+
+    from core.io.vtk_meshes import vtk_errors
+
+    writer = vtk.vtkPLYWriter()
+    writer.SetFileTypeToBinary()
+    writer.AddComment(f"SSM Studio output. SPACE={space}")
+    with atomic_path(path) as tmp:
+        writer.SetFileName(str(tmp))
+        writer.SetInputData(mesh.to_polydata())
+        with vtk_errors() as errors:
+            ok = writer.Write()
+        if errors or not ok:
+            raise DataFileError(path, f"could not be written (VTK: "
+                                      f"{(errors or ['the writer failed'])[0][:200]})")

@@ -7,6 +7,7 @@ and :mod:`core.io.nrrd` (with 3D Slicer's ``.seg.nrrd``); DICOM series in
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -17,7 +18,7 @@ import core.io.dicom  # noqa: F401  (registers .dcm)
 import core.io.itk_image  # noqa: F401  (registers .mha, .mhd)
 import core.io.nifti  # noqa: F401  (registers .nii and .nii.gz)
 import core.io.nrrd  # noqa: F401  (registers .nrrd, .seg.nrrd, .nhdr)
-from core.io.errors import DataFileError, require_file
+from core.io.errors import DataFileError, require_file, warnings_as_notes
 from core.io.registry import file_suffix, lookup, suffixes
 from core.types.volume import Volume
 
@@ -56,14 +57,26 @@ def load_volume(path: str | os.PathLike, series: str | None = None,
         raise DataFileError(path, f"not an image file name (expected "
                                   f"{', '.join(suffixes('volume'))} or a DICOM folder; got "
                                   f"'{file_suffix(path) or path.name}')")
-    return fmt.read(path)
+    try:
+        with warnings_as_notes(path):
+            return fmt.read(path)
+    except MemoryError:
+        raise DataFileError(path, "not enough memory to read this image") from None
 
 
-def save_volume(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray) -> None:
-    """Write a 3D array with its voxel -> world affine; format by suffix."""
+def save_volume(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray, *,
+                like: Volume | None = None) -> None:
+    """Write a 3D array with its voxel -> world affine; format by suffix.
+
+    ``like``: the image the array lies on (for a label map): its header's orientation
+    records are reused where the format has them (see :func:`core.io.nifti.save_nifti`).
+    """
     path = Path(path)
     fmt = lookup(path, "volume")
     if fmt is None or fmt.write is None:
         writable = [s for s in suffixes("volume") if lookup(Path("x" + s), "volume").write]
         raise DataFileError(path, f"volumes are written as {', '.join(writable)}")
-    fmt.write(path, data, affine)
+    if like is not None and "like" in inspect.signature(fmt.write).parameters:
+        fmt.write(path, data, affine, like=like)
+    else:
+        fmt.write(path, data, affine)

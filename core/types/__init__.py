@@ -6,6 +6,6 @@ writes them (and re-exports them, so ``from core.io import TriMesh`` keeps worki
 
 from core.types.pointset import PointSet
 from core.types.trimesh import TriMesh
-from core.types.volume import Volume
+from core.types.volume import NiftiOrientation, Volume
 
-__all__ = ["PointSet", "TriMesh", "Volume"]
+__all__ = ["NiftiOrientation", "PointSet", "TriMesh", "Volume"]

@@ -12,6 +12,24 @@ import numpy as np
 
 
 @dataclass
+class NiftiOrientation:
+    """The two orientation records of a NIfTI header, kept so that an image written on
+    the grid of another (a label map) gets exactly that image's header.
+
+    ITK (and so ITK-SNAP and 3D Slicer) and nibabel do not always pick the same one of the
+    two (nibabel: sform when its code is set; ITK: the qform unless the sform code is 1 in
+    some versions), so a mask is only seen on its image in every viewer when both records
+    and their codes are copied. Codes: 0 unknown, 1 scanner, 2 aligned, 3 Talairach, 4 MNI.
+    """
+
+    sform: np.ndarray
+    sform_code: int
+    qform: np.ndarray
+    qform_code: int
+    pixdim: np.ndarray  # pixdim[0:4] as stored (qfac and voxel sizes)
+
+
+@dataclass
 class Volume:
     """A 3D image with its voxel -> world (RAS, mm) affine.
 
@@ -23,11 +41,14 @@ class Volume:
         Maps homogeneous voxel indices (i, j, k, 1) to world RAS mm (column vectors).
     path : Path or None
         Where it was read from.
+    orientation : NiftiOrientation or None
+        The sform/qform records of the NIfTI file it was read from (None otherwise).
     """
 
     data: np.ndarray
     affine: np.ndarray
     path: Path | None = None
+    orientation: NiftiOrientation | None = None
 
     def __post_init__(self) -> None:
         self.affine = np.asarray(self.affine, dtype=np.float64)
