@@ -104,7 +104,11 @@ class SessionController:
     def read(path: str | os.PathLike):
         from core import session as sessions
 
-        return sessions.load_session(path)
+        session = sessions.load_session(path)
+        if session.model_path is not None and session.model_path.exists():
+            # refuse a session that does not fit its model before applying any of it
+            sessions.check_session_model(session, load_model(session.model_path), path)
+        return session
 
     def save(self, path: str | os.PathLike, fit_settings: dict) -> str:
         from core import session as sessions
@@ -163,7 +167,8 @@ class ExportController:
 
     def export_labels(self, path: str | os.PathLike) -> str:
         labels = self.label_map()
-        save_volume(path, labels.astype(np.uint8), self.state.volume.affine)
+        save_volume(path, labels.astype(np.uint8), self.state.volume.affine,
+                    like=self.state.volume)  # the image's own sform/qform and codes
         return f"Exported label map {Path(path).name}: {int(labels.sum())} voxels inside"
 
     def export_mesh(self, path: str | os.PathLike) -> str:

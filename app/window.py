@@ -39,6 +39,7 @@ from app.state import WorkspaceState
 from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
 from app.workers import error_message
+from core.io.points import is_markups_file
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "run_gui"]
 
@@ -54,7 +55,8 @@ EXPORTS = {"labels": ("label map", "NIfTI (*.nii.gz *.nii)", "segmentation.nii.g
 OPEN_DIALOGS = {"image": ("Open image", "NIfTI images (*.nii *.nii.gz);;All files (*)"),
                 "model": ("Load shape model", "Shape models (*.npz);;All files (*)"),
                 "session": ("Open session", "Sessions (*.json);;All files (*)"),
-                "points": ("Import points", "Points (*.csv *.mrk.json);;All files (*)")}
+                "points": ("Import points", "Points (*.csv *.tsv *.fcsv *.mrk.json *.json);;"
+                                             "All files (*)")}
 
 
 class MainWindow(QMainWindow):
@@ -170,7 +172,8 @@ class MainWindow(QMainWindow):
                 self.load_image(path)
             elif name.endswith(".npz"):
                 self.load_model(path)
-            elif name.endswith((".mrk.json", ".csv")):
+            elif name.endswith((".mrk.json", ".csv", ".tsv", ".fcsv")) or \
+                    (name.endswith(".json") and is_markups_file(path)):
                 self.import_points(path)
             elif name.endswith(".json"):
                 self.open_session(path)

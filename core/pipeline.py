@@ -254,14 +254,17 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
 # --------------------------------------------------------------------------------------
 
 
-def load_training_meshes(inputs: Sequence[str], progress: ProgressCallback | None = None) -> list[TriMesh]:
+def load_training_meshes(inputs: Sequence[str], progress: ProgressCallback | None = None, *,
+                         isolate: bool = False, vertex_order: bool = False) -> list[TriMesh]:
     """Load mesh files; a folder stands for the mesh files inside it (sorted by name).
 
+    ``isolate`` and ``vertex_order`` as in :func:`core.io.load_meshes` (read in a child
+    process; refuse formats that lose vertex order, for corresponded inputs).
     Raises DataFileError / ValueError naming the file for unreadable input.
     """
     from pathlib import Path
 
-    from core.io import MESH_SUFFIXES, DataFileError, expand_mesh_paths, load_mesh
+    from core.io import MESH_SUFFIXES, DataFileError, expand_mesh_paths, load_meshes
 
     paths = []
     for item in inputs:
@@ -269,12 +272,11 @@ def load_training_meshes(inputs: Sequence[str], progress: ProgressCallback | Non
         if not found and Path(item).is_dir():
             raise DataFileError(item, f"folder contains no mesh files ({', '.join(MESH_SUFFIXES)})")
         paths.extend(p for p in found if p not in paths)
-    meshes = []
-    for i, p in enumerate(paths):
-        report(progress, i / max(len(paths), 1), f"reading {p.name}")
-        meshes.append(load_mesh(p))
-    report(progress, 1.0, f"{len(meshes)} meshes read")
-    return meshes
+    loaded, failures = load_meshes(paths, progress, isolate=isolate, vertex_order=vertex_order)
+    if failures:
+        name, problem = next(iter(failures.items()))
+        raise DataFileError(name, problem)
+    return [mesh for _, mesh in loaded]
 
 
 def parse_param_values(items: Sequence[str] | None) -> dict[str, Any]:

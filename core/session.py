@@ -23,6 +23,13 @@ never overwrite each other; :func:`read_recovery` only offers files of processes
 no longer running, and claims what it offers (renames it to this process's name), so it
 is offered once and then kept up to date by this run's autosaves or cleared.
 
+"No longer running" is not judged by the pid alone (a crashed run's pid may be a zombie, or
+reused by another program): a writing process holds an exclusive lock on
+``recovery-<pid>.lock`` (POSIX ``flock``, released by the kernel when the process ends,
+zombie or not), so a lock that can be taken means its writer is gone. For files without a
+lock file, the process start time recorded in the file is compared with that of the
+running pid (Linux ``/proc``), and zombies count as ended.
+
 The JSON layout (``format_version`` 1)::
 
     {
@@ -65,6 +72,7 @@ from typing import Any
 import numpy as np
 
 from core.io import DataFileError, atomic_path
+from core.io.errors import require_file
 
 SESSION_FORMAT = "ssm-studio-session"
 SESSION_FORMAT_VERSION = 1
@@ -216,13 +224,41 @@ class Session:
                 not np.all(np.isfinite([d for _, d in self.point_slices])):
             return "point_slices depths contain NaN or infinite values"
         weight = self.fit.get("prior_weight")
-        if weight is not None and (not isinstance(weight, (int, float)) or not np.isfinite(weight)):
-            return f"fit prior_weight must be a number, got {weight!r}"
+        if weight is not None and (not isinstance(weight, (int, float)) or isinstance(weight, bool)
+                                   or not np.isfinite(weight) or weight < 0):
+            return f"fit prior_weight must be a number >= 0, got {_short(weight)}"
+        from core.reconstruction import METHODS, POSES
+
+        for key, allowed in (("method", METHODS), ("pose", POSES)):
+            value = self.fit.get(key)
+            if value is not None and value not in allowed:
+                return f"fit {key} {_short(value)} is not one of {', '.join(allowed)}"
+        return None
+
+    def model_problem(self, model) -> str | None:
+        """Why this session's fit cannot be shown with ``model`` (a ShapeModel), or None."""
+        if self.coef is not None and self.coef.shape[0] != model.n_factors:
+            return (f"the session holds {self.coef.shape[0]} shape coefficients but the model "
+                    f"has {model.n_factors} factors (was the model rebuilt since?)")
         return None
 
     def missing_files(self) -> list[Path]:
         """Referenced image/model files that do not exist (after :func:`load_session`)."""
         return [p for p in (self.image_path, self.model_path) if p is not None and not p.exists()]
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_session_model(session: Session, model, source: str | os.PathLike) -> None:
+    """Raise :class:`DataFileError` naming ``source`` (the session file) when the session's
+    coefficients do not fit ``model``: refuse the session as a whole, before any of it is
+    applied, instead of failing half-way."""
+    problem = session.model_problem(model)
+    if problem:
+        raise DataFileError(source, problem)
 
 
 def _float_array(value: Any, name: str) -> np.ndarray:
@@ -397,7 +433,7 @@ def _from_document(doc: Any, source: Path, base: Path | None) -> Session:
             fit=doc.get("fit") or {}, window=doc.get("window"),
             crosshair=_unpacked(doc.get("crosshair"), "crosshair"), info=doc.get("info") or {},
         )
-    except ValueError as exc:
+    except (ValueError, TypeError, OverflowError) as exc:
         raise DataFileError(source, f"invalid session: {exc}") from None
 
 
@@ -429,6 +465,8 @@ def _read_document(path: Path) -> Any:
         raise DataFileError(path, "file not found")
     if path.is_dir():
         raise DataFileError(path, "is a folder, not a file")
+    if not path.is_file():
+        require_file(path)  # a FIFO or a device: say which
     raw = path.read_bytes()
     if not raw.strip():
         raise DataFileError(path, "file is empty")
@@ -439,6 +477,9 @@ def _read_document(path: Path) -> Any:
     except json.JSONDecodeError as exc:
         raise DataFileError(path, f"not valid JSON (line {exc.lineno}, column {exc.colno}: "
                                   f"{exc.msg}); truncated?") from None
+    except RecursionError:
+        raise DataFileError(path, "not a session file (JSON nested too deeply to be read)") \
+            from None
 
 
 def load_session(path: str | os.PathLike) -> Session:
@@ -510,10 +551,11 @@ def write_recovery(session: Session) -> Path:
     global _next_slot
     doc = _to_document(session, None, packed=True)
     doc["writer"] = {"pid": os.getpid(), "host": socket.gethostname(),
-                     "sequence": time.time_ns()}
+                     "sequence": time.time_ns(), "started": _start_time(os.getpid())}
     text = json.dumps(doc, separators=(",", ":"))
     target = _slot_paths(os.getpid())[_next_slot]
     target.parent.mkdir(parents=True, exist_ok=True)
+    _hold_lock()
     tmp = target.with_name(target.name + ".tmp")
     try:
         tmp.write_text(text, encoding="utf-8")
@@ -530,10 +572,103 @@ def _pid_of(path: Path) -> int | None:
     return int(stem) if stem.isdigit() else None
 
 
-def _process_running(pid: int) -> bool:
+def _lock_path(pid: int) -> Path:
+    return state_dir() / f"{_RECOVERY_PREFIX}{pid}.lock"
+
+
+_held_lock: tuple[Path, Any] | None = None  # (path, open file) of this process's lock
+
+
+def _hold_lock() -> None:
+    """Take this process's liveness lock (once; kept open until :func:`clear_recovery`)."""
+    global _held_lock
+    path = _lock_path(os.getpid())
+    if _held_lock is not None and _held_lock[0] == path:
+        return
+    try:
+        import fcntl
+    except ImportError:  # Windows: the pid check is used
+        return
+    try:
+        fh = open(path, "a+b")
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return
+    _held_lock = (path, fh)
+
+
+def _release_lock() -> None:
+    global _held_lock
+    if _held_lock is None:
+        return
+    path, fh = _held_lock
+    _held_lock = None
+    path.unlink(missing_ok=True)
+    fh.close()
+
+
+def _lock_says_running(pid: int) -> bool | None:
+    """True/False from pid's lock file; None when there is none (or no flock here)."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    path = _lock_path(pid)
+    try:
+        fh = open(path, "rb")
+    except OSError:
+        return None
+    with fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        except OSError:
+            return None
+        fcntl.flock(fh, fcntl.LOCK_UN)
+    path.unlink(missing_ok=True)  # its writer has ended
+    return False
+
+
+def _proc_stat(pid: int) -> list[str] | None:
+    """Fields of /proc/<pid>/stat after the command name, or None (no /proc, no process)."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return text.rsplit(")", 1)[-1].split()
+
+
+def _start_time(pid: int) -> int | None:
+    """When ``pid`` started, in clock ticks after boot (Linux), or None if unknown."""
+    fields = _proc_stat(pid)
+    try:
+        return int(fields[19]) if fields else None  # field 22 of the full line
+    except (IndexError, ValueError):
+        return None
+
+
+def _process_running(pid: int, started: int | None = None) -> bool:
+    """Whether the process that wrote a recovery file with ``pid`` is still running.
+
+    A held lock file decides; else a zombie counts as ended and, when the writer's start
+    time is known, a process with that pid but another start time is someone else.
+    """
     if pid == os.getpid():
         return True
     if pid <= 0:
+        return False
+    locked = _lock_says_running(pid)
+    if locked is not None:
+        return locked
+    fields = _proc_stat(pid)
+    if fields is not None:
+        if fields[0] in ("Z", "X"):  # zombie or dead: it has ended, nobody reaped it yet
+            return False
+        if started is not None and _start_time(pid) != started:
+            return False  # the pid was reused by a later process
+        return True
+    if Path("/proc/self/stat").exists():  # Linux, and no such process
         return False
     if sys.platform == "win32":  # os.kill(pid, 0) would terminate the process on Windows
         import ctypes
@@ -568,8 +703,19 @@ def _orphan_pids() -> list[int]:
             newest[pid] = max(newest.get(pid, 0.0), path.stat().st_mtime)
         except FileNotFoundError:  # claimed meanwhile by another instance
             continue
-    return sorted((pid for pid in newest if not _process_running(pid)),
+    return sorted((pid for pid in newest if not _process_running(pid, _writer_start(pid))),
                   key=lambda pid: newest[pid], reverse=True)
+
+
+def _writer_start(pid: int) -> int | None:
+    """The start time the newest complete recovery slot of ``pid`` recorded, if any."""
+    slot = _newest_slot(pid)
+    read = _read_slot(slot) if slot is not None else None
+    writer = read[1]["writer"] if read and isinstance(read[1].get("writer"), dict) else {}
+    started = writer.get("started")
+    if writer.get("pid") != pid:  # the file was not written by that pid: its time says nothing
+        return None
+    return started if isinstance(started, int) else None
 
 
 def orphaned_recovery_files() -> list[Path]:
@@ -627,3 +773,4 @@ def clear_recovery() -> None:
     for path in _slot_paths(os.getpid()):
         path.unlink(missing_ok=True)
         path.with_name(path.name + ".tmp").unlink(missing_ok=True)
+    _release_lock()

@@ -3,15 +3,20 @@
 Each module in this package is one subcommand and defines ``COMMAND`` (its name), ``HELP``
 (one line), ``add_arguments(parser)`` and ``run(args) -> int``. Modules are discovered, so a
 new command needs no edit here. Errors the user can fix (bad files, bad options) are printed
-as one line ``ssm-studio <command>: error: <message>`` with exit code 2, never a traceback.
+as one line ``ssm-studio <command>: error: <message>`` with exit code 2, never a traceback;
+warnings (from our readers or from libraries) as one line ``ssm-studio <command>: warning:
+<message>`` each.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import contextlib
 import pkgutil
 import sys
+import warnings
+from collections.abc import Iterator
 from types import ModuleType
 
 from core import __version__
@@ -38,10 +43,31 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
         parser.set_defaults(_run=module.run, _command=name)
 
 
+@contextlib.contextmanager
+def one_line_warnings(command: str) -> Iterator[None]:
+    """Show each warning as ``ssm-studio <command>: warning: <message>`` (once), not as
+    Python's two-line report with a source line."""
+    shown: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = " ".join(str(message).split())
+        if text not in shown:
+            shown.add(text)
+            print(f"ssm-studio {command}: warning: {text}", file=sys.stderr)
+
+    previous = warnings.showwarning
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
+
+
 def run_command(args: argparse.Namespace) -> int:
     """Run a parsed subcommand, turning user-fixable errors into one-line messages."""
     try:
-        return int(args._run(args) or 0)
+        with one_line_warnings(args._command):
+            return int(args._run(args) or 0)
     except Cancelled:
         print(f"ssm-studio {args._command}: cancelled", file=sys.stderr)
         return 130
@@ -49,8 +75,18 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"\nssm-studio {args._command}: interrupted", file=sys.stderr)
         return 130
     except (ValueError, OSError) as exc:  # DataFileError is a ValueError
-        print(f"ssm-studio {args._command}: error: {exc}", file=sys.stderr)
+        print(f"ssm-studio {args._command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except (MemoryError, RecursionError) as exc:
+        print(f"ssm-studio {args._command}: error: {type(exc).__name__} (an input declares "
+              "more data, or deeper nesting, than can be handled)", file=sys.stderr)
+        return 2
+
+
+def _one_line(exc: BaseException) -> str:
+    from core.io.errors import display_path
+
+    return display_path(" ".join(str(exc).split()))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
 """Remove the pose of corresponded meshes: GPA or transformation synchronisation.
 
 Inputs must be corresponded (same vertex count, vertex i homologous; e.g. the output of
-``ssm-studio correspond``). ``--method sync`` (default) makes all pairwise least-squares
+``ssm-studio correspond``), in a format that keeps vertex order (STL inputs are refused). ``--method sync`` (default) makes all pairwise least-squares
 transforms transitively consistent with the spectral method of Bernard et al., CVPR 2015 (no
 reference shape); ``--method gpa`` runs iterative generalised Procrustes analysis.
 ``--transform``: similarity (default), rigid (rotation det +1 and translation), euclidean
@@ -23,7 +23,8 @@ import numpy as np
 
 from core.alignment import METHODS, TRANSFORMS, align_shapes
 from core.correspondence import mesh_problem
-from core.io import MESH_SUFFIXES, TriMesh, atomic_write_json, load_meshes, save_mesh
+from core.io import TriMesh, atomic_write_json, load_meshes, save_mesh
+from core.io.meshes import order_keeping_suffixes
 from core.progress import StderrProgress
 
 COMMAND = "align"
@@ -42,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    loaded, failures = load_meshes(args.meshes)
+    # corresponded inputs: a format that loses vertex order (STL) is refused by name
+    loaded, failures = load_meshes(args.meshes, isolate=True, vertex_order=True)
     meshes: list[tuple[Path, TriMesh]] = []
     for path, mesh in loaded:
         problem = mesh_problem(mesh)
@@ -69,12 +71,14 @@ def run(args: argparse.Namespace) -> int:
     entries = []
     used: set[str] = set()
     for k, (path, mesh) in enumerate(meshes):
-        name = path.name if any(path.name.lower().endswith(s) for s in MESH_SUFFIXES) else path.stem + ".vtk"
+        keeps = any(path.name.lower().endswith(s) for s in order_keeping_suffixes())
+        name = path.name if keeps else path.name.split(".", 1)[0] + ".vtk"
         if name in used:
             name = f"{k:03d}_{name}"
         used.add(name)
         out_path = args.out / name
-        save_mesh(out_path, TriMesh(result.aligned[k], mesh.faces, out_path.stem))
+        save_mesh(out_path, TriMesh(result.aligned[k], mesh.faces, out_path.stem),
+                  vertex_order=True)
         entries.append({"name": str(path), "output": str(out_path),
                         "transform": result.transforms[k].tolist(),
                         "rmsd_to_mean_mm": float(result.rmsd_[k])})

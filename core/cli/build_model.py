@@ -58,9 +58,12 @@ def reference_option(value: str):
         return "auto"
     if value.isdigit():
         return int(value)
-    from core.io import load_mesh
+    from core.io import DataFileError, load_meshes
 
-    return load_mesh(value)
+    loaded, failures = load_meshes([value], isolate=True)  # a reader crash is reported
+    if failures:
+        raise DataFileError(value, failures[value])
+    return loaded[0][1]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     if args.factors is not None and args.factors < 1:
         raise ValueError(f"--factors must be at least 1, got {args.factors}")
     with StderrProgress("read meshes") as progress:
-        meshes = load_training_meshes(args.inputs, progress=progress)
+        meshes = load_training_meshes(args.inputs, progress=progress, isolate=True,
+                                      vertex_order=not args.correspond)
     reference = reference_option(args.reference) if args.correspond else "auto"
     with StderrProgress(f"build {args.method} model") as progress:
         result = build_model(meshes, correspond=args.correspond, reference=reference,

@@ -7,10 +7,11 @@ fairing on the target surface (``core.correspondence``). ``--reference auto`` tr
 compact model; ``--reference PATH`` uses that mesh (it must be one closed surface).
 
 Writes ``DIR/<input name>`` for every input that succeeded (same format as the input; .vtk for
-formats that cannot be written), all with the reference's faces and vertex i homologous across
-files, and ``DIR/correspondence.json``: the chosen reference, per-shape residual (symmetric mean
+formats that cannot be written or cannot keep vertex order, such as STL: the report's
+``output`` says which), all with the reference's faces and vertex i homologous across files, and ``DIR/correspondence.json``: the chosen reference, per-shape residual (symmetric mean
 surface distance to the input, mm), timings, parameters, and every failed input with its reason.
-Inputs that cannot be read or used are reported and skipped; the others are still written.
+Inputs that cannot be read or used are reported and skipped; the others are still written
+(each file is read in a child process, so a reader crash on a damaged file costs that file only).
 Exit code 0 when all succeeded, 1 when some failed.
 """
 
@@ -21,7 +22,8 @@ import sys
 from pathlib import Path
 
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
-from core.io import MESH_SUFFIXES, TriMesh, atomic_write_json, load_mesh, load_meshes, save_mesh
+from core.io import DataFileError, TriMesh, atomic_write_json, load_meshes, save_mesh
+from core.io.meshes import order_keeping_suffixes
 from core.progress import StderrProgress
 
 COMMAND = "correspond"
@@ -55,8 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _output_path(out_dir: Path, source: Path, used: set[str]) -> Path:
     name = source.name
     lower = name.lower()
-    if not any(lower.endswith(s) for s in MESH_SUFFIXES):
-        name = source.stem + ".vtk"
+    if not any(lower.endswith(s) for s in order_keeping_suffixes()):
+        name = name.split(".", 1)[0] + ".vtk"  # STL loses vertex order; .vtu/.gii.gz no writer
     base, n = name, 1
     while name in used:  # two inputs with the same file name in different folders
         n += 1
@@ -67,7 +69,7 @@ def _output_path(out_dir: Path, source: Path, used: set[str]) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    loaded, load_failures = load_meshes(args.meshes)
+    loaded, load_failures = load_meshes(args.meshes, isolate=True)
     loaded_paths = [path for path, _ in loaded]
     meshes: list[TriMesh] = [mesh for _, mesh in loaded]
     for path, mesh in loaded:
@@ -82,7 +84,10 @@ def run(args: argparse.Namespace) -> int:
         if ref_path.resolve() in resolved:
             reference = resolved.index(ref_path.resolve())
         else:
-            reference = load_mesh(ref_path)
+            ref_loaded, ref_failure = load_meshes([ref_path], isolate=True)
+            if ref_failure:
+                raise DataFileError(ref_path, ref_failure[str(ref_path)])
+            reference = ref_loaded[0][1]
             reference.name = str(ref_path)
     params = {"w": args.w, "beta": args.beta, "lam": args.lam, "tolerance": args.tolerance,
               "max_iterations": args.max_iterations}
@@ -97,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
         if mesh is None:
             continue
         out_path = _output_path(args.out, path, used)
-        save_mesh(out_path, TriMesh(mesh.vertices, result.faces, out_path.stem))
+        save_mesh(out_path, TriMesh(mesh.vertices, result.faces, out_path.stem),
+                  vertex_order=True)
         written[str(path)] = str(out_path)
     report = result.to_report([str(p) for p in loaded_paths])
     for entry in report["shapes"]:

@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
         if suffix_path is not None and suffix_path.suffix.lower() not in (".png", ".pdf", ".svg"):
             raise ValueError(f"{suffix_path}: the plot must be .png, .pdf or .svg")
     with StderrProgress("read meshes") as progress:
-        meshes = load_training_meshes(args.inputs, progress=progress)
+        meshes = load_training_meshes(args.inputs, progress=progress, isolate=True,
+                                      vertex_order=not args.correspond)
     if args.correspond:
         with StderrProgress("correspond") as progress:
             corr = correspond(meshes, n_jobs=args.jobs, progress=progress)

@@ -5,7 +5,8 @@ the image's shape and affine (``core.segmentation.voxelize``: ray parity in voxe
 so oblique images are handled). The image may be NIfTI, NRRD, MetaImage or a DICOM series
 (a folder, or one of its files; ``--series UID`` picks one of a folder's series, otherwise
 the one with most files is used and named). The label map's format follows ``--out``:
-NIfTI (the affine as sform and qform), NRRD or MHA (the same geometry in LPS), or
+NIfTI (with the image's own sform, qform and codes when the image is NIfTI, so viewers that
+read the qform where nibabel reads the sform agree; else the affine as both), NRRD or MHA (the same geometry in LPS), or
 ``.seg.nrrd``, a 3D Slicer Segmentation carrying the structure's ``--name`` and ``--color``.
 3D Slicer and ITK-SNAP open each aligned with the image.
 """
@@ -58,14 +59,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh-out", type=Path, default=None, help="also write the fitted surface")
 
 
-def save_label_map(path: Path, mask, affine, label: int, name: str, color) -> None:
+def save_label_map(path: Path, mask, affine, label: int, name: str, color, like=None) -> None:
     """Write a label map by extension (``.seg.nrrd`` with its segment description)."""
     if path.name.lower().endswith(".seg.nrrd"):
         from core.io.nrrd import Segment, write_segmentation
 
         write_segmentation(path, mask, affine, [Segment(label, name, tuple(color))])
     else:
-        save_volume(path, mask, affine)
+        save_volume(path, mask, affine, like=like)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     model, result = fit_from_args(args)
     mask = voxelize(result.vertices, model.faces, image, label=args.label)
     name = args.name or Path(str(args.model)).name.split(".")[0]
-    save_label_map(args.out, mask, image.affine, args.label, name, args.color)
+    save_label_map(args.out, mask, image.affine, args.label, name, args.color, like=image)
     if args.mesh_out is not None:
         save_mesh(args.mesh_out, TriMesh(result.vertices, model.faces, Path(args.mesh_out).stem))
     volume_mm3 = mask_volume_mm3(mask, image.affine)

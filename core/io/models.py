@@ -80,19 +80,28 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
         if fh.read(4) != b"PK\x03\x04":
             raise DataFileError(path, "not a shape model file (not an .npz archive)")
     try:
+        _check_members(path)
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    except (zipfile.BadZipFile, EOFError, zlib.error, OSError) as exc:
+    except DataFileError:
+        raise
+    except (zipfile.BadZipFile, EOFError, zlib.error, OSError, NotImplementedError) as exc:
         raise DataFileError(path, f"not a shape model file: truncated or corrupt .npz archive "
                                   f"({why(exc, path)})") from None
     except ValueError as exc:  # object arrays (pickles) are refused, or a malformed array
         raise DataFileError(path, f"not a shape model file ({why(exc, path)})") from None
+    except MemoryError:
+        raise DataFileError(path, "not enough memory to read this model") from None
     if "header" not in arrays:
         raise DataFileError(path, "not a shape model file (no header)")
+    if arrays["header"].dtype.kind not in "US" or arrays["header"].ndim != 0:
+        raise DataFileError(path, "model header is not a JSON text")
     try:
         header = json.loads(str(arrays["header"]))
     except json.JSONDecodeError:
         raise DataFileError(path, "model header is not valid JSON") from None
+    except RecursionError:
+        raise DataFileError(path, "model header is nested too deeply to be read") from None
     if not isinstance(header, dict):
         raise DataFileError(path, "model header is not a JSON object")
     if header.get("format") != MODEL_FORMAT:
@@ -116,6 +125,18 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
         raise DataFileError(path, f"model units are '{header.get('units')}', only mm is supported")
     if arrays["faces"].dtype.kind not in "iu":
         raise DataFileError(path, f"model faces must be integers, got {arrays['faces'].dtype}")
+    for key in ("mean", "factors", "coef_var", "world_transform"):
+        if arrays[key].dtype.kind not in "fiu":
+            raise DataFileError(path, f"model array '{key}' must hold real numbers, got "
+                                      f"{_dtype_name(arrays[key].dtype)}")
+    transform = arrays["world_transform"]
+    if transform.shape == (4, 4) and np.all(np.isfinite(transform)):
+        if abs(np.linalg.det(transform[:3, :3].astype(np.float64))) < 1e-12:
+            raise DataFileError(path, "the model's world_transform is singular (it maps the "
+                                      "model onto a plane or a point)")
+        if not np.allclose(transform[3], [0, 0, 0, 1]):
+            raise DataFileError(path, "the model's world_transform is not affine (last row "
+                                      "must be 0 0 0 1)")
     try:
         model = ShapeModel(
             mean=arrays["mean"], factors=arrays["factors"], coef_var=arrays["coef_var"],
@@ -131,6 +152,59 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
             raise DataFileError(path, f"inconsistent model: header says {key}={header[key]} but "
                                       f"the arrays hold {expected}")
     return model
+
+
+def _dtype_name(dtype: np.dtype) -> str:
+    kinds = {"c": "complex numbers", "U": "text", "S": "bytes", "O": "Python objects",
+             "b": "booleans", "V": "records", "M": "dates", "m": "time spans"}
+    return kinds.get(dtype.kind, str(dtype))
+
+
+_SUSPICIOUS_RATIO = 200  # float model data compress ~1.1-3x; zeros by ~1000x
+_SUSPICIOUS_SIZE = 64 << 20
+
+
+def _check_members(path: Path) -> None:
+    """Check every member's declared size before numpy allocates it.
+
+    An .npy member header can claim any shape (1e12 x 3) and a zip member can inflate 1000x
+    (a zip bomb): both are refused from the zip directory and the .npy headers alone.
+    """
+    import zipfile
+
+    from core.io.limits import DEFLATE_MAX_RATIO, check_declared_size
+
+    with zipfile.ZipFile(path) as archive:
+        members = archive.infolist()
+        total = sum(m.file_size for m in members)
+        check_declared_size(path, total, f"{len(members)} arrays",
+                            max_ratio=DEFLATE_MAX_RATIO)
+        for member in members:
+            name = member.filename.removesuffix(".npy")
+            if member.file_size > _SUSPICIOUS_SIZE and \
+                    member.file_size > _SUSPICIOUS_RATIO * max(member.compress_size, 1):
+                raise DataFileError(path, f"array '{name}' inflates from "
+                                          f"{member.compress_size} to {member.file_size} bytes "
+                                          "(a zip bomb?), not read")
+            with archive.open(member) as fh:
+                try:
+                    version = np.lib.format.read_magic(fh)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                    else:
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+                except (ValueError, SyntaxError, TypeError, OverflowError) as exc:
+                    raise DataFileError(path, f"array '{name}' has a corrupt header "
+                                              f"({why(exc)})") from None
+            if dtype.hasobject:
+                raise DataFileError(path, f"not a shape model file (array '{name}' holds "
+                                          "Python objects, a pickle: not read, "
+                                          "allow_pickle=False)")
+            declared = int(np.prod([int(s) for s in shape], dtype=object)) * dtype.itemsize
+            if declared > member.file_size:
+                raise DataFileError(path, f"array '{name}' declares shape {tuple(shape)} "
+                                          f"({declared} bytes) but its member holds "
+                                          f"{member.file_size} bytes: corrupt")
 
 
 register(FileFormat(".npz", "model", "SSM Studio shape model", read=load_model, write=save_model))

@@ -1,6 +1,10 @@
-"""Point sets: CSV (``x,y,z[,nx,ny,nz]``, world RAS mm) and 3D Slicer markups JSON.
+"""Point sets: CSV (``x,y,z[,nx,ny,nz]``, world RAS mm) and 3D Slicer's point files.
 
-Markups are read in LPS or RAS and written in LPS, as Slicer does.
+Read: SSM Studio's CSV; Slicer's control-point tables (.csv/.tsv with ``l,p,s`` (LPS) or
+``r,a,s`` (RAS) columns: the header declares the coordinate system), its fiducial lists
+(.fcsv) and markups JSON (.mrk.json, or a .json that is one; ``coordinateSystem`` LPS or RAS,
+empty read as LPS as Slicer does; points in ``preview`` state skipped with a note).
+Written: CSV (RAS) and markups JSON (LPS, as Slicer writes).
 """
 
 from __future__ import annotations
@@ -8,16 +12,18 @@ from __future__ import annotations
 import csv
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from core.io.atomic import atomic_write_json, atomic_write_text
-from core.io.errors import DataFileError, require_file, why
+from core.io.errors import DataFileError, DataFileWarning, display_path, require_file, \
+    warnings_as_notes, why
 from core.io.registry import FileFormat, file_suffix, lookup, register
 from core.types.pointset import PointSet
 
-POINT_SUFFIXES = (".csv", ".mrk.json", ".json")
+POINT_SUFFIXES = (".csv", ".tsv", ".fcsv", ".mrk.json", ".json")
 
 
 def load_points(path: str | os.PathLike) -> PointSet:
@@ -33,7 +39,8 @@ def load_points(path: str | os.PathLike) -> PointSet:
     if fmt is None or fmt.read is None:
         raise DataFileError(path, f"unsupported point-set format '{file_suffix(path)}' (use .csv "
                                   "or .mrk.json)")
-    pts = fmt.read(path)
+    with warnings_as_notes(path):
+        pts = fmt.read(path)
     if len(pts) == 0:
         raise DataFileError(path, "no points in file")
     if not np.all(np.isfinite(pts.points)):
@@ -43,35 +50,85 @@ def load_points(path: str | os.PathLike) -> PointSet:
     return pts
 
 
-def _load_points_csv(path: Path) -> PointSet:
+# coordinate columns a table may use, and whether they are LPS (Slicer's export: l,p,s)
+_COORDINATE_COLUMNS = ((("x", "y", "z"), "RAS"), (("r", "a", "s"), "RAS"),
+                       (("l", "p", "s"), "LPS"))
+_FALSE_WORDS = {"0", "false", "no", "n", "f"}
+
+
+def _read_table(path: Path, delimiter: str | None) -> list[tuple[int, list[str]]]:
+    """Non-blank rows (line number, cells) of a CSV/TSV file; comma or tab by the header."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: Excel's BOM
-            rows = [(n, r) for n, r in enumerate(csv.reader(fh), start=1)
-                    if r and any(c.strip() for c in r)]
+            text = fh.read()
     except UnicodeDecodeError:
         raise DataFileError(path, "not a text CSV file (not UTF-8 text)") from None
+    if "\x00" in text:
+        raise DataFileError(path, "not a text CSV file (binary data)")
+    if delimiter is None:
+        first = next((ln for ln in text.splitlines() if ln.strip()), "")
+        delimiter = "\t" if "\t" in first and "," not in first else ","
+    try:
+        reader = csv.reader(text.splitlines(), delimiter=delimiter)
+        return [(n, r) for n, r in enumerate(reader, start=1)
+                if r and any(c.strip() for c in r)]
     except csv.Error as exc:
         raise DataFileError(path, f"malformed CSV ({exc})") from None
+
+
+def _load_points_csv(path: Path, delimiter: str | None = None) -> PointSet:
+    """A table with a header naming its coordinate columns.
+
+    ``x,y,z`` (world RAS mm, optionally ``nx,ny,nz`` normals) as SSM Studio writes it, or a
+    3D Slicer control-point table (``label,l,p,s,defined,...`` in LPS, or ``r,a,s`` in RAS):
+    the header declares the coordinate system. Rows whose ``defined`` column is false are
+    skipped with a note.
+    """
+    rows = _read_table(path, delimiter)
     if not rows:
         raise DataFileError(path, "no header line")
     header = [c.strip().lower() for c in rows[0][1]]
-    if header[:3] != ["x", "y", "z"]:
+    found = next(((names, space) for names, space in _COORDINATE_COLUMNS
+                  if all(n in header for n in names)), None)
+    if found is None:
         got = ",".join(rows[0][1])[:80]
-        raise DataFileError(path, f"header must start with x,y,z (got '{got}')")
-    has_normals = header[3:6] == ["nx", "ny", "nz"]
-    ncol = 6 if has_normals else 3
-    values = np.empty((len(rows) - 1, ncol), dtype=np.float64)
-    for i, (line, row) in enumerate(rows[1:]):
-        if len(row) < ncol:
+        raise DataFileError(path, f"header must start with x,y,z (or name Slicer's l,p,s or "
+                                  f"r,a,s columns; got '{got}')")
+    names, space = found
+    columns = [header.index(n) for n in names]
+    has_normals = names == ("x", "y", "z") and all(n in header for n in ("nx", "ny", "nz"))
+    if has_normals:
+        columns += [header.index(n) for n in ("nx", "ny", "nz")]
+    defined = header.index("defined") if "defined" in header else None
+    need = max(columns) + 1
+    values, skipped = [], 0
+    for line, row in rows[1:]:
+        if defined is not None and len(row) > defined and \
+                row[defined].strip().lower() in _FALSE_WORDS:
+            skipped += 1
+            continue
+        if len(row) < need:
             raise DataFileError(path, f"line {line} has {len(row)} values, every row needs "
-                                      f"{ncol} ({','.join(header[:ncol])})")
+                                      f"{need} ({','.join(header[:need])})")
         try:
-            values[i] = [float(c) for c in row[:ncol]]
+            values.append([float(row[c]) for c in columns])
         except ValueError:
-            bad = next(c for c in row[:ncol] if not _is_float(c))
+            bad = next(row[c] for c in columns if not _is_float(row[c]))
             raise DataFileError(path, f"non-numeric value '{bad.strip()[:40]}' on line "
                                       f"{line}") from None
-    return PointSet(values[:, :3], values[:, 3:6] if has_normals else None)
+    if skipped:
+        _note(path, f"{skipped} points marked not defined were skipped")
+    table = np.array(values, dtype=np.float64).reshape(-1, len(columns))
+    flip = _LPS_FLIP if space == "LPS" else np.ones(3)
+    return PointSet(table[:, :3] * flip, table[:, 3:6] if has_normals else None)
+
+
+def _load_points_tsv(path: Path) -> PointSet:
+    return _load_points_csv(path, delimiter="\t")
+
+
+def _note(path: Path, text: str) -> None:
+    warnings.warn(DataFileWarning(f"{display_path(path)}: {text}"), stacklevel=3)
 
 
 def _is_float(text: str) -> bool:
@@ -83,23 +140,82 @@ def _is_float(text: str) -> bool:
 
 
 _LPS_FLIP = np.array([-1.0, -1.0, 1.0])
+_FCSV_COLUMNS = "id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID"
+
+
+def _load_points_fcsv(path: Path) -> PointSet:
+    """3D Slicer's fiducial CSV (.fcsv): ``# CoordinateSystem = LPS|RAS|0|1`` and
+    ``# columns = id,x,y,z,...`` comment lines, then one row per point.
+
+    Files without a CoordinateSystem line come from Slicer before 4.11, which wrote RAS.
+    """
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise DataFileError(path, "not a text .fcsv file (not UTF-8 text)") from None
+    space, columns, rows = "RAS", _FCSV_COLUMNS.split(","), []
+    for number, line in enumerate(text.splitlines(), start=1):
+        if line.startswith("#"):
+            key, _, value = line[1:].partition("=")
+            key, value = key.strip().lower(), value.strip()
+            if key == "coordinatesystem":
+                space = {"0": "RAS", "ras": "RAS", "1": "LPS", "lps": "LPS"}.get(value.lower())
+                if space is None:
+                    raise DataFileError(path, f"unknown CoordinateSystem '{value[:20]}' on line "
+                                              f"{number} (LPS or RAS)")
+            elif key == "columns":
+                columns = [c.strip().lower() for c in value.split(",")]
+            continue
+        if line.strip():
+            rows.append((number, next(csv.reader([line]))))
+    if not all(c in columns for c in "xyz"):
+        raise DataFileError(path, "the '# columns' line names no x, y, z columns")
+    index = [columns.index(c) for c in "xyz"]
+    points = []
+    for number, row in rows:
+        if len(row) <= max(index):
+            raise DataFileError(path, f"line {number} has {len(row)} values, x, y, z are "
+                                      f"columns {index[0] + 1}-{index[2] + 1}")
+        try:
+            points.append([float(row[i]) for i in index])
+        except ValueError:
+            raise DataFileError(path, f"non-numeric coordinate on line {number}") from None
+    flip = _LPS_FLIP if space == "LPS" else np.ones(3)
+    return PointSet(np.array(points, dtype=np.float64).reshape(-1, 3) * flip)
+
+
+def _read_json(path: Path) -> object:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataFileError(path, f"not valid JSON ({why(exc)})") from None
+    except RecursionError:
+        raise DataFileError(path, "JSON nested too deeply to be read") from None
+
+
+def is_markups_file(path: str | os.PathLike) -> bool:
+    """Whether a .json file is a 3D Slicer markups file (not, e.g., a session)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+    except OSError:
+        return False
+    return b'"markups"' in head or b"markups-schema" in head
 
 
 def _load_points_markups(path: Path) -> PointSet:
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataFileError(path, f"not valid JSON ({why(exc)})") from None
+    doc = _read_json(path)
     markups = doc.get("markups") if isinstance(doc, dict) else None
     if not isinstance(markups, list) or not markups:
         raise DataFileError(path, "not a Slicer markups file (no 'markups' list)")
-    points, normals = [], []
+    points, normals, previews = [], [], 0
     for markup in markups:
         if not isinstance(markup, dict):
             raise DataFileError(path, "not a Slicer markups file (a markup is not an object)")
-        system = str(markup.get("coordinateSystem", "LPS")).upper()
+        # Slicer reads a missing or empty coordinateSystem as LPS
+        system = str(markup.get("coordinateSystem") or "LPS").upper()
         if system not in ("LPS", "RAS"):
-            raise DataFileError(path, f"unknown coordinateSystem '{system}' (LPS or RAS)")
+            raise DataFileError(path, f"unknown coordinateSystem '{system[:20]}' (LPS or RAS)")
         flip = _LPS_FLIP if system == "LPS" else np.ones(3)
         control_points = markup.get("controlPoints", [])
         if not isinstance(control_points, list):
@@ -107,9 +223,13 @@ def _load_points_markups(path: Path) -> PointSet:
         for number, cp in enumerate(control_points, start=1):
             if not isinstance(cp, dict):
                 raise DataFileError(path, f"control point {number} is not an object")
-            label = cp.get("label", number)
-            if cp.get("positionStatus") in ("undefined", "missing"):
+            label = str(cp.get("label", number))[:40]
+            status = cp.get("positionStatus")
+            if status in ("undefined", "missing"):
                 continue  # a placeholder Slicer keeps for points not placed yet
+            if status == "preview":
+                previews += 1  # being placed when the file was saved (often no position)
+                continue
             try:
                 pos = np.asarray(cp.get("position"), dtype=np.float64)
             except (TypeError, ValueError):
@@ -130,6 +250,8 @@ def _load_points_markups(path: Path) -> PointSet:
                 normals.append(orient.reshape(3, 3)[:, 2] * flip)
             else:
                 normals.append(None)
+    if previews:
+        _note(path, f"{previews} control points in 'preview' state (not placed) were skipped")
     has_normals = bool(points) and all(n is not None for n in normals) and \
         doc.get("ssmStudioNormals", False) is not False
     return PointSet(np.array(points).reshape(-1, 3),
@@ -191,6 +313,8 @@ def _frame_with_z(n: np.ndarray) -> np.ndarray:
 
 register(FileFormat(".csv", "points", "CSV point table", read=_load_points_csv,
                     write=_save_points_csv))
+register(FileFormat(".tsv", "points", "tab-separated point table", read=_load_points_tsv))
+register(FileFormat(".fcsv", "points", "3D Slicer fiducial list", read=_load_points_fcsv))
 for _suffix in (".mrk.json", ".json"):
     register(FileFormat(_suffix, "points", "3D Slicer markups", read=_load_points_markups,
                         write=_save_points_markups))
