@@ -222,7 +222,7 @@ class Structure:
         if self.model is None:
             return None
         if self._normals_cache is None or self._normals_cache[0] != self._surface_version:
-            from core.mesh import vertex_normals
+            from core.geometry import vertex_normals
 
             self._normals_cache = (self._surface_version,
                                    vertex_normals(self.surface_vertices(), self.model.faces))

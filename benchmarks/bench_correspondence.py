@@ -30,18 +30,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from core.geometry import random_rotation  # noqa: E402
 from core.io import TriMesh  # noqa: E402
 
 
 # ----------------------------------------------------------------------------- synthetic data
-
-def _random_rotation(rng: np.random.Generator, max_angle_deg: float) -> np.ndarray:
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    angle = np.deg2rad(rng.uniform(-max_angle_deg, max_angle_deg))
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
 
 def _sphere_mesh(n_points: int, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Near-uniform sphere triangulation: a Fibonacci lattice of ``n_points`` and its hull."""
@@ -120,13 +113,13 @@ def synthetic_population(n_shapes: int = 20, *, seed: int = 0, max_angle_deg: fl
     rng = np.random.default_rng(seed)
     meshes, truths, params = [], [], []
     for k in range(n_shapes):
-        u, faces = _sphere_mesh(int(rng.integers(*n_points)), _random_rotation(rng, 180.0))
+        u, faces = _sphere_mesh(int(rng.integers(*n_points)), random_rotation(rng, 180.0))
         perm = rng.permutation(len(u))
         inverse = np.argsort(perm)
         u = u[perm]
         faces = inverse[faces]
         deform = smooth_deformation(rng)
-        rot = _random_rotation(rng, max_angle_deg)
+        rot = random_rotation(rng, max_angle_deg)
         trans = rng.uniform(-translation_mm, translation_mm, size=3)
 
         def truth(uu, deform=deform, rot=rot, trans=trans):
@@ -183,7 +176,7 @@ def plain_rustcpd(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarr
     """rustcpd alone: rigid + nonrigid CPD on all points, then nearest-point projection."""
     import rustcpd
 
-    from core.correspondence import SurfaceProjector
+    from core.geometry import SurfaceProjector
 
     xn, centre, scale = _normalised(target.vertices)
     yn, _, _ = _normalised(reference.vertices)
@@ -201,7 +194,7 @@ def plain_pycpd(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarray
     """pycpd: rigid + nonrigid CPD (pure numpy), then nearest-point projection."""
     from pycpd import DeformableRegistration, RigidRegistration
 
-    from core.correspondence import SurfaceProjector
+    from core.geometry import SurfaceProjector
 
     xn, centre, scale = _normalised(target.vertices)
     yn, _, _ = _normalised(reference.vertices)
@@ -240,7 +233,7 @@ def flipped_fraction(vertices: np.ndarray, faces: np.ndarray, target: TriMesh) -
     fold-overs, where the output surface doubles back on itself."""
     from scipy.spatial import cKDTree
 
-    from core.mesh import face_normals, vertex_normals
+    from core.geometry import face_normals, vertex_normals
 
     centroids = vertices[faces].mean(axis=1)
     _, nearest = cKDTree(target.vertices).query(centroids)

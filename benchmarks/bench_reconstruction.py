@@ -40,7 +40,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.reconstruction import fit_points, surface_distance  # noqa: E402
+from core.geometry import surface_distance  # noqa: E402
+from core.reconstruction import fit_points  # noqa: E402
 from core.simulated_user import pca_model, simulate_user, slice_planes, synthetic_shapes  # noqa: E402
 
 OURS = ("gmm-aniso", "gmm-iso", "icp")
@@ -179,7 +180,7 @@ def print_accuracy(table, times, contour_counts, title):
 def latency_model(shapes, faces, n_factors=50, seed=0):
     """The demo topology with random smooth bumps added, so PCA has n_factors real modes."""
     rng = np.random.default_rng(seed)
-    from core.mesh import vertex_normals
+    from core.geometry import vertex_normals
 
     base = shapes.mean(axis=0)
     normals = vertex_normals(base, faces)

@@ -27,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.mesh import vertex_normals  # noqa: E402
+from core.geometry import vertex_normals  # noqa: E402
 from core.planning import anchored_point_weights, volume_centroid  # noqa: E402
 from core.reconstruction import fit_points  # noqa: E402
 from core.simulated_user import pca_model, simulate_user  # noqa: E402

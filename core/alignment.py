@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.geometry import umeyama
 from core.progress import ProgressCallback, report
 
 TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
@@ -180,16 +181,8 @@ def fit_transform(source, target, transform: str = "similarity", *, weights=None
         cov_ts = (t0 * w[:, None]).T @ s0
         linear = np.linalg.lstsq(cov_ss.T, cov_ts.T, rcond=None)[0].T
     else:
-        cov = (t0 * w[:, None]).T @ s0  # Umeyama Eq. 38: Sigma_xy
-        u, sing, vt = np.linalg.svd(cov)
-        d = np.ones(3)
-        if transform != "euclidean" and np.linalg.det(u) * np.linalg.det(vt) < 0:
-            d[2] = -1.0  # Umeyama Eq. 39/43: S = diag(1, 1, -1) keeps det R = +1
-        rotation = (u * d) @ vt
-        scale = 1.0
-        if transform == "similarity":
-            var_s = float((w * (s0 ** 2).sum(axis=1)).sum())
-            scale = float((sing * d).sum() / max(var_s, 1e-300))  # Umeyama Eq. 42
+        scale, rotation, _ = umeyama(src, dst, w, scaling=transform == "similarity",
+                                     reflection=transform == "euclidean")
         linear = scale * rotation
     return homogeneous(linear, mu_t - linear @ mu_s)
 

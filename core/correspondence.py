@@ -26,7 +26,7 @@ Structures", SPIE Medical Imaging 2016. For every training mesh (the *target*):
    irregular triangles left by snapping to target vertices: each step moves vertices
    tangentially towards the Laplacian coordinates of the (posed) reference, so that the
    reference's own vertex distribution is restored, and projects them back onto the target
-   surface (:func:`closest_points_on_surface`).
+   surface (:class:`core.geometry.SurfaceProjector`).
 
 **Unequal vertex counts.** With M reference and N target vertices the assignment is
 rectangular (M x N', each reference vertex gets a distinct target point). The candidate target
@@ -71,6 +71,7 @@ from scipy.sparse.csgraph import min_weight_full_bipartite_matching
 from scipy.spatial import cKDTree
 
 from core import mesh as meshops
+from core.geometry import SurfaceProjector, symmetric_surface_distance, vertex_normals
 from core.io import TriMesh
 from core.progress import ProgressCallback, report
 
@@ -225,61 +226,7 @@ def cpd_log_posterior(target: np.ndarray, moved: np.ndarray, sigma2: float, w: f
     return out
 
 
-# ============================================================================ surface geometry
-
-class SurfaceProjector:
-    """Exact closest points on a triangle surface, vectorised.
-
-    Candidate triangles for each query are the ``k`` whose centroids are nearest (KD-tree);
-    the closest point on each is computed and the nearest kept. The answer is certified
-    exact when the best distance plus the largest centroid-to-corner radius R does not
-    exceed the k-th centroid distance (no farther triangle can then be closer); queries that
-    fail the test are redone with twice as many candidates. With ``exact=False`` the first
-    pass is kept (fast; used inside the fairing loop, whose points are already on the surface).
-    """
-
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, k: int = 8, exact: bool = True):
-        self.exact = exact
-        self.vertices = np.asarray(vertices, dtype=np.float64)
-        self.faces = np.asarray(faces)
-        self.k = int(min(k, len(self.faces)))
-        self._triangles = self.vertices[self.faces]  # (F, 3, 3)
-        centroids = self._triangles.mean(axis=1)
-        self._radius = float(np.linalg.norm(self._triangles - centroids[:, None], axis=2).max())
-        self._tree = cKDTree(centroids)
-
-    def _query(self, points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        cdist, cand = self._tree.query(points, k=k)
-        cdist, cand = cdist.reshape(len(points), -1), cand.reshape(len(points), -1)
-        tri = self._triangles[cand]  # (P, k, 3, 3)
-        q = np.broadcast_to(points[:, None, :], tri.shape[:2] + (3,))
-        closest = meshops.closest_points_on_triangles(q, tri[:, :, 0], tri[:, :, 1], tri[:, :, 2])
-        dist = np.linalg.norm(closest - q, axis=2)
-        best = np.argmin(dist, axis=1)
-        rows = np.arange(len(points))
-        d = dist[rows, best]
-        exact = (k >= len(self.faces)) | (d + self._radius <= cdist[:, -1])
-        return closest[rows, best], d, exact
-
-    def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Closest surface points (P, 3) and distances (P,) for query ``points`` (P, 3)."""
-        points = np.asarray(points, dtype=np.float64)
-        closest, dist, exact = self._query(points, self.k)
-        k = self.k
-        todo = np.flatnonzero(~exact) if self.exact else np.zeros(0, int)
-        while len(todo) and k < len(self.faces):
-            k = min(2 * k, len(self.faces))
-            c, d, e = self._query(points[todo], k)
-            closest[todo], dist[todo] = c, d
-            todo = todo[~e]
-        return closest, dist
-
-
-def closest_points_on_surface(points: np.ndarray, vertices: np.ndarray,
-                              faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest points (P, 3) on the triangle surface (vertices, faces) and their distances (P,)."""
-    return SurfaceProjector(vertices, faces)(np.asarray(points, dtype=np.float64))
-
+# ============================================================================ fairing
 
 def fair_mesh(vertices: np.ndarray, faces: np.ndarray, target: SurfaceProjector, *,
               rest_vertices: np.ndarray | None = None, iterations: int = 10,
@@ -310,19 +257,11 @@ def fair_mesh(vertices: np.ndarray, faces: np.ndarray, target: SurfaceProjector,
     rest = np.zeros_like(vertices) if rest_vertices is None else lap @ rest_vertices
     v = np.array(vertices, dtype=np.float64)
     for _ in range(int(iterations)):
-        normals = meshops.vertex_normals(v, faces)
+        normals = vertex_normals(v, faces)
         delta = lap @ v - rest
         delta -= np.einsum("ij,ij->i", delta, normals)[:, None] * normals
         v, _ = target(v + step * delta)
     return v
-
-
-def symmetric_surface_distance(vertices_a: np.ndarray, faces_a: np.ndarray,
-                               vertices_b: np.ndarray, faces_b: np.ndarray) -> float:
-    """Symmetric mean surface distance: mean of the two directed vertex-to-surface means."""
-    _, d_ab = closest_points_on_surface(vertices_a, vertices_b, faces_b)
-    _, d_ba = closest_points_on_surface(vertices_b, vertices_a, faces_a)
-    return 0.5 * (float(d_ab.mean()) + float(d_ba.mean()))
 
 
 # ============================================================================ validation
@@ -482,7 +421,7 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     labelled[rows] = candidates[cols]
     t3 = time.perf_counter()
     times["assignment"] = t3 - t2
-    projector = SurfaceProjector(xn, tgt_f, k=5, exact=False)
+    projector = SurfaceProjector(xn, tgt_f, exact=False)
     faired = fair_mesh(labelled, ref_f, projector, rest_vertices=y_posed,
                        iterations=p["fairing_iterations"], step=p["fairing_step"])
     faired, _ = SurfaceProjector(xn, tgt_f)(faired)  # final exact projection

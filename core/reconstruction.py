@@ -98,7 +98,9 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.mesh import closest_points_on_triangles, mean_edge_length
+from core.geometry import (rodrigues, rotation_vector, surface_distance, umeyama,  # noqa: F401
+                           vertex_face_table, vertex_normals)
+from core.mesh import mean_edge_length
 from core.shape_model import ShapeModel
 
 METHODS = ("gmm-aniso", "gmm-iso", "icp")
@@ -177,76 +179,6 @@ class FitResult:
 
 
 # --------------------------------------------------------------------------------------
-# Geometry helpers
-# --------------------------------------------------------------------------------------
-
-
-def _vertex_normals_fast(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (N, 3), bincount-based (faster than np.add.at)."""
-    v0, v1, v2 = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
-    fn = np.cross(v1 - v0, v2 - v0)
-    idx = faces.reshape(-1)
-    n = len(vertices)
-    out = np.empty((n, 3))
-    rep = np.repeat(fn, 3, axis=0)
-    for k in range(3):
-        out[:, k] = np.bincount(idx, weights=rep[:, k], minlength=n)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
-
-
-def _rodrigues(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix exp([omega]_x) (3, 3)."""
-    theta = float(np.linalg.norm(omega))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = omega / theta
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
-
-
-def _vertex_face_table(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """(N, max valence) table of the faces around each vertex, padded by repeating one."""
-    idx = faces.reshape(-1)
-    face_of = np.repeat(np.arange(len(faces)), 3)
-    order = np.argsort(idx, kind="stable")
-    idx, face_of = idx[order], face_of[order]
-    counts = np.bincount(idx, minlength=n_vertices)
-    width = max(int(counts.max()), 1)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    rank = np.arange(len(idx)) - starts[idx]
-    table = np.empty((n_vertices, width), dtype=np.int64)
-    first = np.where(counts > 0, face_of[np.minimum(starts, len(idx) - 1)], 0)
-    table[:] = first[:, None]
-    table[idx, rank] = face_of
-    return table
-
-
-def surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                     k: int = 6, tree: cKDTree | None = None,
-                     table: np.ndarray | None = None) -> np.ndarray:
-    """Distance (P,) from each point to the triangle surface (vertices (N, 3), faces (F, 3)).
-
-    Exact over the triangles around the ``k`` nearest vertices of each point (the closest
-    triangle is among them on any reasonable mesh). Vectorised: O(P k valence).
-    """
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(points) == 0:
-        return np.zeros(0)
-    tree = cKDTree(vertices) if tree is None else tree
-    table = _vertex_face_table(faces, len(vertices)) if table is None else table
-    k = min(k, len(vertices))
-    _, near = tree.query(points, k=k)
-    near = np.asarray(near).reshape(len(points), k)
-    cand = table[near].reshape(len(points), -1)  # (P, k * valence)
-    q = np.repeat(points, cand.shape[1], axis=0)
-    tri = faces[cand.reshape(-1)]
-    closest = closest_points_on_triangles(q, vertices[tri[:, 0]], vertices[tri[:, 1]],
-                                          vertices[tri[:, 2]])
-    dist = np.linalg.norm(closest - q, axis=1).reshape(len(points), -1)
-    return dist.min(axis=1)
-
-
-# --------------------------------------------------------------------------------------
 # Input checks
 # --------------------------------------------------------------------------------------
 
@@ -315,16 +247,9 @@ class _ModelCache:
         self.basis_t = np.ascontiguousarray(self.factors.reshape(model.n_factors, 3 * model.n_vertices))
         self.inv_var = 1.0 / model.coef_var
         self.faces = model.faces
-        self.table = _vertex_face_table(model.faces, model.n_vertices)
+        self.table = vertex_face_table(model.faces, model.n_vertices)
         # Same table padded with the index F of an extra all-zero face normal (no repeats).
-        pad = np.full(self.table.shape, len(model.faces), dtype=np.int64)
-        idx = model.faces.reshape(-1)
-        order = np.argsort(idx, kind="stable")
-        counts = np.bincount(idx, minlength=model.n_vertices)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        pad[idx[order], np.arange(len(idx)) - starts[idx[order]]] = np.repeat(
-            np.arange(len(model.faces)), 3)[order]
-        self.table_pad = pad
+        self.table_pad = vertex_face_table(model.faces, model.n_vertices, fill=len(model.faces))
         self.edge_length = mean_edge_length(self.mean, model.faces)
 
     def shape(self, coef: np.ndarray) -> np.ndarray:
@@ -360,19 +285,6 @@ def _cache(model: ShapeModel) -> _ModelCache:
         cached = _ModelCache(model, key)
         model.__dict__["_fit_cache"] = cached
     return cached
-
-
-def _rotation_log(rot: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) of a rotation matrix (inverse of :func:`_rodrigues`)."""
-    cos = np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(cos))
-    skew = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
-    if angle < 1e-8:
-        return 0.5 * skew
-    if np.pi - angle < 1e-6:  # near 180 degrees: axis from the symmetric part
-        axis = np.sqrt(np.maximum((np.diag(rot) + 1.0) / 2.0, 0.0))
-        return angle * axis
-    return angle / (2.0 * np.sin(angle)) * skew
 
 
 def _solve_shape(lhs: np.ndarray, rhs: np.ndarray, bound: np.ndarray | None) -> np.ndarray:
@@ -418,22 +330,18 @@ def _checked_transform(matrix, name: str) -> np.ndarray:
 
 def _procrustes(wj: np.ndarray, ybar: np.ndarray, z: np.ndarray, with_scale: bool,
                 fixed_scale: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
-    """Weighted similarity (Umeyama) with y ~ s R z + t from per-vertex sums (Eq. 3);
-    without ``with_scale`` the scale is ``fixed_scale``."""
-    total = wj.sum()
-    mu_y = ybar.sum(axis=0) / total
-    mu_z = (wj[:, None] * z).sum(axis=0) / total
-    cov = ybar.T @ z - total * np.outer(mu_y, mu_z)  # sum_ij p_ij (y_i - mu_y)(z_j - mu_z)^T
-    u, sv, vt = np.linalg.svd(cov)
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(u @ vt)) or 1.0
-    rot = (u * d) @ vt
+    """Weighted similarity y ~ s R z + t (Eq. 3) from per-vertex sums ybar_j = sum_i p_ij y_i;
+    without ``with_scale`` the scale is ``fixed_scale``.
+
+    The weighted Umeyama fit of z_j onto ybar_j / w_j with weights w_j (the same cross
+    covariance as over all pairs (i, j) weighted by p_ij).
+    """
+    target = np.divide(ybar, wj[:, None], out=np.zeros_like(ybar), where=wj[:, None] > 0)
     if with_scale:
-        var_z = float((wj * ((z - mu_z) ** 2).sum(axis=1)).sum())
-        scale = float((sv * d).sum() / max(var_z, 1e-300))
-    else:
-        scale = float(fixed_scale)
-    return scale, rot, mu_y - scale * rot @ mu_z
+        return umeyama(z, target, wj, scaling=True)
+    _, rot, _ = umeyama(z, target, wj, scaling=False)
+    w = wj / wj.sum()
+    return float(fixed_scale), rot, w @ target - float(fixed_scale) * rot @ (w @ z)
 
 
 def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None = None, *,
@@ -593,10 +501,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
             self.rows = np.repeat(pts, k, axis=0)  # (P K, 3)
 
     def normals_at(verts: np.ndarray, x_world: np.ndarray) -> np.ndarray:
-        v0, v1, v2 = (x_world[faces[:, c]] for c in range(3))
-        fn = np.vstack([np.cross(v1 - v0, v2 - v0), np.zeros((1, 3))])  # + zero pad face
-        n = fn[cache.table_pad[verts]].sum(axis=1)
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+        return vertex_normals(x_world, faces, at=verts, table=cache.table_pad)
 
     parts: dict[str, np.ndarray] = {}  # last squared distances: "full" and "along" the normal
 
@@ -646,7 +551,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     def pose_deviation(scale: float, rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
         """Deviation of the pose from the placement: log scale ratio, rotation vector, and the
         displacement of the model's centre (mm); the pose prior's argument (Eq. 6)."""
-        return np.concatenate([[np.log(scale / place_scale)], _rotation_log(rot @ place_rot.T),
+        return np.concatenate([[np.log(scale / place_scale)], rotation_vector(rot @ place_rot.T),
                                scale * rot @ centre0 + trans - placed_centre])
 
     if pose_sd is not None:
@@ -763,7 +668,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
                 if pose == "rigid":
                     theta = np.concatenate([[0.0], theta])
                 grow = 1.0 + theta[0]
-                rot_d = _rodrigues(theta[1:4])
+                rot_d = rodrigues(theta[1:4])
                 scale = scale * grow
                 rot = rot_d @ rot
                 trans = grow * rot_d @ (trans - centre) + centre + theta[4:]

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.mesh import face_normals
+from core.geometry import face_normals
 
 
 @dataclass

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.mesh import vertex_normals
+from core.geometry import vertex_normals
 from core.shape_model import ShapeModel
 
 #: World axes of the three view orientations (normal of each slice plane): RAS x, y, z.

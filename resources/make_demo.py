@@ -56,7 +56,7 @@ RESOURCES = Path(__file__).resolve().parent
 if str(RESOURCES.parent) not in sys.path:  # run as a script from anywhere in the repository
     sys.path.insert(0, str(RESOURCES.parent))
 
-from core import mesh as meshops  # noqa: E402
+from core import geometry, mesh as meshops  # noqa: E402
 from core.io import (PointSet, TriMesh, atomic_path, atomic_write_json, load_volume,  # noqa: E402
                      save_mesh, save_model, save_points)
 from core.shape_model import ShapeModel  # noqa: E402
@@ -265,8 +265,8 @@ def extract_base_shape(spec: StructureSpec = LEFT_CAUDATE) -> tuple[TriMesh, dic
     remeshed = _uniform_remesh(iso, N_BASE_VERTICES)
     # Put the (area-weighted cluster centroid) vertices back on the iso-surface.
     iso_mesh = TriMesh.from_polydata(iso)
-    _, _, points, _ = closest_points_on_surface(iso_mesh.vertices, iso_mesh.faces,
-                                                np.asarray(remeshed.points))
+    _, _, points = geometry.surface_coordinates(np.asarray(remeshed.points), iso_mesh.vertices,
+                                                iso_mesh.faces)
     base = TriMesh(points, TriMesh.from_polydata(remeshed).faces, f"{spec.stem}_base")
     _check_surface(base, "base shape")
     info = {
@@ -285,8 +285,7 @@ def _check_surface(mesh: TriMesh, what: str) -> None:
     f = mesh.faces
     if not meshops.is_closed(f):
         raise RuntimeError(f"{what}: surface is not closed")
-    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    if len(np.unique(directed, axis=0)) != len(directed):
+    if not meshops.is_consistently_oriented(f):
         raise RuntimeError(f"{what}: faces are not consistently oriented")
     if meshops.n_components(f, mesh.n_vertices) != 1:
         raise RuntimeError(f"{what}: more than one connected piece")
@@ -299,50 +298,6 @@ def _check_surface(mesh: TriMesh, what: str) -> None:
 # --------------------------------------------------------------------------------------
 # Geometry helpers
 # --------------------------------------------------------------------------------------
-
-
-def closest_points_on_surface(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
-                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Closest point on the triangle surface (vertices, faces) for each query point (P, 3).
-
-    Returns (triangle index (P,), barycentric coordinates (P, 3), closest points (P, 3),
-    distance (P,)); closest = sum_j bary[:, j] * vertices[faces[tri, j]].
-    """
-    import vtk
-
-    poly = _to_polydata(vertices, faces)
-    locator = vtk.vtkStaticCellLocator()
-    locator.SetDataSet(poly)
-    locator.BuildLocator()
-    tri = np.empty(len(points), np.int64)
-    closest = np.empty((len(points), 3))
-    cell_id, sub_id, dist2 = vtk.mutable(0), vtk.mutable(0), vtk.mutable(0.0)
-    out = [0.0, 0.0, 0.0]
-    for p_index, p in enumerate(np.asarray(points, dtype=np.float64)):
-        locator.FindClosestPoint(p.tolist(), out, cell_id, sub_id, dist2)
-        tri[p_index] = int(cell_id)
-        closest[p_index] = out
-    bary = _barycentric(vertices[faces[tri]], closest)
-    closest = np.einsum("pj,pjk->pk", bary, vertices[faces[tri]])
-    dist = np.linalg.norm(closest - points, axis=1)
-    return tri, bary, closest, dist
-
-
-def _barycentric(tri_vertices: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (P, 3) of points (P, 3) in triangles (P, 3, 3), clipped to the
-    triangle and renormalised (the points are closest points, so inside up to round-off)."""
-    a, b, c = tri_vertices[:, 0], tri_vertices[:, 1], tri_vertices[:, 2]
-    v0, v1, v2 = b - a, c - a, points - a
-    d00 = np.einsum("ij,ij->i", v0, v0)
-    d01 = np.einsum("ij,ij->i", v0, v1)
-    d11 = np.einsum("ij,ij->i", v1, v1)
-    d20 = np.einsum("ij,ij->i", v2, v0)
-    d21 = np.einsum("ij,ij->i", v2, v1)
-    denom = np.maximum(d00 * d11 - d01 * d01, 1e-300)
-    v = (d11 * d20 - d01 * d21) / denom
-    w = (d00 * d21 - d01 * d20) / denom
-    bary = np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, 1.0)
-    return bary / bary.sum(axis=1, keepdims=True)
 
 
 def ray_distances(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray,
@@ -367,7 +322,7 @@ def ray_distances(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray,
 
 def inward_thickness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Distance (N,) from each vertex along its inward normal to the opposite surface (mm)."""
-    normals = meshops.vertex_normals(vertices, faces)
+    normals = geometry.vertex_normals(vertices, faces)
     return ray_distances(vertices, faces, vertices, -normals)
 
 
@@ -401,7 +356,7 @@ def plant_factors(base: TriMesh) -> dict:
     shrinks until the bump at coefficient +-COEF_CLIP passes :func:`_bump_is_safe`.
     """
     v, f = base.vertices, base.faces
-    normals = meshops.vertex_normals(v, f)
+    normals = geometry.vertex_normals(v, f)
     thickness = inward_thickness(v, f)
     eligible = np.flatnonzero(thickness >= MIN_CENTRE_THICKNESS_MM)
     centres = [int(eligible[np.argmax(thickness[eligible])])]
@@ -443,25 +398,19 @@ def _bump_is_safe(vertices: np.ndarray, faces: np.ndarray, displacement: np.ndar
     """Whether base + c * displacement stays a valid surface for c = +-COEF_CLIP: no face
     turns by more than MAX_FACE_TURN_DEG and the structure keeps at least MIN_THICKNESS_RATIO
     of its thickness at every vertex of the support (no folding, no self-contact)."""
-    base_normals = meshops.face_normals(vertices, faces)
+    base_normals = geometry.face_normals(vertices, faces)
     touched = np.any(support[faces], axis=1)
     idx = np.flatnonzero(support)
     for coef in (-COEF_CLIP, COEF_CLIP):
         moved = vertices + coef * displacement
-        turn = np.einsum("ij,ij->i", meshops.face_normals(moved, faces)[touched], base_normals[touched])
+        turn = np.einsum("ij,ij->i", geometry.face_normals(moved, faces)[touched], base_normals[touched])
         if turn.min() < np.cos(np.deg2rad(MAX_FACE_TURN_DEG)):
             return False
-        normals = meshops.vertex_normals(moved, faces)[idx]
+        normals = geometry.vertex_normals(moved, faces)[idx]
         left = ray_distances(moved, faces, moved[idx], -normals)
         if np.any(left < MIN_THICKNESS_RATIO * np.minimum(thickness[idx], 20.0)):
             return False
     return True
-
-
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues' rotation matrix (3, 3) about the unit ``axis`` by ``angle`` radians."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
 def random_pose(rng: np.random.Generator, centre: np.ndarray) -> dict:
@@ -472,7 +421,7 @@ def random_pose(rng: np.random.Generator, centre: np.ndarray) -> dict:
     angle_deg = np.clip(rng.normal(0.0, ROTATION_SD_DEG), -ROTATION_CLIP_DEG, ROTATION_CLIP_DEG)
     translation = np.clip(rng.normal(0.0, TRANSLATION_SD_MM, size=3),
                           -TRANSLATION_CLIP_MM, TRANSLATION_CLIP_MM)
-    linear = scale * _rotation(axis, np.deg2rad(angle_deg))
+    linear = scale * geometry.rodrigues(axis * np.deg2rad(angle_deg))
     matrix = np.eye(4)
     matrix[:3, :3] = linear
     matrix[:3, 3] = centre + translation - linear @ centre
@@ -509,7 +458,7 @@ def remesh_shape(vertices: np.ndarray, faces: np.ndarray, n_target: int,
             continue
     else:
         raise RuntimeError("could not remesh a shape into a closed manifold surface")
-    tri, bary, on_surface, _ = closest_points_on_surface(vertices, faces, new.vertices)
+    tri, bary, on_surface = geometry.surface_coordinates(new.vertices, vertices, faces)
     perm = rng.permutation(new.n_vertices)              # new index j <- old index perm[j]
     inv = np.empty_like(perm)
     inv[perm] = np.arange(len(perm))
@@ -640,10 +589,10 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     deformed = base.vertices[None] + np.einsum("km,mnd->knd", coefficients, factors)
     posed = np.stack([apply_transform(p["matrix"], y) for p, y in zip(poses, deformed)])
     base_thickness = np.minimum(inward_thickness(base.vertices, base.faces), 20.0)
-    base_face_normals = meshops.face_normals(base.vertices, base.faces)
+    base_face_normals = geometry.face_normals(base.vertices, base.faces)
     for k, shape in enumerate(deformed):
         _check_surface(TriMesh(shape, base.faces), f"deformed shape {k}")
-        turn = np.einsum("ij,ij->i", meshops.face_normals(shape, base.faces), base_face_normals)
+        turn = np.einsum("ij,ij->i", geometry.face_normals(shape, base.faces), base_face_normals)
         left = inward_thickness(shape, base.faces) / base_thickness
         if turn.min() < np.cos(np.deg2rad(MAX_FACE_TURN_DEG)) or left.min() < MIN_SHAPE_THICKNESS_RATIO:
             raise RuntimeError(f"deformed shape {k} folds or nearly touches itself "

@@ -18,14 +18,7 @@ from core.alignment import (
     reference_transforms,
     synchronize_transforms,
 )
-
-
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q *= np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
+from core.geometry import random_rotation
 
 
 def random_transform(rng: np.random.Generator, transform: str, translation: float = 50.0) -> np.ndarray:

@@ -23,7 +23,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.bench_correspondence import synthetic_population  # noqa: E402
 from core import correspondence as corr  # noqa: E402
-from core import mesh as meshops  # noqa: E402
+from core import geometry, mesh as meshops  # noqa: E402
 from core.alignment import apply_transform, homogeneous  # noqa: E402
 from core.io import TriMesh, load_mesh, save_mesh  # noqa: E402
 from core.progress import Cancelled  # noqa: E402
@@ -114,24 +114,24 @@ def test_closest_points_on_surface_brute_force(population):
     mesh = population[0][0]
     rng = np.random.default_rng(5)
     queries = mesh.vertices[rng.choice(mesh.n_vertices, 200)] + rng.normal(size=(200, 3)) * 1.5
-    closest, dist = corr.closest_points_on_surface(queries, mesh.vertices, mesh.faces)
+    closest, dist = geometry.closest_points_on_surface(queries, mesh.vertices, mesh.faces)
     tri = mesh.vertices[mesh.faces]
     q = np.broadcast_to(queries[:, None, :], (200, len(tri), 3))
-    all_closest = meshops.closest_points_on_triangles(q, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+    all_closest = geometry.closest_points_on_triangles(q, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
     brute = np.linalg.norm(all_closest - q, axis=2).min(axis=1)
     np.testing.assert_allclose(dist, brute, atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(closest - queries, axis=1), dist, atol=1e-12)
     # Exactness of the triangle routine on a hand case: above an interior point, beyond a vertex.
     a, b, c = np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
     pts = np.array([[0.2, 0.2, 1.0], [2.0, -1.0, 0.0], [0.7, 0.7, 0.0]])
-    out = meshops.closest_points_on_triangles(pts, a, b, c)
+    out = geometry.closest_points_on_triangles(pts, a, b, c)
     np.testing.assert_allclose(out, [[0.2, 0.2, 0.0], [1.0, 0.0, 0.0], [0.5, 0.5, 0.0]], atol=1e-12)
 
 
 def test_fairing_regularises_and_stays_on_surface(population):
     mesh = population[0][0]
     rng = np.random.default_rng(6)
-    projector = corr.SurfaceProjector(mesh.vertices, mesh.faces)
+    projector = geometry.SurfaceProjector(mesh.vertices, mesh.faces)
     noisy, _ = projector(mesh.vertices + rng.normal(size=mesh.vertices.shape) * 0.4)
     faired = corr.fair_mesh(noisy, mesh.faces, projector, rest_vertices=mesh.vertices, iterations=15)
     _, dist = projector(faired)
@@ -158,11 +158,11 @@ def test_correspond_pair_recovers_homologues(population):
         yn, _, _ = corr._normalise(reference.vertices)
         pose = corr._rigid_pose(xn, yn, params_cpd, True)
         moved = corr.cpd_nonrigid(xn, apply_transform(pose, yn)).points
-        projected, _ = corr.closest_points_on_surface(moved * scale + centre, meshes[k].vertices,
+        projected, _ = geometry.closest_points_on_surface(moved * scale + centre, meshes[k].vertices,
                                                       meshes[k].faces)
         plain.append(truth_error(projected, truths[k], params[0]))
         # Output vertices lie on the target surface.
-        _, dist = corr.closest_points_on_surface(out["vertices"], meshes[k].vertices, meshes[k].faces)
+        _, dist = geometry.closest_points_on_surface(out["vertices"], meshes[k].vertices, meshes[k].faces)
         assert dist.max() < 1e-6
         assert out["residual_mm"] < 0.1
     errors = np.concatenate(errors)
@@ -180,7 +180,7 @@ def test_unequal_vertex_counts_use_surface_points():
     reference = fine[0]  # 900 vertices onto a 500-vertex target
     out = corr.correspond_pair(reference, meshes[0])
     assert out["vertices"].shape == (900, 3)
-    _, dist = corr.closest_points_on_surface(out["vertices"], meshes[0].vertices, meshes[0].faces)
+    _, dist = geometry.closest_points_on_surface(out["vertices"], meshes[0].vertices, meshes[0].faces)
     assert dist.max() < 1e-6
     # No two output vertices coincide (bijective onto distinct surface points).
     gaps = np.linalg.norm(out["vertices"][meshops.edges(reference.faces)[:, 0]]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from core import mesh as meshops
+from core import geometry, mesh as meshops
 from core.io import load_mesh, load_model, load_points, load_volume
 
 LEFT_CAUDATE_MNI = np.array([-13.0, 10.0, 10.0])   # approximate centre of the left caudate, mm
@@ -116,7 +116,7 @@ def test_base_shape_sits_on_the_left_caudate_in_the_template(resources_dir, demo
     assert centroid[0] < -5 and np.linalg.norm(centroid - LEFT_CAUDATE_MNI) < 8.0
     gm = load_volume(resources_dir / "mni_icbm152_gm_tal_nlin_sym_09a.nii.gz")
     t1 = load_volume(resources_dir / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz")
-    normals = meshops.vertex_normals(base.vertices, base.faces)
+    normals = geometry.vertex_normals(base.vertices, base.faces)
 
     def sample(volume, points):
         ijk = np.rint(volume.world_to_voxel(points)).astype(int)
@@ -148,7 +148,7 @@ def test_contour_points_lie_on_the_heldout_shape_with_outward_normals(demo, trut
     summary = json.loads((demo / "ground_truth.json").read_text())
     planes = summary["synthetic"]["heldout"]["contour_planes"]
     assert len(planes) == 3
-    face_normals = meshops.face_normals(held.vertices, held.faces)
+    face_normals = geometry.face_normals(held.vertices, held.faces)
     covered = np.zeros(len(pts), dtype=bool)
     for plane in planes:
         normal = np.asarray(plane["normal"], dtype=float)

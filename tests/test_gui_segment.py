@@ -20,7 +20,7 @@ from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
 from core.io import load_model  # noqa: E402
 from core.planes import window_to_uint8  # noqa: E402
-from core.reconstruction import surface_distance  # noqa: E402
+from core.geometry import surface_distance  # noqa: E402
 from core.slicing import polylines, sample_polyline  # noqa: E402
 
 NO_MOD = Qt.KeyboardModifier.NoModifier
@@ -435,7 +435,7 @@ def test_dropping_a_model_file_loads_it(window, tmp_path):
 
 def test_open_stroke_normals_point_out_of_the_model(window):
     """A stroke along one side only: the sign comes from the model surface, not the centroid."""
-    from core.mesh import vertex_normals
+    from core.geometry import vertex_normals
 
     state = window.state
     vertices, faces = state.surface_vertices(), state.model.faces

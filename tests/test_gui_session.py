@@ -19,7 +19,7 @@ from PySide6.QtTest import QTest  # noqa: E402
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
 from core.io import load_mesh, load_points, load_volume  # noqa: E402
-from core.mesh import vertex_normals  # noqa: E402
+from core.geometry import vertex_normals  # noqa: E402
 from core.mesh import volume as mesh_volume  # noqa: E402
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from core.progress import Cancelled
-from core.mesh import closest_points_on_triangles, vertex_normals
-from core.reconstruction import FitResult, _rodrigues, fit_points, surface_distance
+from core.geometry import closest_points_on_triangles, rodrigues, surface_distance, vertex_normals
+from core.reconstruction import FitResult, fit_points
 from core.simulated_user import pca_model, simulate_user, synthetic_shapes
 
 
@@ -21,7 +21,7 @@ def family():
 def _similarity(rng: np.random.Generator, angle: float, scale: float, shift: float) -> np.ndarray:
     axis = rng.normal(size=3)
     t = np.eye(4)
-    t[:3, :3] = scale * _rodrigues(angle * axis / np.linalg.norm(axis))
+    t[:3, :3] = scale * rodrigues(angle * axis / np.linalg.norm(axis))
     t[:3, 3] = rng.normal(size=3) * shift / np.sqrt(3)
     return t
 

@@ -8,7 +8,7 @@ import pyvista as pv
 
 from core.io import Volume
 from core.mesh import volume
-from core.reconstruction import _rodrigues
+from core.geometry import rodrigues
 from core.segmentation import mask_volume_mm3, voxelize
 
 
@@ -19,7 +19,7 @@ def _sphere(radius: float, centre, nsub: int = 5) -> tuple[np.ndarray, np.ndarra
 
 def _oblique_affine(spacing, angle_deg: float, origin) -> np.ndarray:
     a = np.eye(4)
-    a[:3, :3] = _rodrigues(np.deg2rad(angle_deg) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)) * spacing
+    a[:3, :3] = rodrigues(np.deg2rad(angle_deg) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)) * spacing
     a[:3, 3] = origin
     return a
 

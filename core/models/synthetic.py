@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core import mesh as meshops
+from core import geometry, mesh as meshops
 
 
 @dataclass
@@ -62,9 +62,8 @@ def ellipsoid_surface(n_sub: int = 3, radii=(20.0, 14.0, 10.0)) -> tuple[np.ndar
                       [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
                       [8, 6, 7], [9, 8, 1]])
     for _ in range(n_sub):
-        e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-        uniq, inv = np.unique(e, axis=0, return_inverse=True)
-        mid = len(verts) + inv.reshape(-1).reshape(3, -1).T  # midpoints of edges (01, 12, 20) per face
+        uniq, _, face_edges = meshops.edge_table(faces)
+        mid = len(verts) + face_edges  # midpoints of edges (01, 12, 20) per face
         verts = np.vstack([verts, 0.5 * (verts[uniq[:, 0]] + verts[uniq[:, 1]])])
         a, b, c = faces.T
         ab, bc, ca = mid.T
@@ -100,7 +99,7 @@ def planted_shapes(base: np.ndarray, faces: np.ndarray, *, n_shapes: int = 30, n
     cd = np.linalg.norm(base[centres][:, None] - base[centres][None], axis=-1)
     min_sep = cd[~np.eye(n_factors, dtype=bool)].min() if n_factors > 1 else np.ptp(base, 0).max()
     r = 0.45 * min_sep if radius is None else float(radius)
-    normals = meshops.vertex_normals(base, faces)
+    normals = geometry.vertex_normals(base, faces)
     r = r * rng.permutation(np.linspace(1.0 - radius_spread, 1.0, n_factors))[:, None]
     d = np.linalg.norm(base[None] - base[centres][:, None], axis=-1)  # (M, N)
     bump = np.where(d < r, (1 - (d / r) ** 2) ** 2, 0.0)
