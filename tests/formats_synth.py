@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.geometry import rodrigues
+
 MR_IMAGE = "1.2.840.10008.5.1.4.1.1.4"
 ENHANCED_MR = "1.2.840.10008.5.1.4.1.1.4.1"
 BASIC_TEXT_SR = "1.2.840.10008.5.1.4.1.1.88.11"
@@ -21,10 +23,9 @@ UID_ROOT = "1.2.826.0.1.3680043.2.1125.77"
 
 
 def rotation(axis, degrees: float) -> np.ndarray:
+    """Rotation (3, 3) by ``degrees`` about ``axis`` (core.geometry's Rodrigues)."""
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    a = np.radians(degrees)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * k @ k
+    return rodrigues(np.radians(degrees) * axis)
 
 
 def oblique_image(size=(20, 18, 12), spacing=(0.9, 1.3, 2.5), seed: int = 0):

@@ -29,7 +29,7 @@ TOOLKIT = {"core/geometry.py": ["face_normals", "vertex_normals", "vertex_face_t
                                 "surface_distance", "symmetric_surface_distance", "umeyama",
                                 "rodrigues", "rotation_vector", "random_rotation", "skew"],
            "core/mesh.py": ["edge_table", "edges", "boundary_edges", "is_closed"]}
-ALIASES = ["vertex_normals_fast", "rotation_log", "rotation", "random_rotation", "procrustes_svd",
+ALIASES = ["vertex_normals_fast", "rotation_log", "random_rotation", "procrustes_svd",
            "closest_point_on_triangle", "cotangent_laplacian"]
 
 # Fingerprints of the algorithms themselves, whatever the function is called.
