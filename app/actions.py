@@ -22,6 +22,10 @@ SHORTCUTS = [
     ("Ctrl+left click (draw)", "Delete the point under the cursor"),
     ("Shift+left drag", "Window/level"), ("Right drag / Ctrl+wheel", "Zoom"),
     ("Middle drag", "Pan"),
+    ("Alt+A / Alt+P / Alt+M", "Plan: set AC / PC / midline point at the crosshair"),
+    ("T / E", "Plan: set the active structure's target / entry at the crosshair"),
+    ("S", "Plan: move to the suggested next slice (most uncertain)"),
+    ("Alt+Z / Alt+Shift+Z", "Plan: undo / redo a landmark, target or entry edit"),
 ]
 
 ABOUT = (f"<b>SSM Studio {__version__}</b><br>Shape-model-based interactive segmentation of "

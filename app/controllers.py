@@ -10,7 +10,9 @@ message for the status bar. The refit, which needs a worker thread, is in
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,6 +25,8 @@ class SessionController:
 
     def __init__(self, state: WorkspaceState):
         self.state = state
+        # extra blocks of the session's ``info`` (e.g. "planning"): key -> callable giving it
+        self.info_providers: dict[str, Callable[[], Any]] = {}
 
     # -- image and models --------------------------------------------------------------
     def open_image(self, path: str | os.PathLike) -> str:
@@ -70,7 +74,9 @@ class SessionController:
             coef=None if s.coef is None else s.coef.copy(),
             pose=None if s.pose is None else s.pose.copy(),
             fit=dict(fit_settings), window=(state.window, state.level),
-            crosshair=state.crosshair.copy(), info={"written_by": "ssm-studio"},
+            crosshair=state.crosshair.copy(),
+            info={"written_by": "ssm-studio",
+                  **{key: provide() for key, provide in self.info_providers.items()}},
         )
 
     def apply(self, session) -> dict:

@@ -30,6 +30,7 @@ import numpy as np
 
 from app.events import EmitterGroup
 from core.io import Volume
+from core.model_library import structure_info
 from core.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
 from core.shape_model import ShapeModel
 
@@ -200,9 +201,9 @@ class Structure:
         self.last_fit = None
         self.model_version += 1
         self._surface_version += 1
-        if not self.name:
-            self.name = str(model.info.get("structure") or (self.model_path.stem if self.model_path
-                                                            else "structure"))
+        if not self.name:  # from the model header's structure description, else the file name
+            info = structure_info(model, self.model_path)
+            self.name, self.side = info.name, info.side if info.side in SIDES else ""
         self._notify(self, "model")
         self._notify(self, "surface")
         self._notify(self, "fit_info")

@@ -24,16 +24,20 @@ from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import Qt, QTimer, Signal
-from PySide6.QtWidgets import QApplication, QFileDialog, QMainWindow, QMessageBox
+from PySide6.QtWidgets import (QApplication, QDockWidget, QFileDialog, QMainWindow, QMessageBox,
+                               QScrollArea)
 
 from app import demo
 from app.actions import SHORTCUTS, create_actions, create_menus, create_toolbar
 from app.controllers import ExportController, SessionController
 from app.panels.factors import FactorsPanel
 from app.panels.fit import FitPanel
+from app.panels.planning import PlanningPanel
 from app.panels.side import SidePanel
 from app.panels.status import CursorReadout, FitReadout
 from app.panels.tools import WINDOW_PRESETS, ToolsPanel
+from app.plan_controller import PlanController
+from app.planning import PlanningState
 from app.refit import RefitController
 from app.state import WorkspaceState
 from app.tabs import WorkspaceTabs
@@ -92,6 +96,7 @@ class MainWindow(QMainWindow):
         self.side_dock = SidePanel([("Tools", self.tools_panel, 0), ("Fit", self.fit_panel, 0),
                                     ("Deformation factors", self.factors_panel, 1)], self)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.side_dock)
+        self._create_planning()
 
         self.workspace.volume_view_created.connect(self._wire_volume_view)
         if self.workspace.volume_view is not None:
@@ -105,6 +110,8 @@ class MainWindow(QMainWindow):
 
         self.cursor_label = CursorReadout(self.state)
         self.fit_label = FitReadout(self.state, self.refit)
+        self.cursor_label.extra = self.plan.acpc_text
+        self.planning.events.landmarks.connect(self.cursor_label.refresh)
         self.statusBar().addPermanentWidget(self.cursor_label, 1)
         self.statusBar().addPermanentWidget(self.fit_label)
 
@@ -123,6 +130,29 @@ class MainWindow(QMainWindow):
         self.fit_panel.refit_requested.connect(lambda: self.schedule_refit(force=True))
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
+
+    def _create_planning(self) -> None:
+        """The Planning dock (tabbed with the segmentation dock) and its controller."""
+        self.planning = PlanningState(self.state)
+        self.planning_panel = PlanningPanel(self.planning)
+        scroll = QScrollArea()
+        scroll.setWidgetResizable(True)
+        scroll.setWidget(self.planning_panel)
+        self.plan_dock = QDockWidget("Planning", self)
+        self.plan_dock.setObjectName("planning-dock")
+        self.plan_dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)
+        self.plan_dock.setWidget(scroll)
+        self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.plan_dock)
+        self.tabifyDockWidget(self.side_dock, self.plan_dock)
+        self.side_dock.raise_()
+        self.plan = PlanController(self, self.planning, self.planning_panel)
+        self.sessions.info_providers["planning"] = self.planning.to_document   # info.planning
+
+    def export_plan_dialog(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Export the plan into folder", self._start_dir())
+        if folder:
+            self._guarded(lambda: self.show_message(
+                f"Exported the plan: {len(self.plan.export(folder))} file(s) in {folder}"))
 
     @property
     def runner(self):
@@ -247,6 +277,7 @@ class MainWindow(QMainWindow):
                                             fit.get("pose_spread"))
             finally:
                 self.fit_panel.blockSignals(was_blocked)
+        self.planning.apply_document(session.info.get("planning"))
         self._update_actions()
 
     def open_session(self, path: str | os.PathLike) -> None:
@@ -365,6 +396,7 @@ class MainWindow(QMainWindow):
 
     def _wire_volume_view(self) -> None:
         self.workspace.volume_view.defer = lambda: self.refit.is_busy
+        self.plan.attach_volume_view(self.workspace.volume_view)
 
     def _show_factor_region(self, index: int) -> None:
         """Colour the 3D surface by the touched factor's displacement for a few seconds."""
@@ -426,6 +458,7 @@ class MainWindow(QMainWindow):
     def _show_segment_controls(self, visible: bool) -> None:
         """The side panel and the drawing tools belong to the Segment tab only."""
         self.side_dock.setVisible(visible)
+        self.plan_dock.setVisible(visible)
         self.cursor_label.setVisible(visible)
         self.fit_label.setVisible(visible)
         for act in (*self.tool_actions.values(), self.act_undo, self.act_redo, self.act_place,

@@ -213,6 +213,11 @@ class SliceSampler:
         n_v = max(int(np.floor((v_hi - v_lo) / step)) + 1, 1)
         us = u_lo + step * np.arange(n_u)
         vs = v_hi - step * np.arange(n_v)
+        return self._sample_grid(axes, depth, us, vs, step)
+
+    def _sample_grid(self, axes: np.ndarray, depth: float, us: np.ndarray, vs: np.ndarray,
+                     step: float) -> SliceImage:
+        """Trilinear samples at world points U u + V v + depth n for the grid us x vs."""
         # voxel index = inverse(U u + V v + depth n), affine in (U, V): three broadcast planes
         lin, off = self.inverse[:3, :3], self.inverse[:3, 3]
         base, along_u, along_v = lin @ (depth * axes[2]) + off, lin @ axes[0], lin @ axes[1]
@@ -220,9 +225,38 @@ class SliceSampler:
                   for c in range(3)]
         values = ndimage.map_coordinates(self.data, coords, order=1, mode="constant", cval=np.nan,
                                          prefilter=False, output=np.float32)
-        data = values.reshape(n_v, n_u)
+        data = values.reshape(len(vs), len(us))
         inside = bool(np.any(np.isfinite(data)))
         return SliceImage(data, float(us[0]), float(vs[0]), step, step, float(depth), inside)
+
+    def sample_patch(self, frame: PlaneFrame, centre: np.ndarray, half_size: float,
+                     step: float | None = None) -> SliceImage:
+        """A square patch of any (also oblique) plane ``frame`` through world point ``centre``,
+        ``2 half_size`` mm wide, sampled every ``step`` mm (default: the smallest voxel size),
+        trilinear; NaN outside the volume. For views orthogonal to a trajectory."""
+        axes = frame.axes
+        step = float(self.spacing.min()) if step is None else float(step)
+        u_c, v_c, depth = axes @ np.asarray(centre, dtype=np.float64)
+        n = max(int(round(2 * half_size / step)), 1) + 1
+        offsets = step * (np.arange(n) - (n - 1) / 2)
+        return self._sample_grid(axes, depth, u_c + offsets, v_c - offsets, step)
+
+
+def frame_along(direction: np.ndarray, name: str = "probe") -> PlaneFrame:
+    """A slice frame orthogonal to ``direction`` (e.g. a trajectory, entry -> target), shown
+    like an axial view: normal n = -direction (towards the entry), screen up = the anterior
+    direction made orthogonal to n (superior if the direction is nearly anterior-posterior),
+    screen right = n x up (the patient's left for a vertical trajectory, as radiological
+    axial views show it)."""
+    d = np.asarray(direction, dtype=np.float64)
+    n = -d / np.linalg.norm(d)
+    up = np.array([0.0, 1.0, 0.0])
+    if abs(up @ n) > 0.9:
+        up = np.array([0.0, 0.0, 1.0])
+    v = up - (up @ n) * n
+    v /= np.linalg.norm(v)
+    u = np.cross(n, v)
+    return PlaneFrame(name, tuple(u), tuple(v), tuple(n))
 
 
 def window_to_uint8(values: np.ndarray, window: float, level: float) -> np.ndarray:

@@ -662,6 +662,7 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     model_source = "core.pipeline.build_model" if model is not None else "pca stand-in"
     if model is None:
         model = pca_stand_in_model(posed[:N_SHAPES], base.faces, names)
+    label_demo_model(model, spec)
     save_model(demo_dir / "model.npz", model)
     print(f"model: {model_source}, {model.n_factors} factors, {model.n_vertices} vertices")
     if "ground_truth_correspondence_error_mm" in model.info:
@@ -728,6 +729,15 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     return summary
 
 
+def label_demo_model(model: ShapeModel, spec: StructureSpec) -> ShapeModel:
+    """Describe the structure in the model's header (name, side, colour, template, demo)."""
+    from core.model_library import MNI_TEMPLATE_SPACE, StructureInfo, default_color, with_structure
+
+    return with_structure(model, StructureInfo(
+        name=spec.name, side=spec.side, color=default_color(spec.name),
+        template_space=MNI_TEMPLATE_SPACE, demo=True))
+
+
 def make_library(seed: int = SEED, models_dir: Path = MODELS,
                  only: list[str] | None = None) -> list[Path]:
     """Build the model library: one demo model per structure in ``LIBRARY``, each from its own
@@ -740,7 +750,6 @@ def make_library(seed: int = SEED, models_dir: Path = MODELS,
     import tempfile
 
     from core.io import load_model
-    from core.model_library import MNI_TEMPLATE_SPACE, StructureInfo, default_color, with_structure
 
     models_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -757,9 +766,7 @@ def make_library(seed: int = SEED, models_dir: Path = MODELS,
                 make_demo(seed=seed + index, demo_dir=Path(tmp), spec=spec)
                 source = Path(tmp) / "model.npz"
             model = load_model(source)
-        with_structure(model, StructureInfo(
-            name=spec.name, side=spec.side, color=default_color(spec.name),
-            template_space=MNI_TEMPLATE_SPACE, demo=True))
+        label_demo_model(model, spec)
         if spec.note:
             model.info["structure_note"] = spec.note
         model.info["demo_population"] = (

@@ -16,6 +16,7 @@ class CursorReadout(QLabel):
         self.setObjectName("cursor-info")
         self.state = state
         self.hover: np.ndarray | None = None       # world point under the cursor, or None
+        self.extra = lambda world: ""              # e.g. AC-PC coordinates, set by the window
         state.events.crosshair.connect(self.refresh)
 
     def on_hover(self, world) -> None:
@@ -26,7 +27,8 @@ class CursorReadout(QLabel):
         point = self.hover if self.hover is not None else self.state.crosshair
         text = self.state.describe(point)
         where = "cursor" if self.hover is not None else "crosshair"
-        self.setText(f"{where}  {text}" if text else "")
+        extra = self.extra(point) if text else ""
+        self.setText((f"{where}  {text}" + (f"   {extra}" if extra else "")) if text else "")
 
 
 class FitReadout(QLabel):

@@ -63,6 +63,9 @@ class SliceView(QWidget):
         self._qimage: QImage | None = None
         self._segments: dict[int, np.ndarray | None] = {}   # structure id -> (S, 2, 2) (U, V)
         self._drag: dict | None = None
+        # extra painters (trajectories, measurements...): callables (painter, view), called
+        # after the contours, in screen space (use view.world_to_screen)
+        self.overlays: list = []
         self.setMinimumSize(160, 160)
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.setMouseTracking(True)
@@ -201,6 +204,8 @@ class SliceView(QWidget):
         painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
         self._paint_points(painter)
         self._paint_contours(painter)
+        for overlay in self.overlays:
+            overlay(painter, self)
         self._paint_labels(painter)
         painter.end()
 

@@ -58,6 +58,10 @@ class VolumeView(QWidget):
         self._dirty_surfaces: set[int] = set()
         self._new_models: set[int] = set()     # structures whose mesh must be rebuilt
         self._camera_set = False
+        # named extra meshes (trajectory, targets, ellipsoids): name -> (mesh or None, style)
+        self._overlays: dict[str, tuple[pv.PolyData | None, dict]] = {}
+        self._overlay_actors: dict[str, object] = {}
+        self._scalars: tuple[np.ndarray, str] | None = None   # colour map on the active surface
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
         self._timer.setInterval(60)
@@ -136,6 +140,8 @@ class VolumeView(QWidget):
             self._update_surfaces()
         if "points" in dirty:
             self._update_points()
+        if "overlays" in dirty:
+            self._update_overlays()
         if "camera" in dirty or not self._camera_set:
             self.reset_camera()
         self.plotter.render()
@@ -186,6 +192,29 @@ class VolumeView(QWidget):
         self._dirty_surfaces.add(self.state.active.id)
         self._mark("surface")
 
+    def show_scalars(self, values: np.ndarray | None, title: str = "") -> None:
+        """Colour the active surface by per-vertex ``values`` (N,) (None: plain colour);
+        a factor shown by :meth:`show_factor` takes precedence."""
+        self._scalars = None if values is None else (np.asarray(values, dtype=np.float64), title)
+        self._dirty_surfaces.add(self.state.active.id)
+        self._mark("surface")
+
+    def set_overlay(self, name: str, mesh: pv.PolyData | None, **style) -> None:
+        """Show a named extra mesh with ``add_mesh`` keyword ``style`` (None removes it)."""
+        self._overlays[name] = (mesh, style)
+        self._mark("overlays")
+
+    def _update_overlays(self) -> None:
+        for name, (mesh, style) in list(self._overlays.items()):
+            actor = self._overlay_actors.pop(name, None)
+            if actor is not None:
+                self.plotter.remove_actor(actor)
+            if mesh is None:
+                del self._overlays[name]
+                continue
+            self._overlay_actors[name] = self.plotter.add_mesh(
+                mesh, name=f"overlay-{name}", reset_camera=False, **style)
+
     def _update_surfaces(self) -> None:
         """Add, restyle, move or remove each structure's surface actor."""
         active = self.state.active
@@ -204,23 +233,35 @@ class VolumeView(QWidget):
                 if entry is not None:
                     self.plotter.remove_actor(self._surfaces.pop(s.id)[0])
                 continue
-            style = (s.color, s is active, self._factor if s is active else None)
+            scalars = self._scalars if (s is active and self._factor is None) else None
+            style = (s.color, s is active, self._factor if s is active else None,
+                     None if scalars is None else id(scalars[0]))
             if entry is not None and entry[2] == style and s.id not in rebuild:
                 if s.id in dirty:
                     entry[1].points = vertices
                     entry[1].compute_normals(inplace=True, cell_normals=False, split_vertices=False)
                 continue
             self._surfaces[s.id] = self._add_surface(s, vertices, style)
-        if self._factor is None:
+        if self._factor is None and self._scalars is None:
             for name in list(self.plotter.scalar_bars.keys()):
                 self.plotter.remove_scalar_bar(name)
         for actor in self._plane_actors.values():
             actor.prop.opacity = PLANE_OPACITY if self._factor is None else 0.2
 
     def _add_surface(self, s: Structure, vertices: np.ndarray, style: tuple) -> tuple:
-        color, is_active, factor = style
+        color, is_active, factor, scalars = style
         mesh = surface_polydata(vertices, s.model.faces)
         name = f"surface-{s.id}"
+        if factor is None and scalars is not None and len(self._scalars[0]) == len(vertices):
+            values, title = self._scalars
+            mesh["values"] = values
+            actor = self.plotter.add_mesh(
+                mesh, scalars="values", cmap="viridis", clim=[0.0, max(float(values.max()), 1e-6)],
+                opacity=1.0, smooth_shading=True, name=name, reset_camera=False,
+                scalar_bar_args={"title": title, "vertical": True, "position_x": 0.84,
+                                 "position_y": 0.1, "height": 0.6, "width": 0.07,
+                                 "color": "white", "fmt": "%.2f"})
+            return actor, mesh, style
         if factor is None:
             actor = self.plotter.add_mesh(
                 mesh, color=tuple(c / 255 for c in color), smooth_shading=True, name=name,

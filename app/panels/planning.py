@@ -1,0 +1,216 @@
+"""The Planning panel: AC-PC landmarks, the active structure's target and trajectory, the
+probe's-eye view, how sure the fit is, and the plan export.
+
+Widgets and wiring only: the state is :class:`app.planning.PlanningState`; geometry comes from
+``core.planning``, the posterior from ``core.uncertainty``, the files from
+``core.plan_report``. Points are set at the crosshair (move it in any slice view, then press
+the button), as in frame-based planning software.
+"""
+
+from __future__ import annotations
+
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtWidgets import (QCheckBox, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
+                               QPushButton, QSlider, QVBoxLayout, QWidget)
+
+from app.planning import LANDMARK_LABELS, LANDMARKS, PlanningState
+from app.views.plan_overlays import ProbeView
+from core.planning import format_acpc
+
+
+def _xyz(p) -> str:
+    return "not set" if p is None else f"({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f})"
+
+
+class PlanningPanel(QWidget):
+    """See the module docstring. ``message(text)`` reports to the status bar."""
+
+    message = Signal(str)
+    uncertainty_toggled = Signal(bool)
+    suggest_requested = Signal()
+    export_requested = Signal()
+
+    def __init__(self, planning: PlanningState, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.planning = planning
+        self.workspace = planning.workspace
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(4, 4, 4, 4)
+        layout.addWidget(self._landmark_box())
+        layout.addWidget(self._trajectory_box())
+        layout.addWidget(self._probe_box(), 1)
+        layout.addWidget(self._uncertainty_box())
+        export = QPushButton("Export plan…")
+        export.setToolTip("Report (JSON), structure table (CSV), multi-label map (.seg.nrrd and "
+                          "NIfTI + ITK-SNAP labels), meshes and Slicer markups into a folder")
+        export.clicked.connect(self.export_requested.emit)
+        layout.addWidget(export)
+        planning.events.landmarks.connect(self.refresh)
+        planning.events.trajectory.connect(lambda s: s is self.workspace.active and self.refresh())
+        planning.events.history.connect(self._update_history)
+        self.workspace.events.active.connect(self.refresh)
+        self.workspace.events.model.connect(self.refresh)
+        self.refresh()
+
+    # -- construction ------------------------------------------------------------------------
+    def _landmark_box(self) -> QGroupBox:
+        box = QGroupBox("AC-PC landmarks")
+        grid = QGridLayout(box)
+        self.landmark_labels: dict[str, QLabel] = {}
+        for row, name in enumerate(LANDMARKS):
+            grid.addWidget(QLabel(LANDMARK_LABELS[name]), row, 0)
+            label = QLabel()
+            label.setObjectName(f"landmark-{name}")
+            grid.addWidget(label, row, 1)
+            self.landmark_labels[name] = label
+            set_button = QPushButton("Set")
+            set_button.setToolTip(f"Put {LANDMARK_LABELS[name]} at the crosshair")
+            set_button.clicked.connect(lambda _=False, n=name: self.set_landmark(n))
+            go = QPushButton("Go")
+            go.setToolTip(f"Move the crosshair to {LANDMARK_LABELS[name]}")
+            go.clicked.connect(lambda _=False, n=name: self.go_to(self.planning.landmarks[n]))
+            grid.addWidget(set_button, row, 2)
+            grid.addWidget(go, row, 3)
+        self.frame_label = QLabel()
+        self.frame_label.setWordWrap(True)
+        grid.addWidget(self.frame_label, len(LANDMARKS), 0, 1, 4)
+        row = QHBoxLayout()
+        self.undo_button = QPushButton("Undo plan edit")
+        self.undo_button.clicked.connect(self.planning.undo)
+        self.redo_button = QPushButton("Redo")
+        self.redo_button.clicked.connect(self.planning.redo)
+        row.addWidget(self.undo_button)
+        row.addWidget(self.redo_button)
+        grid.addLayout(row, len(LANDMARKS) + 1, 0, 1, 4)
+        self._update_history()
+        return box
+
+    def _trajectory_box(self) -> QGroupBox:
+        box = QGroupBox("Target and trajectory")
+        grid = QGridLayout(box)
+        self.target_label = QLabel()
+        self.target_label.setWordWrap(True)
+        grid.addWidget(self.target_label, 0, 0, 1, 2)
+        buttons = [("Target at crosshair", self.set_target_here),
+                   ("Model target", lambda: self.planning.set_target(self.workspace.active, None)),
+                   ("Entry at crosshair", self.set_entry_here),
+                   ("Clear entry", lambda: self.planning.set_entry(self.workspace.active, None))]
+        for i, (text, slot) in enumerate(buttons):
+            button = QPushButton(text)
+            button.clicked.connect(slot)
+            grid.addWidget(button, 1 + i // 2, i % 2)
+        self.trajectory_label = QLabel()
+        self.trajectory_label.setObjectName("trajectory-readout")
+        self.trajectory_label.setWordWrap(True)
+        self.trajectory_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        grid.addWidget(self.trajectory_label, 3, 0, 1, 2)
+        return box
+
+    def _probe_box(self) -> QGroupBox:
+        box = QGroupBox("Probe's-eye view")
+        layout = QVBoxLayout(box)
+        self.probe = ProbeView(self.planning)
+        layout.addWidget(self.probe)
+        row = QHBoxLayout()
+        row.addWidget(QLabel("Depth"))
+        self.depth_slider = QSlider(Qt.Orientation.Horizontal)
+        self.depth_slider.setRange(0, 0)
+        self.depth_slider.valueChanged.connect(self._on_depth)
+        row.addWidget(self.depth_slider, 1)
+        layout.addLayout(row)
+        return box
+
+    def _uncertainty_box(self) -> QGroupBox:
+        box = QGroupBox("How sure is the fit?")
+        layout = QVBoxLayout(box)
+        self.uncertainty_check = QCheckBox("Colour the surface by its SD (mm)")
+        self.uncertainty_check.toggled.connect(self.uncertainty_toggled.emit)
+        layout.addWidget(self.uncertainty_check)
+        self.uncertainty_label = QLabel("")
+        self.uncertainty_label.setWordWrap(True)
+        layout.addWidget(self.uncertainty_label)
+        suggest = QPushButton("Suggest next slice")
+        suggest.setToolTip("Move the crosshair to the slice where a new contour removes the "
+                           "most uncertainty")
+        suggest.clicked.connect(self.suggest_requested.emit)
+        layout.addWidget(suggest)
+        return box
+
+    # -- actions -------------------------------------------------------------------------------
+    def set_landmark(self, name: str) -> None:
+        self.planning.set_landmark(name, self.workspace.crosshair)
+        problem = self.planning.frame_problem()
+        if problem and all(self.planning.landmarks[n] is not None for n in LANDMARKS):
+            self.message.emit(f"AC-PC frame refused: {problem}")
+
+    def set_target_here(self) -> None:
+        self.planning.set_target(self.workspace.active, self.workspace.crosshair)
+
+    def set_entry_here(self) -> None:
+        self.planning.set_entry(self.workspace.active, self.workspace.crosshair)
+
+    def go_to(self, xyz) -> None:
+        if xyz is not None:
+            self.workspace.set_crosshair(xyz)
+
+    def _on_depth(self, value: int) -> None:
+        traj = self.planning.trajectory_of(self.workspace.active)
+        self.probe.set_view(traj, value / 2.0)
+
+    def _update_history(self) -> None:
+        self.undo_button.setEnabled(self.planning.can_undo())
+        self.redo_button.setEnabled(self.planning.can_redo())
+
+    # -- read-outs -----------------------------------------------------------------------------
+    def refresh(self) -> None:
+        planning, active = self.planning, self.workspace.active
+        frame = planning.frame()
+        for name, label in self.landmark_labels.items():
+            label.setText(_xyz(planning.landmarks[name]))
+        problem = planning.frame_problem()
+        self.frame_label.setText(f"AC-PC distance {frame.ac_pc_distance:.1f} mm" if frame
+                                 else (problem or "")[:1].upper() + (problem or "")[1:])
+        target = planning.target_of(active)
+        how = "model default" if planning.target_is_default(active) else "set by you"
+        text = f"{active.label}: target {_xyz(target)} ({how})"
+        if target is not None and frame is not None:
+            text += "\n" + format_acpc(frame.to_acpc(target))
+        self.target_label.setText(text)
+        traj = planning.trajectory_of(active)
+        self.trajectory_label.setText(self._trajectory_text(traj, frame))
+        length2 = 0 if traj is None else int(round(2 * (traj.length + 10.0)))
+        blocked = self.depth_slider.blockSignals(True)
+        self.depth_slider.setRange(0, length2)
+        if traj is not None and self.depth_slider.value() == 0:
+            self.depth_slider.setValue(int(round(2 * traj.length)))
+        self.depth_slider.blockSignals(blocked)
+        self.probe.set_view(traj, self.depth_slider.value() / 2.0)
+
+    def _trajectory_text(self, traj, frame) -> str:
+        if traj is None:
+            return "Set an entry point for a trajectory."
+        lines = [f"Length {traj.length:.1f} mm"]
+        if frame is not None:
+            a = traj.angles(frame)
+            lines.append(f"Ring {a['ring_deg']:.1f}°, arc {a['arc_deg']:.1f}°, "
+                         f"{a['midsagittal_angle_deg']:.1f}° from the midsagittal plane")
+        for s in self.workspace.structures:
+            vertices = s.surface_vertices()
+            if vertices is None:
+                continue
+            for enter, leave in traj.segments_inside(vertices, s.model.faces, 10.0):
+                lines.append(f"{s.label}: {enter:.1f} → {leave:.1f} mm from the entry")
+        return "\n".join(lines)
+
+    def show_uncertainty(self, mean_sd: float, max_sd: float, target_radius: float | None) -> None:
+        text = f"Surface SD: mean {mean_sd:.2f} mm, max {max_sd:.2f} mm"
+        if target_radius is not None:
+            text += f"; target within ±{target_radius:.2f} mm (2 SD)"
+        self.uncertainty_label.setText(text)
+
+    def set_depth_mm(self, depth: float) -> None:
+        self.depth_slider.setValue(int(round(2 * depth)))
+
+    @property
+    def depth_mm(self) -> float:
+        return self.depth_slider.value() / 2.0

@@ -1,0 +1,170 @@
+"""Wiring of the planning tools: overlays in every view, uncertainty, next slice, plan export.
+
+Slicer's Logic/Widget split: the planning model is :class:`app.planning.PlanningState`, the
+widget :class:`app.panels.planning.PlanningPanel`; this controller connects them to the views
+and calls the engine (``core.uncertainty`` for the posterior, ``core.plan_report`` for the
+files). The posterior of a 2,000-vertex model with a few dozen factors takes a few ms, so it is
+computed on the GUI thread, after each refit of the active structure, only while shown.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PySide6.QtCore import QObject
+from PySide6.QtGui import QKeySequence
+
+from app.planning import PlanningState
+from app.state import FRAME_NAMES
+from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
+from core.io import TriMesh, save_mesh
+from core.plan_report import export_plan
+from core.planning import anchored_point_weights, format_acpc
+from core.uncertainty import ellipsoid, fit_posterior, suggest_slice
+
+
+class PlanController(QObject):
+    """See the module docstring; ``window`` is the :class:`app.window.MainWindow`."""
+
+    def __init__(self, window, planning: PlanningState, panel):
+        super().__init__(window)
+        self.window = window
+        self.planning = planning
+        self.panel = panel
+        self.workspace = planning.workspace
+        self.volume_overlay: VolumePlanOverlay | None = None
+        self.show_uncertainty = False
+        self.last_sd: np.ndarray | None = None
+        self.slice_overlay = SlicePlanOverlay(planning)
+        for view in window.workspace.views.values():
+            view.overlays.append(self.slice_overlay)
+        planning.events.landmarks.connect(self._repaint)
+        planning.events.trajectory.connect(lambda s: self._repaint())
+        planning.events.edited.connect(window._on_edited)
+        self.workspace.events.surface.connect(self._on_surface)
+        self.workspace.events.active.connect(self._on_surface)
+        panel.message.connect(window.show_message)
+        panel.uncertainty_toggled.connect(self.set_uncertainty)
+        panel.suggest_requested.connect(self.suggest_next_slice)
+        panel.export_requested.connect(window.export_plan_dialog)
+        self._create_menu()
+
+    def _create_menu(self) -> None:
+        """The Plan menu: landmarks, target and entry at the crosshair, export (with keys)."""
+        w, panel = self.window, self.panel
+        menu = w.menuBar().addMenu("P&lan")
+        entries = [("Set &AC at crosshair", lambda: panel.set_landmark("ac"), "Alt+A"),
+                   ("Set &PC at crosshair", lambda: panel.set_landmark("pc"), "Alt+P"),
+                   ("Set &midline point at crosshair", lambda: panel.set_landmark("midline"), "Alt+M"),
+                   None,
+                   ("Set &target at crosshair", panel.set_target_here, "T"),
+                   ("Use the &model's target", lambda: self.planning.set_target(self.workspace.active, None), None),
+                   ("Set &entry at crosshair", panel.set_entry_here, "E"),
+                   None,
+                   ("Undo plan edit", self.planning.undo, "Alt+Z"),
+                   ("Redo plan edit", self.planning.redo, "Alt+Shift+Z"),
+                   ("Suggest next slice", self.suggest_next_slice, "S"),
+                   None,
+                   ("E&xport plan…", w.export_plan_dialog, None)]
+        self.actions = {}
+        for entry in entries:
+            if entry is None:
+                menu.addSeparator()
+                continue
+            text, slot, key = entry
+            action = menu.addAction(text)
+            action.triggered.connect(slot)
+            if key:
+                action.setShortcut(QKeySequence(key))
+            w.addAction(action)
+            self.actions[text.replace("&", "")] = action
+
+    def attach_volume_view(self, volume_view) -> None:
+        self.volume_overlay = VolumePlanOverlay(self.planning, volume_view)
+        self._repaint()
+
+    def _repaint(self) -> None:
+        for view in self.window.workspace.views.values():
+            view.update()
+        if self.volume_overlay is not None:
+            self.volume_overlay.update()
+
+    # -- uncertainty ------------------------------------------------------------------------
+    def posterior(self):
+        """The active structure's Laplace posterior at its current fit (None without a model)."""
+        s = self.workspace.active
+        if s.model is None:
+            return None
+        pose_mode = getattr(s.last_fit, "pose_mode", "similarity")
+        return fit_posterior(s.model, s.points.xyz, s.coef, s.pose, pose_mode=pose_mode)
+
+    def set_uncertainty(self, shown: bool) -> None:
+        self.show_uncertainty = bool(shown)
+        self._on_surface()
+
+    def _on_surface(self) -> None:
+        view = self.window.workspace.volume_view
+        if not self.show_uncertainty or self.workspace.active.model is None:
+            self.last_sd = None
+            if self.volume_overlay is not None:
+                self.volume_overlay.ellipsoid = None
+            if view is not None:
+                view.show_scalars(None)
+            self._repaint()
+            return
+        post = self.posterior()
+        sd = post.vertex_sd()
+        self.last_sd = sd
+        s = self.workspace.active
+        target = self.planning.target_of(s)
+        radius = None
+        if target is not None:
+            idx, w = anchored_point_weights(s.surface_vertices(), target)
+            e = ellipsoid(target, post.point_covariance(idx, w))
+            radius = e.radius_mm
+            if self.volume_overlay is not None:
+                self.volume_overlay.ellipsoid = e
+        self.panel.show_uncertainty(float(sd.mean()), float(sd.max()), radius)
+        if view is not None:
+            view.show_scalars(sd, "SD mm")
+        self._repaint()
+
+    def suggest_next_slice(self) -> None:
+        s = self.workspace.active
+        if s.model is None:
+            self.window.show_message("Load a model first")
+            return
+        sd = self.posterior().vertex_sd()
+        drawn = sorted({(FRAME_NAMES[int(f)], float(d)) for f, d in zip(s.points.frame, s.points.depth)})
+        volume = self.workspace.volume
+        step = float(volume.spacing.min()) if volume is not None else 1.0
+        best = suggest_slice(s.surface_vertices(), sd, spacing=step, drawn=drawn)
+        axis = {"sagittal": 0, "coronal": 1, "axial": 2}[best.view]
+        crosshair = self.workspace.crosshair.copy()
+        crosshair[axis] = best.depth
+        self.workspace.set_crosshair(crosshair)
+        self.window.show_message(f"Draw next on the {best.view} slice at "
+                                 f"{'xyz'[axis]} = {best.depth:.1f} mm (most uncertain there)")
+
+    # -- read-outs and export -------------------------------------------------------------------
+    def acpc_text(self, world) -> str:
+        """'AC-PC: lat ... mm' for the status bar, or '' without a frame."""
+        frame = self.planning.frame()
+        return "" if frame is None or world is None else format_acpc(frame.to_acpc(world))
+
+    def export(self, folder) -> list[Path]:
+        """Every plan file plus one mesh per fitted structure into ``folder``."""
+        folder = Path(folder)
+        structures = self.planning.planned_structures()
+        if not structures:
+            raise ValueError("nothing to export: no structure has a model")
+        volume = self.workspace.volume
+        written = export_plan(folder, structures, volume, self.planning.frame(),
+                              image=self.workspace.image_path.name if self.workspace.image_path else None)
+        for i, s in enumerate(structures, start=1):
+            safe = "".join(c if c.isalnum() else "_" for c in s.name).strip("_") or f"structure{i}"
+            path = folder / f"plan_{i:02d}_{safe}.vtk"
+            save_mesh(path, TriMesh(s.vertices, s.faces, safe))
+            written.append(path)
+        return written

@@ -1,0 +1,248 @@
+"""The planning model of the workspace: AC, PC, midline, and a target and entry per structure.
+
+Plain Python, no Qt (like :mod:`app.state`; a test checks it). :class:`PlanningState` sits next
+to the :class:`app.state.WorkspaceState` and refers to its structures by identity:
+
+- landmarks ``ac``, ``pc``, ``midline`` (world RAS mm, or None); with all three set and valid,
+  :meth:`PlanningState.frame` is the AC-PC frame (``core.planning.ACPCFrame``) and every read-out
+  also gives AC-PC coordinates;
+- per structure an optional user target (None: the model's default target, which moves with
+  the fitted surface: the target stored in the model file, else the fitted surface's
+  centroid; ``core.plan_report.model_target``) and an optional entry point; with both, the
+  structure has a trajectory;
+- its own undo history of these edits (the structures' undo stacks stay theirs).
+
+Events (``planning.events.<name>.connect``): ``landmarks``, ``trajectory(structure)``,
+``history``, ``edited(what)``. Every read-out is computed by ``core.planning`` /
+``core.plan_report`` (no maths here).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app.events import EmitterGroup
+from app.state import Structure, WorkspaceState
+from core.model_library import structure_info
+from core.plan_report import PlannedStructure, model_target, plan_report
+from core.planning import ACPCFrame, PlanningError, Trajectory
+
+LANDMARKS = ("ac", "pc", "midline")
+LANDMARK_LABELS = {"ac": "AC", "pc": "PC", "midline": "Midline"}
+MAX_HISTORY = 200
+
+
+@dataclass
+class _Snapshot:
+    landmarks: dict
+    targets: dict
+    entries: dict
+
+
+@dataclass(eq=False)
+class PlanningState:
+    """Evented planning state (see the module docstring)."""
+
+    workspace: WorkspaceState
+    landmarks: dict = field(default_factory=lambda: {name: None for name in LANDMARKS})
+    targets: dict = field(default_factory=dict)     # structure id -> (3,) world
+    entries: dict = field(default_factory=dict)     # structure id -> (3,) world
+
+    def __post_init__(self) -> None:
+        self.events = EmitterGroup(landmarks=(), trajectory=("structure",), history=(),
+                                   edited=("what",))
+        self._undo: list[_Snapshot] = []
+        self._redo: list[_Snapshot] = []
+        self.workspace.events.structure_changed.connect(self._on_structure)
+        self.workspace.events.structures.connect(self._on_structures)
+
+    # -- landmarks and the AC-PC frame ------------------------------------------------------
+    def set_landmark(self, name: str, xyz) -> None:
+        """Set (or clear, with None) AC, PC or the midline point (undoable)."""
+        if name not in LANDMARKS:
+            raise ValueError(f"unknown landmark {name!r}, expected one of {LANDMARKS}")
+        self._checkpoint()
+        self.landmarks[name] = None if xyz is None else np.asarray(xyz, dtype=np.float64).copy()
+        self.events.landmarks()
+        for s in self.workspace.structures:
+            self.events.trajectory(s)
+        self.events.edited("landmarks")
+
+    def frame(self) -> ACPCFrame | None:
+        """The AC-PC frame, or None while a landmark is missing or the three are degenerate."""
+        try:
+            return self._frame()
+        except PlanningError:
+            return None
+
+    def frame_problem(self) -> str | None:
+        """Why there is no AC-PC frame (a sentence for the user), or None when there is one."""
+        missing = [LANDMARK_LABELS[n] for n in LANDMARKS if self.landmarks[n] is None]
+        if missing:
+            return "set " + ", ".join(missing) + " for AC-PC coordinates"
+        try:
+            self._frame()
+        except PlanningError as exc:
+            return str(exc)
+        return None
+
+    def _frame(self) -> ACPCFrame:
+        if any(self.landmarks[n] is None for n in LANDMARKS):
+            raise PlanningError("AC, PC and the midline point are not all set")
+        return ACPCFrame.from_points(self.landmarks["ac"], self.landmarks["pc"],
+                                     self.landmarks["midline"])
+
+    # -- targets, entries, trajectories -------------------------------------------------------
+    def set_target(self, structure: Structure, xyz) -> None:
+        """A user target for ``structure`` (None: back to the model's default target)."""
+        self._checkpoint()
+        if xyz is None:
+            self.targets.pop(structure.id, None)
+        else:
+            self.targets[structure.id] = np.asarray(xyz, dtype=np.float64).copy()
+        self.events.trajectory(structure)
+        self.events.edited("target")
+
+    def set_entry(self, structure: Structure, xyz) -> None:
+        """The entry point of ``structure``'s trajectory (None: no trajectory)."""
+        self._checkpoint()
+        if xyz is None:
+            self.entries.pop(structure.id, None)
+        else:
+            self.entries[structure.id] = np.asarray(xyz, dtype=np.float64).copy()
+        self.events.trajectory(structure)
+        self.events.edited("entry")
+
+    def target_is_default(self, structure: Structure) -> bool:
+        return structure.id not in self.targets
+
+    def target_of(self, structure: Structure) -> np.ndarray | None:
+        """World target: the user's, else the model's default on the fitted surface."""
+        if structure.id in self.targets:
+            return self.targets[structure.id]
+        model = structure.model
+        if model is None:
+            return None
+        local = model.instance(structure.coef)
+        target = model_target(model.mean, model.faces, local, structure_info(model).target)
+        return target @ structure.pose[:3, :3].T + structure.pose[:3, 3]
+
+    def entry_of(self, structure: Structure) -> np.ndarray | None:
+        return self.entries.get(structure.id)
+
+    def trajectory_of(self, structure: Structure) -> Trajectory | None:
+        target, entry = self.target_of(structure), self.entry_of(structure)
+        if target is None or entry is None:
+            return None
+        try:
+            return Trajectory(entry, target)
+        except PlanningError:
+            return None
+
+    def planned_structures(self) -> list[PlannedStructure]:
+        """The fitted structures with their targets and entries, for reports and exports."""
+        out = []
+        for s in self.workspace.structures:
+            if s.model is None:
+                continue
+            out.append(PlannedStructure(s.label, s.surface_vertices(), s.model.faces,
+                                        tuple(c / 255.0 for c in s.color),
+                                        target=self.target_of(s), entry=self.entry_of(s)))
+        return out
+
+    def report(self) -> dict:
+        """The plan report (``core.plan_report.plan_report``) of the current workspace."""
+        image = str(self.workspace.image_path.name) if self.workspace.image_path else None
+        return plan_report(self.planned_structures(), self.frame(), image)
+
+    # -- undo ---------------------------------------------------------------------------------
+    def _snapshot(self) -> _Snapshot:
+        return _Snapshot(dict(self.landmarks), dict(self.targets), dict(self.entries))
+
+    def _checkpoint(self) -> None:
+        self._undo.append(self._snapshot())
+        del self._undo[:-MAX_HISTORY]
+        self._redo.clear()
+        self.events.history()
+
+    def can_undo(self) -> bool:
+        return bool(self._undo)
+
+    def can_redo(self) -> bool:
+        return bool(self._redo)
+
+    def undo(self) -> bool:
+        if not self._undo:
+            return False
+        self._redo.append(self._snapshot())
+        self._restore(self._undo.pop())
+        return True
+
+    def redo(self) -> bool:
+        if not self._redo:
+            return False
+        self._undo.append(self._snapshot())
+        self._restore(self._redo.pop())
+        return True
+
+    def _restore(self, snap: _Snapshot) -> None:
+        self.landmarks, self.targets, self.entries = snap.landmarks, snap.targets, snap.entries
+        self.events.landmarks()
+        for s in self.workspace.structures:
+            self.events.trajectory(s)
+        self.events.history()
+        self.events.edited("planning")
+
+    # -- sessions -----------------------------------------------------------------------------
+    def to_document(self) -> dict:
+        """The session's ``planning`` block; structures by their index in the structure list."""
+        index = {s.id: i for i, s in enumerate(self.workspace.structures)}
+
+        def vec(v):
+            return None if v is None else [float(c) for c in v]
+
+        per_structure = []
+        for sid in sorted(set(self.targets) | set(self.entries), key=lambda k: index.get(k, 1e9)):
+            if sid not in index:
+                continue
+            per_structure.append({"structure": index[sid], "target": vec(self.targets.get(sid)),
+                                  "entry": vec(self.entries.get(sid))})
+        return {**{name: vec(self.landmarks[name]) for name in LANDMARKS},
+                "structures": per_structure}
+
+    def apply_document(self, doc: dict | None) -> None:
+        """Restore from a session's ``planning`` block (None or {}: nothing planned)."""
+        doc = doc or {}
+        landmarks = {name: (None if doc.get(name) is None else np.asarray(doc[name], float))
+                     for name in LANDMARKS}
+        targets, entries = {}, {}
+        structures = self.workspace.structures
+        for item in doc.get("structures", []):
+            i = int(item["structure"])
+            if not 0 <= i < len(structures):
+                raise ValueError(f"planning refers to structure {i + 1}, the session has "
+                                 f"{len(structures)}")
+            sid = structures[i].id
+            if item.get("target") is not None:
+                targets[sid] = np.asarray(item["target"], dtype=np.float64)
+            if item.get("entry") is not None:
+                entries[sid] = np.asarray(item["entry"], dtype=np.float64)
+        self.landmarks, self.targets, self.entries = landmarks, targets, entries
+        self._undo.clear()
+        self._redo.clear()
+        self.events.landmarks()
+        for s in structures:
+            self.events.trajectory(s)
+        self.events.history()
+
+    # -- following the workspace ------------------------------------------------------------
+    def _on_structure(self, structure: Structure, what: str) -> None:
+        if what in ("surface", "model"):
+            self.events.trajectory(structure)   # a model target moves with the surface
+
+    def _on_structures(self) -> None:
+        alive = {s.id for s in self.workspace.structures}
+        self.targets = {k: v for k, v in self.targets.items() if k in alive}
+        self.entries = {k: v for k, v in self.entries.items() if k in alive}

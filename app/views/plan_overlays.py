@@ -1,0 +1,195 @@
+"""The plan drawn in the views: landmarks, targets, entries and trajectories; the probe's eye.
+
+- :class:`SlicePlanOverlay` paints in every slice view (a painter of ``SliceView.overlays``):
+  AC, PC and the midline point as labelled diamonds on their slice, each structure's target
+  (a cross in its colour) and entry, and each trajectory as its projection on the slice
+  (dashed) with the point where it pierces the slice (a ring).
+- :class:`VolumePlanOverlay` keeps the 3D view's plan meshes (``VolumeView.set_overlay``): a
+  tube per trajectory, spheres at targets and entries, the landmarks, and the target's
+  uncertainty ellipsoid when shown.
+- :class:`ProbeView` is the probe's-eye view: the image on the plane orthogonal to the
+  trajectory at an adjustable depth (``core.planes.frame_along`` / ``sample_patch``), with the
+  structures' cross-sections and the trajectory's centre.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyvista as pv
+from PySide6.QtCore import QPointF, QRectF, Qt
+from PySide6.QtGui import QColor, QImage, QPainter, QPen
+from PySide6.QtWidgets import QSizePolicy, QWidget
+
+from app.planning import LANDMARK_LABELS, PlanningState
+from core.planes import frame_along, window_to_uint8
+from core.slicing import intersect_plane
+
+LANDMARK_COLOR = QColor(255, 80, 200)
+LANDMARK_RGB = (1.0, 0.31, 0.78)
+TRAJECTORY_RGB = (1.0, 1.0, 0.3)
+
+
+class SlicePlanOverlay:
+    """Paints the plan on one slice view (see the module docstring)."""
+
+    def __init__(self, planning: PlanningState):
+        self.planning = planning
+
+    def __call__(self, painter: QPainter, view) -> None:
+        planning = self.planning
+        tolerance = view._step() / 2 + 1e-6
+        depth_of = view.frame.depth
+        for name, xyz in planning.landmarks.items():
+            if xyz is None or abs(float(depth_of(xyz)) - view.depth) > tolerance:
+                continue
+            x, y = view.world_to_screen(xyz)
+            painter.setPen(QPen(LANDMARK_COLOR, 2))
+            painter.setBrush(Qt.BrushStyle.NoBrush)
+            painter.drawPolygon([QPointF(x, y - 6), QPointF(x + 6, y), QPointF(x, y + 6),
+                                 QPointF(x - 6, y)])
+            painter.drawText(QPointF(x + 8, y - 6), LANDMARK_LABELS[name])
+        for s in planning.workspace.structures:
+            if not s.visible:
+                continue
+            color = QColor(*s.color)
+            target, entry = planning.target_of(s), planning.entry_of(s)
+            traj = planning.trajectory_of(s)
+            if traj is not None:
+                self._paint_trajectory(painter, view, traj, color)
+            for point, kind in ((target, "target"), (entry, "entry")):
+                if point is None or abs(float(depth_of(point)) - view.depth) > tolerance:
+                    continue
+                x, y = view.world_to_screen(point)
+                painter.setPen(QPen(color, 2))
+                if kind == "target":
+                    painter.drawLine(QPointF(x - 6, y), QPointF(x + 6, y))
+                    painter.drawLine(QPointF(x, y - 6), QPointF(x, y + 6))
+                else:
+                    painter.drawRect(QRectF(x - 4, y - 4, 8, 8))
+
+    @staticmethod
+    def _paint_trajectory(painter: QPainter, view, traj, color: QColor) -> None:
+        a, b = view.world_to_screen(np.stack([traj.entry, traj.target]))
+        pen = QPen(QColor(255, 255, 80, 170), 1.5, Qt.PenStyle.DashLine)
+        painter.setPen(pen)
+        painter.drawLine(QPointF(*a), QPointF(*b))
+        n = np.asarray(view.frame.n)
+        denom = float(traj.direction @ n)
+        if abs(denom) > 1e-9:  # where the trajectory pierces this slice
+            t = (view.depth - float(traj.entry @ n)) / denom
+            if 0.0 <= t <= traj.length:
+                x, y = view.world_to_screen(traj.point_at(t))
+                painter.setPen(QPen(QColor(255, 255, 80), 2))
+                painter.drawEllipse(QPointF(x, y), 5, 5)
+
+
+class VolumePlanOverlay:
+    """Keeps the 3D view's plan meshes in step with the planning state."""
+
+    def __init__(self, planning: PlanningState, volume_view):
+        self.planning = planning
+        self.view = volume_view
+        self._names: set[str] = set()
+        self.ellipsoid = None            # core.uncertainty.Ellipsoid of the active target
+
+    def update(self) -> None:
+        planning = self.planning
+        shown: set[str] = set()
+
+        def put(name, mesh, **style):
+            shown.add(name)
+            self.view.set_overlay(name, mesh, **style)
+
+        for name, xyz in planning.landmarks.items():
+            if xyz is not None:
+                put(f"landmark-{name}", pv.Sphere(radius=1.2, center=xyz), color=LANDMARK_RGB)
+        for s in planning.workspace.structures:
+            if not s.visible:
+                continue
+            rgb = tuple(c / 255 for c in s.color)
+            target, entry = planning.target_of(s), planning.entry_of(s)
+            if target is not None:
+                put(f"target-{s.id}", pv.Sphere(radius=1.0, center=target), color=rgb)
+            if entry is not None:
+                put(f"entry-{s.id}", pv.Cube(center=entry, x_length=2, y_length=2, z_length=2),
+                    color=rgb)
+            traj = planning.trajectory_of(s)
+            if traj is not None:
+                line = pv.Line(traj.entry, traj.target)
+                put(f"trajectory-{s.id}", line.tube(radius=0.4), color=TRAJECTORY_RGB)
+        e = self.ellipsoid
+        if e is not None and e.radius_mm > 0:
+            sphere = pv.Sphere(radius=1.0, theta_resolution=24, phi_resolution=16)
+            pts = np.asarray(sphere.points) * np.maximum(e.semi_axes, 1e-3) @ e.axes + e.centre
+            sphere.points = pts
+            put("target-ellipsoid", sphere, color=(1.0, 0.3, 0.3), opacity=0.35)
+        for name in self._names - shown:
+            self.view.set_overlay(name, None)
+        self._names = shown
+
+
+class ProbeView(QWidget):
+    """The probe's-eye view: the slice orthogonal to a trajectory at a depth from its entry."""
+
+    HALF_SIZE_MM = 20.0
+
+    def __init__(self, planning: PlanningState, parent: QWidget | None = None):
+        super().__init__(parent)
+        self.planning = planning
+        self.trajectory = None
+        self.depth = 0.0
+        self._image: QImage | None = None
+        self._contours: list[tuple[QColor, np.ndarray]] = []
+        self.setMinimumSize(180, 180)
+        self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Fixed)
+
+    def set_view(self, trajectory, depth: float) -> None:
+        self.trajectory, self.depth = trajectory, float(depth)
+        self._image, self._contours = None, []
+        ws = self.planning.workspace
+        if trajectory is not None and ws.sampler is not None:
+            frame = frame_along(trajectory.direction)
+            centre = trajectory.point_at(self.depth)
+            patch = ws.sampler.sample_patch(frame, centre, self.HALF_SIZE_MM, step=0.5)
+            grey = np.ascontiguousarray(window_to_uint8(patch.data, ws.window, ws.level))
+            h, w = grey.shape
+            self._image = QImage(grey.data, w, h, w, QImage.Format.Format_Grayscale8).copy()
+            axes = frame.axes
+            for s in ws.structures:
+                vertices = s.surface_vertices()
+                if vertices is None or not s.visible:
+                    continue
+                segments = intersect_plane(vertices, s.model.faces, centre, axes[2])
+                if segments is not None and len(segments):
+                    uv = (np.asarray(segments) - centre) @ axes[:2].T   # (S, 2, 2) mm
+                    self._contours.append((QColor(*s.color), uv))
+        self.update()
+
+    def paintEvent(self, event) -> None:  # noqa: N802 - Qt API
+        painter = QPainter(self)
+        painter.fillRect(self.rect(), QColor(0, 0, 0))
+        side = min(self.width(), self.height())
+        x0, y0 = (self.width() - side) / 2, (self.height() - side) / 2
+        if self._image is None:
+            painter.setPen(QColor(160, 160, 160))
+            painter.drawText(self.rect(), Qt.AlignmentFlag.AlignCenter,
+                             "Set a target and an entry\nfor the probe's-eye view")
+            painter.end()
+            return
+        painter.drawImage(QRectF(x0, y0, side, side), self._image)
+        scale = side / (2 * self.HALF_SIZE_MM)
+        cx, cy = x0 + side / 2, y0 + side / 2
+        painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
+        for color, uv in self._contours:
+            painter.setPen(QPen(color, 1.5))
+            for (u1, v1), (u2, v2) in uv:
+                painter.drawLine(QPointF(cx + u1 * scale, cy - v1 * scale),
+                                 QPointF(cx + u2 * scale, cy - v2 * scale))
+        painter.setPen(QPen(QColor(255, 255, 80), 2))
+        painter.drawEllipse(QPointF(cx, cy), 4, 4)
+        painter.setPen(QColor(255, 255, 120))
+        painter.drawText(QRectF(x0 + 4, y0 + 2, side - 8, 18), Qt.AlignmentFlag.AlignLeft,
+                         f"{self.depth:.1f} mm")
+        painter.drawText(QRectF(x0 + 4, y0 + 2, side - 8, 18), Qt.AlignmentFlag.AlignRight,
+                         f"{2 * self.HALF_SIZE_MM:.0f} mm")
+        painter.end()

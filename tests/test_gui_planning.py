@@ -1,0 +1,139 @@
+"""The planning tools driven like a user: landmarks, target, entry, read-outs, session, export."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("PySide6")
+pytestmark = pytest.mark.gui
+
+from app import demo  # noqa: E402
+from app.window import MainWindow  # noqa: E402
+from app.state import FRAME_NAMES, Points  # noqa: E402
+from core.planning import ACPCFrame, volume_centroid  # noqa: E402
+from core.simulated_user import simulate_user  # noqa: E402
+
+# AC, PC and a midline point of the MNI template, roughly where they are (mm)
+AC, PC, MID = np.array([0.0, 2.0, -4.0]), np.array([0.0, -24.0, -2.0]), np.array([0.0, -10.0, 40.0])
+
+
+@pytest.fixture
+def window(qtbot, tmp_path, monkeypatch):
+    if demo.demo_image() is None or demo.demo_model() is None:
+        pytest.skip("demo image or model missing from resources/")
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
+    win = MainWindow(with_3d=False, recovery=False)
+    qtbot.addWidget(win)
+    win.resize(1300, 900)
+    win.load_demo()
+    win.show()
+    qtbot.waitExposed(win)
+    yield win
+    win.runner.cancel()
+    win.runner.wait()
+    win.close()
+
+
+def _set_at(window, name, xyz):
+    window.state.set_crosshair(xyz)
+    window.planning_panel.set_landmark(name)
+
+
+def test_landmarks_give_acpc_readouts_and_are_undoable(window):
+    panel, planning = window.planning_panel, window.planning
+    _set_at(window, "ac", AC)
+    assert planning.frame() is None and "PC" in panel.frame_label.text()
+    _set_at(window, "pc", AC)                      # AC = PC: refused, clearly
+    _set_at(window, "midline", MID)
+    assert planning.frame() is None
+    assert "apart" in panel.frame_label.text()
+    assert window.planning.undo() and window.planning.undo()   # back to AC only
+    assert planning.landmarks["pc"] is None
+    _set_at(window, "pc", PC)
+    _set_at(window, "midline", MID)
+    frame = planning.frame()
+    assert frame is not None and frame.ac_pc_distance == pytest.approx(np.linalg.norm(AC - PC))
+    # the status bar gives AC-PC coordinates of the crosshair: the MCP is the origin
+    window.state.set_crosshair((AC + PC) / 2)
+    text = window.cursor_label.text()
+    assert "AC-PC:" in text and "lat +0.0" in text and "AP +0.0" in text
+
+
+def test_trajectory_readouts_crossings_and_probe_view(window):
+    planning, panel, state = window.planning, window.planning_panel, window.state
+    for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
+        _set_at(window, name, xyz)
+    target = planning.target_of(state.active)      # the model's default: its centroid
+    np.testing.assert_allclose(target, volume_centroid(state.surface_vertices(),
+                                                       state.model.faces), atol=1e-6)
+    entry = target + np.array([-20.0, 25.0, 55.0])
+    state.set_crosshair(entry)
+    panel.set_entry_here()
+    traj = planning.trajectory_of(state.active)
+    assert traj is not None
+    text = panel.trajectory_label.text()
+    assert f"Length {np.linalg.norm(traj.target - traj.entry):.1f} mm" in text
+    assert "Ring" in text and "arc" in text
+    # the trajectory ends at the centroid, inside the caudate: it enters it once
+    assert text.count("→") >= 1
+    angles = traj.angles(ACPCFrame.from_points(AC, PC, MID))
+    assert f"Ring {angles['ring_deg']:.1f}°" in text
+    assert panel.probe._image is not None           # the probe's-eye slice is shown
+    panel.set_depth_mm(5.0)
+    assert panel.probe.depth == pytest.approx(5.0)
+    # a user target replaces the model's, and "Model target" brings it back
+    state.set_crosshair(target + [1.0, 0.0, 0.0])
+    panel.set_target_here()
+    assert not planning.target_is_default(state.active)
+    np.testing.assert_allclose(planning.target_of(state.active), target + [1, 0, 0], atol=1.01)
+
+
+def test_plan_survives_save_and_reopen_and_exports(window, tmp_path, qtbot):
+    planning, panel, state = window.planning, window.planning_panel, window.state
+    for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
+        _set_at(window, name, xyz)
+    target = planning.target_of(state.active)
+    state.set_crosshair(target + [0, 0, 60.0])
+    panel.set_entry_here()
+    session = tmp_path / "s.json"
+    assert window.save_session(path=session)
+    doc = json.loads(session.read_text())
+    assert doc["info"]["planning"]["ac"] == pytest.approx(AC.tolist())
+    window.planning.apply_document(None)
+    assert planning.frame() is None
+    window.open_session(session)
+    assert planning.frame() is not None
+    assert planning.trajectory_of(state.active) is not None
+    written = window.plan.export(tmp_path / "out")
+    names = {p.name for p in written}
+    assert {"plan.json", "plan_structures.csv", "plan.mrk.json", "plan_labels.seg.nrrd",
+            "plan_labels.nii.gz", "plan_labels.txt"} <= names
+    report = json.loads((tmp_path / "out" / "plan.json").read_text())
+    row = report["structures"][0]
+    # the crosshair snaps to voxel centres: the entry is within half a voxel of where it was put
+    expected = np.linalg.norm(planning.entry_of(state.active) - planning.target_of(state.active))
+    assert row["trajectory"]["length_mm"] == pytest.approx(expected, abs=1e-6)
+    assert abs(expected - 60.0) < 1.0
+    assert row["volume_mm3"] > 1000       # a caudate is a few cm^3
+
+
+def test_uncertainty_and_next_slice(window):
+    panel, state = window.planning_panel, window.state
+    panel.uncertainty_check.setChecked(True)
+    assert "Surface SD" in panel.uncertainty_label.text()
+    sd_prior = window.plan.last_sd.mean()
+    before = state.crosshair.copy()
+    window.plan.suggest_next_slice()
+    assert not np.allclose(before, state.crosshair)
+    # three contours make the surface more certain than the prior alone
+    user = simulate_user(state.surface_vertices(), state.model.faces, 3,
+                         rng=np.random.default_rng(0), noise=0.1)
+    axis = np.argmax(np.abs([n for _, n in user.planes]), axis=1)[user.contour]
+    frames = np.array([FRAME_NAMES.index(("sagittal", "coronal", "axial")[a]) for a in axis])
+    depths = user.points[np.arange(len(axis)), axis]
+    state.set_points(Points(user.points, frames, depths))
+    assert window.plan.posterior().vertex_sd().mean() < sd_prior
