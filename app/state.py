@@ -201,9 +201,12 @@ class Structure:
         self.last_fit = None
         self.model_version += 1
         self._surface_version += 1
-        if not self.name:  # from the model header's structure description, else the file name
-            info = structure_info(model, self.model_path)
+        if not self.name and isinstance(model.info.get("structure"), dict):
+            info = structure_info(model)            # the header's structure description
             self.name, self.side = info.name, info.side if info.side in SIDES else ""
+        elif not self.name:
+            self.name = str(model.info.get("structure") or (self.model_path.stem if self.model_path
+                                                            else "structure"))
         self._notify(self, "model")
         self._notify(self, "surface")
         self._notify(self, "fit_info")
