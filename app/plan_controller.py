@@ -18,7 +18,6 @@ from PySide6.QtGui import QKeySequence
 from app.planning import PlanningState
 from app.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
-from core.io import TriMesh, save_mesh
 from core.plan_report import export_plan
 from core.planning import anchored_point_weights, format_acpc
 from core.uncertainty import ellipsoid, fit_posterior, suggest_slice
@@ -159,12 +158,6 @@ class PlanController(QObject):
         structures = self.planning.planned_structures()
         if not structures:
             raise ValueError("nothing to export: no structure has a model")
-        volume = self.workspace.volume
-        written = export_plan(folder, structures, volume, self.planning.frame(),
-                              image=self.workspace.image_path.name if self.workspace.image_path else None)
-        for i, s in enumerate(structures, start=1):
-            safe = "".join(c if c.isalnum() else "_" for c in s.name).strip("_") or f"structure{i}"
-            path = folder / f"plan_{i:02d}_{safe}.vtk"
-            save_mesh(path, TriMesh(s.vertices, s.faces, safe))
-            written.append(path)
-        return written
+        image = self.workspace.image_path.name if self.workspace.image_path else None
+        return export_plan(folder, structures, self.workspace.volume, self.planning.frame(),
+                           image=image)

@@ -26,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from core.io import atomic_write_json, atomic_write_text
+from core.io import TriMesh, atomic_write_json, atomic_write_text, save_mesh
+from core.model_library import structure_info
 from core.planning import (ACPCFrame, Trajectory, anchored_point, anchored_point_weights,
                            structure_row, volume_centroid)
 from core.segmentation import voxelize
@@ -70,6 +71,73 @@ def model_target(model_mean: np.ndarray, faces: np.ndarray, fitted_model_frame: 
         return volume_centroid(fitted_model_frame, faces)
     idx, w = anchored_point_weights(model_mean, stored_target)
     return anchored_point(fitted_model_frame, idx, w)
+
+
+def planned_structure(name: str, model, coef=None, pose=None, color=None, target=None,
+                      entry=None) -> PlannedStructure:
+    """A fitted structure of the plan from its model, coefficients and pose (model -> world).
+
+    Without a ``target``, the model's default target (:func:`model_target`) on the fitted shape.
+    """
+    pose = model.world_transform if pose is None else np.asarray(pose, dtype=np.float64)
+    local = model.instance(coef)
+    world = local @ pose[:3, :3].T + pose[:3, 3]
+    info = structure_info(model)
+    if target is None:
+        t = model_target(model.mean, model.faces, local, info.target)
+        target = t @ pose[:3, :3].T + pose[:3, 3]
+    return PlannedStructure(name, world, model.faces, tuple(color or info.color),
+                            target=np.asarray(target, dtype=np.float64),
+                            entry=None if entry is None else np.asarray(entry, dtype=np.float64))
+
+
+def plan_from_session(session) -> tuple[list[PlannedStructure], ACPCFrame | None]:
+    """The structures and AC-PC frame of a saved session (``core.session.Session``).
+
+    Reads the session's structures (``session.structures`` when it has several, else its one
+    model at the top level) and the ``info.planning`` block written by the workspace
+    (``ac``, ``pc``, ``midline`` and per structure index a ``target`` and an ``entry``).
+    Raises ValueError (naming what is wrong) for a session without a model or a bad block.
+    """
+    from core.io import load_model
+
+    records = getattr(session, "structures", None) or []
+    if not records:
+        if session.model_path is None:
+            raise ValueError("the session has no model: nothing to plan")
+        records = [{"name": "", "model": session.model_path, "coef": session.coef,
+                    "pose": session.pose}]
+    planning = session.info.get("planning") or {}
+    if not isinstance(planning, dict):
+        raise ValueError("info.planning is not a JSON object")
+    per = {}
+    for item in planning.get("structures", []):
+        index = int(item.get("structure", -1))
+        if not 0 <= index < len(records):
+            raise ValueError(f"info.planning refers to structure {index + 1}, the session has "
+                             f"{len(records)}")
+        per[index] = item
+    structures = []
+    for i, rec in enumerate(records):
+        path = _field(rec, "model_path") or _field(rec, "model")
+        if path is None:
+            continue
+        model = load_model(path)
+        name = _field(rec, "name") or structure_info(model, path).label
+        color = _field(rec, "color")
+        item = per.get(i, {})
+        structures.append(planned_structure(name, model, _field(rec, "coef"), _field(rec, "pose"),
+                                            tuple(color) if color is not None else None,
+                                            item.get("target"), item.get("entry")))
+    frame = None
+    if all(planning.get(k) is not None for k in ("ac", "pc", "midline")):
+        frame = ACPCFrame.from_points(planning["ac"], planning["pc"], planning["midline"])
+    return structures, frame
+
+
+def _field(record, key: str):
+    """A structure record's field: a dict (session document) or an object with attributes."""
+    return record.get(key) if isinstance(record, dict) else getattr(record, key, None)
 
 
 def _vec(a) -> list[float] | None:
@@ -212,14 +280,14 @@ def save_plan_markups(path: str | os.PathLike, structures: list[PlannedStructure
 
 def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], volume,
                 frame: ACPCFrame | None, image: str | None = None,
-                stem: str = "plan") -> list[Path]:
+                stem: str = "plan", meshes: bool = True) -> list[Path]:
     """Write every plan file into ``folder``; returns the paths written.
 
     ``<stem>.json`` (report), ``<stem>_structures.csv``, ``<stem>.mrk.json`` (markups) and,
     with an image volume, the multi-label map twice: ``<stem>_labels.seg.nrrd`` (a 3D Slicer
     Segmentation with each structure's name and colour) and ``<stem>_labels.nii.gz`` +
-    ``<stem>_labels.txt`` (ITK-SNAP label descriptions). Surfaces are written by the caller
-    (one mesh per structure).
+    ``<stem>_labels.txt`` (ITK-SNAP label descriptions); with ``meshes``, one surface per
+    structure, ``<stem>_NN_<name>.vtk`` (world RAS, ``SPACE=RAS`` in the header).
     """
     from core.io import save_volume
     from core.io.nrrd import Segment, write_segmentation
@@ -242,4 +310,10 @@ def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], v
         names = folder / f"{stem}_labels.txt"
         atomic_write_text(names, itksnap_label_description(structures))
         written += [segmentation, labels, names]
+    if meshes:
+        for i, s in enumerate(structures, start=1):
+            safe = "".join(c if c.isalnum() else "_" for c in s.name).strip("_") or f"structure{i}"
+            path = folder / f"{stem}_{i:02d}_{safe}.vtk"
+            save_mesh(path, TriMesh(s.vertices, s.faces, safe))
+            written.append(path)
     return written

@@ -137,3 +137,33 @@ def test_uncertainty_and_next_slice(window):
     depths = user.points[np.arange(len(axis)), axis]
     state.set_points(Points(user.points, frames, depths))
     assert window.plan.posterior().vertex_sd().mean() < sd_prior
+
+
+def test_plan_cli_gives_the_gui_report_from_the_saved_session(window, tmp_path, capsys):
+    """``ssm-studio plan`` recomputes, headless, the report the GUI exports."""
+    from core.cli import main as cli_main
+
+    planning, panel, state = window.planning, window.planning_panel, window.state
+    for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
+        _set_at(window, name, xyz)
+    state.set_crosshair(planning.target_of(state.active) + [5.0, 20.0, 55.0])
+    panel.set_entry_here()
+    session = tmp_path / "s.json"
+    assert window.save_session(path=session)
+    gui = planning.report()
+    assert cli_main(["plan", "--session", str(session), "--out", str(tmp_path / "plan.json"),
+                     "--export", str(tmp_path / "files")]) == 0
+    assert "1 trajectory" in capsys.readouterr().out
+    cli = json.loads((tmp_path / "plan.json").read_text())
+    a, b = gui["structures"][0], cli["structures"][0]
+    assert b["volume_mm3"] == pytest.approx(a["volume_mm3"], rel=1e-9)
+    np.testing.assert_allclose(b["trajectory"]["target"], a["trajectory"]["target"], atol=1e-9)
+    assert b["trajectory"]["ring_deg"] == pytest.approx(a["trajectory"]["ring_deg"], abs=1e-9)
+    assert [c["enter_mm"] for c in b["trajectory"]["crossings"]] == pytest.approx(
+        [c["enter_mm"] for c in a["trajectory"]["crossings"]], abs=1e-9)
+    assert (tmp_path / "files" / "plan_labels.seg.nrrd").exists()
+    # a session without a plan still gives the structure table, without AC-PC
+    planning.apply_document(None)
+    assert window.save_session(path=session)
+    assert cli_main(["plan", "--session", str(session), "--out", str(tmp_path / "p2.json")]) == 0
+    assert "acpc" not in json.loads((tmp_path / "p2.json").read_text())
