@@ -348,3 +348,72 @@ def test_fit_cli_placement_centres_the_start_and_the_prior(tmp_path, family):
         pose = np.array(json.loads((tmp_path / name).read_text())["pose"])
         assert np.abs(pose - direct.pose).max() < 1e-4
     assert main(common + ["--placement", str(tmp_path / "missing.txt")]) == 2
+
+
+@pytest.mark.parametrize("method,adaptive", [("gmm-aniso", False), ("gmm-aniso", True),
+                                             ("gmm-iso", True), ("icp", True)])
+def test_objective_never_increases_from_the_first_step(family, method, adaptive):
+    """Issue 11 defect 3: EM with the Gauss-Newton pose step, fixed or adaptive eta, and ICP:
+    every recorded objective value, the first step included, is at most the previous one."""
+    shapes, faces, _ = family
+    rises = []
+    for case in range(3):
+        model = pca_model(np.delete(shapes, case, axis=0), faces)
+        rng = np.random.default_rng(400 + case)
+        truth = _apply(_similarity(rng, np.deg2rad(8.0), 1.05, 2.0), shapes[case])
+        user = simulate_user(truth, faces, 2 + case, rng=rng)
+        fit = fit_points(model, user.points, user.normals, method=method,
+                         adaptive_anisotropy=adaptive, tol=1e-8, max_iter=60)
+        e = np.asarray(fit.objective)
+        assert len(e) >= 3, fit.stop_reason
+        rises.append(float((np.diff(e) / np.abs(e[:-1])).max()))
+    assert max(rises) <= 1e-9, rises
+
+
+def _scaled_family(size_mm: float):
+    """The bean family scaled so that the mean shape is ``size_mm`` long, and a PCA model."""
+    shapes, faces = synthetic_shapes(13, subdivisions=3, seed=6, size=(3.0, 6.0, 14.0))
+    shapes = shapes * (size_mm / 28.0)
+    return shapes, faces, pca_model(shapes[1:], faces)
+
+
+def test_defaults_are_relative_to_the_model_size():
+    """Issue 11 defect 7: a 5 mm structure and a 5 cm one, three contours each (point spacing
+    and noise in proportion, as a user drawing in voxels of the same relative size): both fits
+    end much closer to the truth than the unfitted mean shape, with the same relative error."""
+    relative = []
+    for size in (5.0, 50.0):
+        shapes, faces, model = _scaled_family(size)
+        truth = _apply(_translation([0.02 * size, -0.01 * size, 0.0]), shapes[0])
+        user = simulate_user(truth, faces, 3, spacing=size / 14.0, noise=size / 100.0,
+                             rng=np.random.default_rng(12))
+        fit = fit_points(model, user.points, user.normals)
+        err = _mean_surface_distance(fit.vertices, truth, faces)
+        unfitted = _mean_surface_distance(model.world_instance(), truth, faces)
+        assert err < 0.5 * unfitted, (size, err, unfitted)
+        relative.append(err / size)
+    assert relative[0] == pytest.approx(relative[1], rel=0.05), relative
+
+
+def test_fit_reports_plausibility_and_coefficient_covariance(family):
+    shapes, faces, model = family
+    placed = _translation([30.0, 0.0, 0.0])
+    truth = _apply(placed, shapes[0])
+    sparse = simulate_user(truth, faces, 1, orientations="axial", rng=np.random.default_rng(13))
+    dense = simulate_user(truth, faces, 9, rng=np.random.default_rng(13))
+    fits = [fit_points(model, u.points, u.normals, placement=placed) for u in (sparse, dense)]
+    for fit in fits:
+        info = fit.plausibility()
+        centre_fit = fit.pose[:3, :3] @ model.mean.mean(axis=0) + fit.pose[:3, 3]
+        centre_placed = placed[:3, :3] @ model.mean.mean(axis=0) + placed[:3, 3]
+        assert info["placement_shift_mm"] == pytest.approx(np.linalg.norm(centre_fit - centre_placed), abs=1e-9)
+        z = np.abs(fit.coef) / np.sqrt(model.coef_var)
+        assert info["max_abs_coef_sd"] == pytest.approx(z.max())
+        assert info["n_coef_beyond_3sd"] == int((z > 3).sum())
+        assert info["residual_relative"] == pytest.approx(fit.residual_mm / fit.model_size_mm)
+        cov = fit.coef_covariance
+        assert cov.shape == (model.n_factors,) * 2 and np.allclose(cov, cov.T)
+        assert np.linalg.eigvalsh(cov).min() > 0
+        assert np.all(np.diag(cov) <= model.coef_var * (1 + 1e-6))  # the data only narrow it
+    assert np.trace(fits[1].coef_covariance) < 0.5 * np.trace(fits[0].coef_covariance)
+    assert fits[0].to_dict()["plausibility"]["placement_shift_mm"] >= 0

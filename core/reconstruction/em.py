@@ -290,26 +290,25 @@ class GMMFitter:
         return replace(state, sigma2=sigma2, eta=eta), self._last_geometry[3]
 
     # -- the loop ---------------------------------------------------------------------------
-    def _accept(self, old: FitState, new: FitState, ev: _Evaluation, pairs: _Pairs,
-                shape_active: bool):
-        """(state, evaluation, pairs) of the step, halved until the objective decreases;
-        None when no halving decreases it."""
+    def _accept(self, old: FitState, new: FitState, ev: _Evaluation, pairs: _Pairs):
+        """(state, evaluation, pairs) of the step, halved until the objective is at most the
+        previous one (``ev``); None when six halvings do not get there."""
         k_wanted = self._neighbours_for(new.sigma2)
         x_new = new.pose.apply(self.snap_.shape(new.coef))
         moved = float(np.sqrt(((x_new[pairs.verts] - pairs.x_ref) ** 2).sum(axis=1).max()))
+        new_pairs = pairs
         if (self.covariance.hard or moved > 0.25 * self.snap_.edge_length
                 or not pairs.k / 1.5 <= k_wanted <= pairs.k * 1.5):
-            pairs = _Pairs(self.snap_, x_new, self.points_, k_wanted)
-            ev = self._e_step(old, pairs)  # the old objective on the new candidate set
+            new_pairs = _Pairs(self.snap_, x_new, self.points_, k_wanted)
         slack = 1e-12 * max(abs(ev.objective), 1.0)
         trial = new
         for halving in range(_HALVINGS + 1):
             last = self._last_geometry
-            reuse = last[0] is pairs and last[1] == trial.sigma2 and last[2] == trial.eta
-            trial_ev = self._e_step(trial, pairs, last[3] if reuse else None)
+            reuse = last[0] is new_pairs and last[1] == trial.sigma2 and last[2] == trial.eta
+            trial_ev = self._e_step(trial, new_pairs, last[3] if reuse else None)
             if trial_ev.objective <= ev.objective + slack:
-                return trial, trial_ev, pairs
-            alpha = 0.5 ** (halving + 1)
+                return trial, trial_ev, new_pairs
+            alpha = 0.5 ** (halving + 1)  # pose, coefficients interpolated; s2, eta re-estimated
             trial = replace(old, pose=old.pose.interpolate(new.pose, alpha),
                             coef=old.coef + alpha * (new.coef - old.coef))
             trial = self._variance_step(trial, ev.resp, pairs)[0]
@@ -334,8 +333,7 @@ class GMMFitter:
         for it in range(self.max_iter):
             if self.callback is not None:
                 self.callback(it, ev.objective)
-            step = self._accept(state, self._m_step(state, ev, pairs, shape_active), ev, pairs,
-                                shape_active)
+            step = self._accept(state, self._m_step(state, ev, pairs, shape_active), ev, pairs)
             if step is None:
                 self.converged_, self.stop_reason_ = True, "no further decrease of the objective"
                 break
