@@ -96,7 +96,11 @@ class PlanController(QObject):
         if s.model is None:
             return None
         pose_mode = getattr(s.last_fit, "pose_mode", "similarity")
-        return fit_posterior(s.model, s.points.xyz, s.coef, s.pose, pose_mode=pose_mode)
+        # a statismo model's PPCA noise (core.io.statismo puts it in info) is the model's own
+        # per-vertex uncertainty, added to the posterior's
+        noise = float(s.model.info.get("noise_variance", 0.0) or 0.0)
+        return fit_posterior(s.model, s.points.xyz, s.coef, s.pose, pose_mode=pose_mode,
+                             model_noise_var=noise)
 
     def set_uncertainty(self, shown: bool) -> None:
         self.show_uncertainty = bool(shown)
