@@ -110,6 +110,7 @@ class PlanController(QObject):
         view = self.window.workspace.volume_view
         if not self.show_uncertainty or self.workspace.active.model is None:
             self.last_sd = None
+            self.slice_overlay.sd = None
             if self.volume_overlay is not None:
                 self.volume_overlay.ellipsoid = None
             if view is not None:
@@ -120,6 +121,7 @@ class PlanController(QObject):
         sd = post.vertex_sd()
         self.last_sd = sd
         s = self.workspace.active
+        self.slice_overlay.sd = (s.id, sd, float(sd.max()))
         target = self.planning.target_of(s)
         radius = None
         if target is not None:

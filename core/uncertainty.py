@@ -174,6 +174,19 @@ def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose:
     return FitPosterior(model, world, normals, jac, cov, noise_var, float(model_noise_var))
 
 
+def section_sd(vertices: np.ndarray, faces: np.ndarray, sd: np.ndarray, origin,
+               normal) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted surface's cross-section with a slice plane and the SD along it.
+
+    Returns (segments (S, 2, 3) world, sd (S,) mm: the mean SD of the triangle each segment
+    lies in), so a slice view can colour the contour by how sure the fit is there.
+    """
+    from core.slicing import section
+
+    cut = section(vertices, faces, origin, normal)
+    return cut.segments, np.asarray(sd, dtype=np.float64)[np.asarray(faces)[cut.faces]].mean(axis=1)
+
+
 @dataclass(frozen=True)
 class Ellipsoid:
     """An uncertainty ellipsoid: centre, unit axes (rows) and semi-axis lengths (mm)."""

@@ -23,6 +23,7 @@ from PySide6.QtWidgets import QSizePolicy, QWidget
 from app.planning import LANDMARK_LABELS, PlanningState
 from core.planes import frame_along, window_to_uint8
 from core.slicing import intersect_plane
+from core.uncertainty import section_sd
 
 LANDMARK_COLOR = QColor(255, 80, 200)
 LANDMARK_RGB = (1.0, 0.31, 0.78)
@@ -34,9 +35,12 @@ class SlicePlanOverlay:
 
     def __init__(self, planning: PlanningState):
         self.planning = planning
+        self.sd: tuple[int, np.ndarray, float] | None = None   # (structure id, (N,) SD, max SD)
 
     def __call__(self, painter: QPainter, view) -> None:
         planning = self.planning
+        if self.sd is not None:
+            self._paint_sd_contour(painter, view)
         tolerance = view._step() / 2 + 1e-6
         depth_of = view.frame.depth
         for name, xyz in planning.landmarks.items():
@@ -66,6 +70,22 @@ class SlicePlanOverlay:
                     painter.drawLine(QPointF(x, y - 6), QPointF(x, y + 6))
                 else:
                     painter.drawRect(QRectF(x - 4, y - 4, 8, 8))
+
+    def _paint_sd_contour(self, painter: QPainter, view) -> None:
+        """The structure's contour on this slice coloured by its posterior SD (blue to yellow)."""
+        sid, sd, top = self.sd
+        s = self.planning.workspace.structure_by_id(sid)
+        if s is None or s.model is None or len(sd) != s.model.n_vertices:
+            return
+        n = np.asarray(view.frame.n)
+        segments, seg_sd = section_sd(s.surface_vertices(), s.model.faces, sd, view.depth * n, n)
+        if len(segments) == 0:
+            return
+        xy = view.world_to_screen(segments.reshape(-1, 3)).reshape(-1, 4)
+        level = np.clip(seg_sd / max(top, 1e-9), 0.0, 1.0)
+        for (a, b, c, d), t in zip(xy.tolist(), level.tolist()):
+            painter.setPen(QPen(QColor(int(40 + 215 * t), int(60 + 170 * t), int(230 * (1 - t))), 3))
+            painter.drawLine(QPointF(a, b), QPointF(c, d))
 
     @staticmethod
     def _paint_trajectory(painter: QPainter, view, traj, color: QColor) -> None:
