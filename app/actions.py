@@ -58,9 +58,11 @@ def create_actions(w) -> None:
         return _action(w, *args)
 
     w.act_open_image = a("&Open image…", lambda: w.open_dialog("image"), key.Open,
-                        "Open a NIfTI image (.nii, .nii.gz)")
+                        "Open an image: NIfTI, NRRD, MetaImage, or one file of a DICOM series")
+    w.act_open_dicom = a("Open &DICOM folder…", w.open_dicom_dialog, None,
+                        "Open a DICOM series from its folder")
     w.act_load_model = a("Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
-                        "Load a shape model (.npz)")
+                        "Load a shape model (.npz, or statismo/Scalismo .h5)")
     w.act_open_session = a("Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
     w.act_save_session = a("&Save session", w.save_session, key.Save)
     w.act_save_session_as = a("Save session &as…", lambda: w.save_session(ask=True))
@@ -104,7 +106,7 @@ def create_menus(w) -> None:
     """The menu bar of main window ``w``."""
     bar = w.menuBar()
     menus = {
-        "&File": (w.act_open_image, w.act_load_model, None, w.act_open_session,
+        "&File": (w.act_open_image, w.act_open_dicom, w.act_load_model, None, w.act_open_session,
                   w.act_save_session, w.act_save_session_as, None,
                   w.act_import_points, w.act_export, w.act_export_labels,
                   w.act_export_mesh, w.act_export_points, None, w.act_quit),

@@ -29,12 +29,17 @@ class SessionController:
         self.info_providers: dict[str, Callable[[], Any]] = {}
 
     # -- image and models --------------------------------------------------------------
-    def open_image(self, path: str | os.PathLike) -> str:
-        """Load a NIfTI image (raises DataFileError); the crosshair goes to the model."""
-        volume = load_volume(path)
+    def open_image(self, path: str | os.PathLike, series: str | None = None) -> str:
+        """Load an image (NIfTI, NRRD, MetaImage, DICOM series; raises DataFileError); the
+        crosshair goes to the model. A DICOM image is named by its series description
+        only (app.formats), never by its folder or file name."""
+        from app import formats
+
+        volume = load_volume(path, series=series)
+        name = formats.remember_display_name(path)  # before set_image updates the title
         self.state.set_image(volume, path)
         self.center_on_model()
-        return (f"Opened {Path(path).name}: {volume.shape[0]}x{volume.shape[1]}x"
+        return (f"Opened {name}: {volume.shape[0]}x{volume.shape[1]}x"
                 f"{volume.shape[2]} voxels, {' '.join(f'{s:.2g}' for s in volume.spacing)} mm")
 
     def open_model(self, path: str | os.PathLike, coef=None, pose=None,
@@ -172,9 +177,19 @@ class ExportController:
         return voxelize(s.surface_vertices(), s.model.faces, volume.shape, volume.affine)
 
     def export_labels(self, path: str | os.PathLike) -> str:
+        """The label map by extension; a .seg.nrrd carries the structure's name and colour."""
         labels = self.label_map()
-        save_volume(path, labels.astype(np.uint8), self.state.volume.affine,
-                    like=self.state.volume)  # the image's own sform/qform and codes
+        if str(path).lower().endswith(".seg.nrrd"):
+            from core.io.nrrd import Segment, write_segmentation
+
+            s = self.state.active
+            name = s.name or (Path(s.model_path).name.split(".")[0] if s.model_path else "")
+            write_segmentation(path, labels.astype(np.uint8), self.state.volume.affine,
+                               [Segment(1, name or "Structure",
+                                        tuple(c / 255.0 for c in s.color))])
+        else:
+            save_volume(path, labels.astype(np.uint8), self.state.volume.affine,
+                        like=self.state.volume)  # the image's own sform/qform and codes
         return f"Exported label map {Path(path).name}: {int(labels.sum())} voxels inside"
 
     def export_mesh(self, path: str | os.PathLike) -> str:

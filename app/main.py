@@ -30,8 +30,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(title="commands", metavar="COMMAND")
     view = sub.add_parser("view", help="open an image (and optionally a model or a session) in the GUI",
                           description="Open an image in the segmentation workspace.")
-    view.add_argument("image", nargs="?", help="NIfTI volume (.nii, .nii.gz)")
-    view.add_argument("--model", help="shape model file (.npz)")
+    view.add_argument("image", nargs="?", help="image: .nii/.nii.gz, .nrrd/.nhdr, .mha/.mhd, or a "
+                                                "DICOM series (its folder or one of its files)")
+    view.add_argument("--series", metavar="UID", help="DICOM folder with several series: which one")
+    view.add_argument("--model", help="shape model file (.npz, or statismo/Scalismo .h5)")
     view.add_argument("--session", help="session file (.json) to restore")
     _add_gui_options(view, suppress=True)
     view.set_defaults(_command="view")
@@ -84,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         session=getattr(args, "session", None),
         screenshot=screenshot,
         tab=getattr(args, "tab", None) or "segment",
+        series=getattr(args, "series", None),
     )
 
 

@@ -27,7 +27,7 @@ from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import (QApplication, QDockWidget, QFileDialog, QMainWindow, QMessageBox,
                                QScrollArea)
 
-from app import demo
+from app import demo, formats
 from app.actions import SHORTCUTS, create_actions, create_menus, create_toolbar
 from app.controllers import ExportController, SessionController
 from app.panels.factors import FactorsPanel
@@ -52,12 +52,12 @@ TOOL_HINTS = {"navigate": "Navigate: click to move the crosshair",
                       "Ctrl+click deletes a point",
               "window": "Window/level: drag left-right for width, up-down for level"}
 
-EXPORTS = {"labels": ("label map", "NIfTI (*.nii.gz *.nii)", "segmentation.nii.gz"),
+EXPORTS = {"labels": ("label map", formats.LABEL_FILTER, "segmentation.nii.gz"),
            "mesh": ("surface mesh", "Meshes (*.vtk *.vtp *.stl *.ply *.obj)", "surface.vtk"),
            "points": ("points", "CSV (*.csv);;Slicer markups (*.mrk.json)", "points.csv")}
 
-OPEN_DIALOGS = {"image": ("Open image", "NIfTI images (*.nii *.nii.gz);;All files (*)"),
-                "model": ("Load shape model", "Shape models (*.npz);;All files (*)"),
+OPEN_DIALOGS = {"image": ("Open image", formats.IMAGE_FILTER),
+                "model": ("Load shape model", formats.MODEL_FILTER),
                 "session": ("Open session", "Sessions (*.json);;All files (*)"),
                 "points": ("Import points", "Points (*.csv *.tsv *.fcsv *.mrk.json *.json);;"
                                              "All files (*)")}
@@ -172,9 +172,28 @@ class MainWindow(QMainWindow):
         return timer
 
     # -- opening files --------------------------------------------------------------------------
-    def load_image(self, path: str | os.PathLike) -> None:
-        """Load a NIfTI image (raises DataFileError)."""
-        self.show_message(self.sessions.open_image(path))
+    def load_image(self, path: str | os.PathLike, series: str | None = None,
+                   ask: bool | None = None) -> None:
+        """Load an image: NIfTI, NRRD, MetaImage or a DICOM series (raises DataFileError).
+
+        A DICOM folder with several series asks which one (app.series_dialog) unless
+        ``series`` names it or ``ask`` is False (then: the one with most files, said so).
+        """
+        notes: list[str] = []
+        if series is None:
+            if ask is None:
+                ask = not os.environ.get("SSM_STUDIO_NO_DIALOGS")
+            if ask:
+                from app.series_dialog import ask_series
+
+                chooser = lambda found: ask_series(self, found)  # noqa: E731
+            else:
+                chooser = None
+            path = formats.resolve_dicom_choice(path, chooser, notes.append)
+            if path is None:
+                return  # the user cancelled the series choice
+        message = self.sessions.open_image(path, series=series)
+        self.show_message(message + (f" ({notes[0]})" if notes else ""))
 
     def load_model(self, path: str | os.PathLike, coef=None, pose=None) -> None:
         """Load a shape model into the active structure at its stored placement."""
@@ -198,9 +217,9 @@ class MainWindow(QMainWindow):
         """Open any supported file by its type (drag and drop, recent files)."""
         name = str(path).lower()
         try:
-            if name.endswith((".nii", ".nii.gz")):
+            if formats.is_image_path(path):
                 self.load_image(path)
-            elif name.endswith(".npz"):
+            elif formats.is_model_path(path):
                 self.load_model(path)
             elif name.endswith((".mrk.json", ".csv", ".tsv", ".fcsv")) or \
                     (name.endswith(".json") and is_markups_file(path)):
@@ -208,8 +227,9 @@ class MainWindow(QMainWindow):
             elif name.endswith(".json"):
                 self.open_session(path)
             else:
-                raise ValueError(f"{path}: unsupported file type (expected .nii/.nii.gz image, "
-                                 ".npz model, .json session, or .csv/.mrk.json points)")
+                raise ValueError(f"{path}: unsupported file type (expected an image: .nii/.nii.gz,"
+                                 " .nrrd, .mha or a DICOM folder/file; a .npz or .h5 model; a "
+                                 ".json session; or .csv/.mrk.json points)")
         except (ValueError, OSError) as exc:
             self.show_error(exc)
 
@@ -224,6 +244,11 @@ class MainWindow(QMainWindow):
         path, _ = QFileDialog.getOpenFileName(self, title, self._start_dir(), filt)
         if path:
             self.open_path(path)
+
+    def open_dicom_dialog(self) -> None:
+        folder = QFileDialog.getExistingDirectory(self, "Open DICOM folder", self._start_dir())
+        if folder:
+            self.open_path(folder)
 
     def dragEnterEvent(self, event) -> None:  # noqa: N802
         if event.mimeData().hasUrls():
@@ -448,7 +473,8 @@ class MainWindow(QMainWindow):
             act.setEnabled(has_points)
 
     def _update_title(self) -> None:
-        parts = [p.name for p in (self.state.image_path, self.state.model_path) if p is not None]
+        parts = [formats.display_name(self.state.image_path)] if self.state.image_path else []
+        parts += [self.state.model_path.name] if self.state.model_path is not None else []
         if self.session_path is not None:
             parts.insert(0, self.session_path.name)
         title = "SSM Studio" + (" — " + " + ".join(parts) if parts else "")
@@ -518,7 +544,7 @@ class MainWindow(QMainWindow):
 
 
 def run_gui(image: str | None = None, model: str | None = None, session: str | None = None,
-            screenshot: str | None = None, tab: str = "segment") -> int:
+            screenshot: str | None = None, tab: str = "segment", series: str | None = None) -> int:
     """Open the main window; with ``screenshot`` render it to that PNG and exit. Exit code."""
     app = QApplication.instance() or QApplication(sys.argv[:1])
     app.setApplicationName("SSM Studio")
@@ -531,7 +557,7 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
             window.open_session(session)
         else:
             if image:
-                window.load_image(image)
+                window.load_image(image, series=series, ask=not screenshot)
             else:
                 window.load_demo()
             if model:

@@ -1,0 +1,141 @@
+"""Clinical formats in the GUI: DICOM folder drop and series choice, NRRD/MHA, .h5 models,
+.seg.nrrd export, sessions; no patient name or ID in titles, messages or file names."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("PySide6")
+pytest.importorskip("SimpleITK")
+pytestmark = pytest.mark.gui
+
+sys.path.insert(0, str(Path(__file__).parent))
+import formats_synth as synth  # noqa: E402
+from PySide6.QtCore import QMimeData, QPointF, Qt, QUrl  # noqa: E402
+from PySide6.QtGui import QDropEvent  # noqa: E402
+
+from app import formats  # noqa: E402
+from app.window import MainWindow  # noqa: E402
+
+PATIENT = ("DOE", "JANE", "PID-12345")
+
+
+@pytest.fixture
+def window(qtbot, tmp_path, monkeypatch):
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
+    win = MainWindow(with_3d=False, recovery=True)
+    qtbot.addWidget(win)
+    win.resize(1000, 700)
+    return win
+
+
+@pytest.fixture
+def dicom_folder(tmp_path):
+    """A folder named after the patient (as exports often are) holding two series."""
+    folder = tmp_path / "DOE_JANE_PID-12345"
+    big = synth.oblique_image((16, 14, 10), (1.0, 1.1, 2.0))
+    small = synth.oblique_image((8, 7, 4), (1.0, 1.0, 3.0), seed=2)
+    synth.write_series(folder, big, uid=synth.UID_ROOT + ".31", description="T1 MPRAGE")
+    synth.write_series(folder, small, uid=synth.UID_ROOT + ".32", description="localizer",
+                       name="L{:04d}.dcm")
+    return folder, big, small
+
+
+def _drop(window, path: Path) -> None:
+    mime = QMimeData()
+    mime.setUrls([QUrl.fromLocalFile(str(path))])
+    event = QDropEvent(QPointF(40, 40), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton,
+                       Qt.KeyboardModifier.NoModifier)
+    window.dropEvent(event)
+
+
+def _no_patient(text: str) -> None:
+    for word in PATIENT:
+        assert word not in text, text
+
+
+def test_dropped_dicom_folder_opens_and_leaks_no_patient_name(window, dicom_folder, tmp_path):
+    import SimpleITK as sitk
+
+    folder, big, _ = dicom_folder
+    _drop(window, folder)
+    vol = window.state.volume
+    assert vol is not None and vol.shape == (16, 14, 10)
+    assert np.array_equal(vol.data, sitk.GetArrayFromImage(big).T)
+    title, message = window.windowTitle(), window.statusBar().currentMessage()
+    assert "T1 MPRAGE" in title and "most files" in message
+    _no_patient(title)
+    _no_patient(message)
+    from core.io import save_model
+    from core.simulated_user import pca_model, synthetic_shapes
+
+    shapes, faces = synthetic_shapes(5, subdivisions=2, seed=3, size=(3.0, 3.0, 4.0))
+    model = pca_model(shapes + vol.voxel_to_world((np.array(vol.shape) - 1) / 2), faces)
+    save_model(tmp_path / "model.npz", model)
+    window.load_model(tmp_path / "model.npz")
+    window.write_recovery()  # autosave: its file name carries no patient information
+    names = [p.name for p in (tmp_path / "state").rglob("*")]
+    names += [p.name for p in window.export_all(tmp_path / "export")]
+    assert len(names) >= 3
+    for name in names:
+        _no_patient(name)
+    _no_patient(window.windowTitle())
+
+
+def test_series_dialog_choice_is_kept_in_the_session(window, dicom_folder, tmp_path, qtbot):
+    import SimpleITK as sitk
+
+    folder, _, small = dicom_folder
+    from core.io.dicom import list_series
+
+    series = list_series(folder)
+    from app.series_dialog import SeriesDialog
+
+    dialog = SeriesDialog(series, window)
+    qtbot.addWidget(dialog)
+    assert dialog.list.count() == 2 and "T1 MPRAGE" in dialog.list.item(0).text()
+    dialog.list.setCurrentRow(1)
+    assert dialog.chosen().uid == synth.UID_ROOT + ".32"
+    chosen = formats.resolve_dicom_choice(folder, ask=lambda s: s[1])
+    window.load_image(chosen)
+    assert window.state.volume.shape == (8, 7, 4)
+    window.save_session(path=tmp_path / "session.json")
+    window.open_session(tmp_path / "session.json")  # reopens the same series, no question
+    assert window.state.volume.shape == (8, 7, 4)
+    assert np.array_equal(window.state.volume.data, sitk.GetArrayFromImage(small).T)
+    assert formats.resolve_dicom_choice(folder, ask=lambda s: None) is None  # cancelled
+
+
+def test_nrrd_image_h5_model_and_seg_nrrd_export(window, tmp_path):
+    import SimpleITK as sitk
+
+    from core.io import load_volume, save_model
+    from core.io.nrrd import segmentation_fields
+    from core.simulated_user import pca_model, synthetic_shapes
+
+    image = synth.oblique_image((30, 28, 20), (1.0, 1.0, 1.5))
+    sitk.WriteImage(image, str(tmp_path / "scan.nrrd"))
+    sitk.WriteImage(image, str(tmp_path / "scan.mha"))
+    _drop(window, tmp_path / "scan.mha")
+    mha = window.state.volume
+    window.open_path(tmp_path / "scan.nrrd")
+    assert np.allclose(window.state.volume.affine, mha.affine, atol=1e-9)
+    centre = window.state.volume.voxel_to_world((np.array(window.state.volume.shape) - 1) / 2)
+    shapes, faces = synthetic_shapes(6, subdivisions=2, seed=1)
+    model = pca_model(shapes, faces, n_factors=3)
+    model.world_transform = np.eye(4)
+    model.world_transform[:3, 3] = centre
+    save_model(tmp_path / "putamen.h5", model)
+    _drop(window, tmp_path / "putamen.h5")
+    assert window.state.model is not None and window.state.model.n_factors == 3
+    assert np.allclose(window.state.surface_vertices(), model.world_instance(), atol=1e-4)
+    window.export_labels(tmp_path / "out.seg.nrrd")
+    (segment,) = segmentation_fields(tmp_path / "out.seg.nrrd")
+    assert segment["Name"] == "putamen" and segment["LabelValue"] == "1"
+    labels = load_volume(tmp_path / "out.seg.nrrd")
+    assert np.allclose(labels.affine, mha.affine, atol=1e-9) and labels.data.sum() > 50
