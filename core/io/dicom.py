@@ -235,6 +235,37 @@ def list_series(folder: str | os.PathLike) -> list[SeriesInfo]:
     return found
 
 
+def _single_series(folder: Path) -> SeriesInfo | None:
+    """Fast path for the usual folder, one series: one GDCM scan instead of two.
+
+    GDCM's unnamed-series scan returns the (sorted) files of the first series it finds; when
+    that is every DICOM file of the folder there is no other series to choose from.
+    """
+    dicom_files = [p for p in folder.iterdir() if p.is_file() and is_dicom_file(p)]
+    if not dicom_files:
+        return None
+    with quiet_native_stderr():
+        try:
+            files = [Path(f) for f in sitk().ImageSeriesReader.GetGDCMSeriesFileNames(str(folder))]
+        except RuntimeError:
+            return None
+    if len(files) != len(dicom_files):
+        return None
+    meta = read_file_meta(files[0])
+    if _non_image_kind(meta.get("0002|0002", "")) or \
+            not TRANSFER_SYNTAXES.get(meta.get("0002|0010", ""), ("", True))[1]:
+        return None  # the full path explains these
+    try:
+        reader = _file_info(files[0])
+    except DataFileError:
+        return None
+    uid = _tag(reader, "0020|000e")
+    if not uid:
+        return None
+    return SeriesInfo(uid=uid, files=files, description=" ".join(_tag(reader, "0008|103e").split()),
+                      modality=_tag(reader, "0008|0060"))
+
+
 def _explain_empty(folder: Path) -> DataFileError:
     """Why a folder has no image series: no DICOM files at all, or only non-image objects."""
     files = [p for p in sorted(folder.iterdir()) if p.is_file()]
@@ -259,6 +290,10 @@ def choose_series(path: str | os.PathLike, series: str | None = None,
     """
     path = Path(path)
     if path.is_dir():
+        if series is None:
+            single = _single_series(path)
+            if single is not None:
+                return single
         candidates = list_series(path)
         if not candidates:
             raise _explain_empty(path)
@@ -455,6 +490,7 @@ def read_dicom(path: str | os.PathLike, series: str | None = None,
         reader.SetFileNames([str(f) for f in files])
         image = reader.Execute()
         positions_arr = positions_arr[order]
+    del reader  # the image's buffer is then ours alone: no copy when it becomes an array
     volume = image_to_volume(image, where)
     # ITK's grid must be the one the tags describe (origin at the first slice, z step = gap).
     normal = np.cross(orientations_arr[0, :3], orientations_arr[0, 3:])

@@ -115,8 +115,7 @@ def image_to_volume(image, path: Path) -> Volume:
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
         raise DataFileError(path, "the image geometry (origin, spacing, direction) is not a "
                                   "finite, invertible voxel-to-world mapping")
-    data = sitk().GetArrayViewFromImage(image)
-    data = np.array(data, copy=True).T  # [k, j, i] -> [i, j, k] (Fortran-ordered view)
+    data = sitk().GetArrayFromImage(image).T  # one copy; [k, j, i] -> [i, j, k] view
     if data.dtype.kind == "c":
         raise DataFileError(path, f"unsupported voxel type {data.dtype} (complex)")
     if data.dtype.kind == "b":
@@ -267,8 +266,9 @@ def check_metaimage_header(path: Path) -> dict[str, str]:
         if announced is not None and announced.isdigit() and int(announced) > available:
             raise DataFileError(path, f"truncated: the header announces {announced} bytes of "
                                       f"compressed data, the file holds {available} {where}")
-        if data_file.upper() == "LOCAL":
-            _check_zlib_stream(path, offset, expected)
+        if data_file.upper() == "LOCAL" and not (announced is not None and announced.isdigit()
+                                                and int(announced) == available):
+            _check_zlib_stream(path, offset, expected)  # no size to compare: inflate it
         return fields
     if header_skip >= 0 and available - max(header_skip, 0) < expected:
         raise DataFileError(path, f"truncated or header lying about the size: DimSize "
@@ -298,7 +298,20 @@ def _check_zlib_stream(path: Path, offset: int, expected: int) -> None:
 
 
 def check_gzip_stream(path: Path, offset: int, expected: int) -> None:
-    """Inflate an embedded gzip stream (NRRD ``encoding: gzip``) and compare its size."""
+    """Check an embedded gzip stream (NRRD ``encoding: gzip``) holds ``expected`` bytes.
+
+    Fast path: the gzip trailer's ISIZE (uncompressed size mod 2^32, RFC 1952) matches.
+    Otherwise the stream is inflated (without keeping it) for a precise message.
+    """
+    size = path.stat().st_size
+    if size - offset >= 18:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            magic = fh.read(2)
+            fh.seek(size - 4)
+            isize = int.from_bytes(fh.read(4), "little")
+        if magic == b"\x1f\x8b" and isize == expected % (1 << 32):
+            return
     total = 0
     try:
         with open(path, "rb") as raw:
