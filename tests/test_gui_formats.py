@@ -134,8 +134,11 @@ def test_nrrd_image_h5_model_and_seg_nrrd_export(window, tmp_path):
     _drop(window, tmp_path / "putamen.h5")
     assert window.state.model is not None and window.state.model.n_factors == 3
     assert np.allclose(window.state.surface_vertices(), model.world_instance(), atol=1e-4)
-    window.export_labels(tmp_path / "out.seg.nrrd")
+    window.exports.export_labels(tmp_path / "out.seg.nrrd")
     (segment,) = segmentation_fields(tmp_path / "out.seg.nrrd")
-    assert segment["Name"] == "putamen" and segment["LabelValue"] == "1"
+    structure = window.state.active
+    assert segment["Name"] == (structure.name or "putamen") and segment["LabelValue"] == "1"
+    assert np.allclose([float(c) for c in segment["Color"].split()],
+                       np.array(structure.color) / 255.0, atol=1e-5)
     labels = load_volume(tmp_path / "out.seg.nrrd")
     assert np.allclose(labels.affine, mha.affine, atol=1e-9) and labels.data.sum() > 50
