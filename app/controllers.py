@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from app.state import FRAME_NAMES, Points, Structure, WorkspaceState
+from app.state import FRAME_NAMES, STRUCTURE_COLORS, Points, Structure, WorkspaceState
 from core.io import load_model, load_volume, save_mesh, save_points, save_volume
 
 
@@ -64,46 +64,88 @@ class SessionController:
         if vertices is not None and self.state.volume is not None:
             self.state.set_crosshair(vertices.mean(axis=0))
 
+    def add_structure(self, path: str | os.PathLike) -> tuple[Structure, str]:
+        """A new active structure with the model file ``path`` (name, side and colour from its
+        header, as ``core.model_library`` reads it), at the model's stored placement."""
+        from core.model_library import structure_info
+
+        model = load_model(path)
+        info = structure_info(model, path)
+        color = tuple(int(round(255 * c)) for c in info.color)
+        structure = Structure(name=info.name, side=info.side)
+        structure.color = self.state.unused_color(color)
+        structure.demo = info.demo
+        self.state.add_structure(structure)
+        structure.set_model(model, path)
+        self.center_on_model()
+        kind = "demo model" if info.demo else f"{model.method} model"
+        return structure, f"Added {structure.label}: {kind}, {model.n_factors} factors"
+
     # -- sessions ----------------------------------------------------------------------
     def to_session(self, fit_settings: dict):
-        """The current work as a :class:`core.session.Session` (the active structure's)."""
-        from core.session import Session
+        """The current work as a :class:`core.session.Session`.
+
+        The top level holds the active structure (as single-structure sessions always did);
+        with several structures, or a renamed/recoloured one, ``structures`` holds them all.
+        """
+        from core.session import Session, SessionStructure
 
         state = self.state
         s = state.active
+        records = []
+        if len(state.structures) > 1 or s.customised:
+            records = [SessionStructure(
+                name=st.name, side=st.side, color=tuple(c / 255 for c in st.color),
+                visible=st.visible, locked=st.locked, model_path=st.model_path,
+                points=st.points.xyz.copy(), normals=st.point_normals() if len(st.points) else None,
+                point_slices=_point_slices(st.points), coef=st.coef, pose=st.pose,
+                placement=st.placement) for st in state.structures]
         pts = s.points
         return Session(
             image_path=state.image_path, model_path=s.model_path,
             points=pts.xyz.copy(), normals=s.point_normals() if len(pts) else None,
-            point_slices=[(FRAME_NAMES[int(f)], float(d)) for f, d in zip(pts.frame, pts.depth)],
+            point_slices=_point_slices(pts),
             coef=None if s.coef is None else s.coef.copy(),
             pose=None if s.pose is None else s.pose.copy(),
             fit=dict(fit_settings), window=(state.window, state.level),
             crosshair=state.crosshair.copy(),
             info={"written_by": "ssm-studio",
                   **{key: provide() for key, provide in self.info_providers.items()}},
+            structures=records, active_structure=state.structures.index(s) if records else 0,
         )
 
     def apply(self, session) -> dict:
-        """Restore image, model, points, window and crosshair; returns the fit settings.
-
-        The stored fit is shown as it was saved (no refit), and the undo history starts
-        empty.
+        """Restore image, structures (models, points, fits), window and crosshair; returns
+        the fit settings. The stored fits are shown as saved (no refit), and every undo
+        history starts empty.
         """
         if session.image_path is not None:
             self.open_image(session.image_path)
-        structure = self.state.active
-        if session.model_path is not None:
-            self.open_model(session.model_path, coef=session.coef, pose=session.pose,
-                            structure=structure)
-        xyz = np.asarray(session.points, dtype=np.float64).reshape(-1, 3)
-        slices = session.point_slices or [("axial", float(p[2])) for p in xyz]
-        frames = [FRAME_NAMES.index(name if isinstance(name, str)
-                                    else ("sagittal", "coronal", "axial")[int(name)])
-                  for name, _ in slices]
-        points = Points(xyz.copy(), np.asarray(frames, dtype=np.int64).reshape(-1),
-                        np.asarray([float(d) for _, d in slices]).reshape(-1))
-        structure.set_points(points, checkpoint=False, edited=False)
+        records = session.structures or [_top_level_record(session)]
+        models: dict[Path, object] = {}
+        structures = []
+        for record in records:
+            structure = Structure(name=record.name, side=record.side)
+            if record.color is not None:
+                structure.color = tuple(int(round(255 * c)) for c in record.color)
+                structure.customised = bool(session.structures)
+            structure.visible, structure.locked = record.visible, record.locked
+            if record.model_path is not None:
+                key = Path(os.path.abspath(record.model_path))
+                if key not in models:
+                    models[key] = load_model(record.model_path)
+                structure.set_model(models[key], record.model_path, coef=record.coef, pose=record.pose)
+                if record.placement is not None:
+                    structure.placement = np.asarray(record.placement, dtype=np.float64).copy()
+            structure.points = _points(record.points, record.point_slices)
+            structures.append(structure)
+        used: set = set()
+        for structure in structures:                     # distinct colours
+            if structure.color in used:
+                structure.color = next((c for c in STRUCTURE_COLORS if c not in used), structure.color)
+            used.add(structure.color)
+        self.state.replace_structures(structures, session.active_structure if session.structures else 0)
+        self.center_on_model()
         if session.window is not None:
             self.state.set_window(*session.window)
         if session.crosshair is not None:
@@ -233,3 +275,27 @@ class ExportController:
             points = points.append(xyz, 0, float(xyz[2]))
         self.state.set_points(points, checkpoint=True)
         return f"Imported {len(pset)} point(s) from {Path(path).name}"
+
+
+def _point_slices(points: Points) -> list[tuple[str, float]]:
+    return [(FRAME_NAMES[int(f)], float(d)) for f, d in zip(points.frame, points.depth)]
+
+
+def _points(xyz, slices) -> Points:
+    """Points from session arrays; points without slice records go to their axial slice."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    slices = slices or [("axial", float(p[2])) for p in xyz]
+    frames = [FRAME_NAMES.index(name if isinstance(name, str)
+                                else ("sagittal", "coronal", "axial")[int(name)])
+              for name, _ in slices]
+    return Points(xyz.copy(), np.asarray(frames, dtype=np.int64).reshape(-1),
+                  np.asarray([float(d) for _, d in slices]).reshape(-1))
+
+
+def _top_level_record(session):
+    """The one structure of a session without a ``structures`` list."""
+    from core.session import SessionStructure
+
+    return SessionStructure(model_path=session.model_path, points=session.points,
+                            point_slices=session.point_slices, coef=session.coef,
+                            pose=session.pose)

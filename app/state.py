@@ -138,6 +138,8 @@ class Structure:
         self.color = tuple(int(c) for c in (color or STRUCTURE_COLORS[0]))
         self.visible = True
         self.locked = False
+        self.customised = False                # renamed/recoloured/... by the user (sessions keep it)
+        self.demo = False                      # the model is a demo model (its header says so)
         self.model: ShapeModel | None = None
         self.model_path: Path | None = None
         self.coef: np.ndarray | None = None
@@ -186,6 +188,7 @@ class Structure:
             self.visible = bool(visible)
         if locked is not None:
             self.locked = bool(locked)
+        self.customised = True
         self._notify(self, "properties")
         self._notify(self, "edited")
 
@@ -201,12 +204,10 @@ class Structure:
         self.last_fit = None
         self.model_version += 1
         self._surface_version += 1
-        if not self.name and isinstance(model.info.get("structure"), dict):
-            info = structure_info(model)            # the header's structure description
-            self.name, self.side = info.name, info.side if info.side in SIDES else ""
-        elif not self.name:
-            self.name = str(model.info.get("structure") or (self.model_path.stem if self.model_path
-                                                            else "structure"))
+        if not self.name:                      # the header's structure description, or the file name
+            info = structure_info(model, self.model_path)
+            self.name, self.side = info.name, self.side or (info.side if info.side in SIDES else "")
+            self.demo = info.demo
         self._notify(self, "model")
         self._notify(self, "surface")
         self._notify(self, "fit_info")
@@ -423,15 +424,36 @@ class WorkspaceState:
         if structure in self.structures:
             raise ValueError(f"{structure.label} is already in the workspace")
         if structure.color == STRUCTURE_COLORS[0] and self.structures:
-            used = {s.color for s in self.structures}
-            structure.color = next((c for c in STRUCTURE_COLORS if c not in used),
-                                   STRUCTURE_COLORS[len(self.structures) % len(STRUCTURE_COLORS)])
+            structure.color = self.unused_color()
         structure._notify = self._on_structure
         self.structures.append(structure)
         self.events.structures()
         if activate or self._active is None:
             self.set_active(structure)
         return structure
+
+    def replace_structures(self, structures: list[Structure], active: int = 0) -> None:
+        """Start over with ``structures`` (e.g. from a session); ``active`` indexes them."""
+        if not structures:
+            structures = [Structure()]
+        for old in self.structures:
+            old._notify = lambda s, what: None
+        for structure in structures:
+            structure._notify = self._on_structure
+        self.structures = list(structures)
+        self._active = structures[min(max(int(active), 0), len(structures) - 1)]
+        self.events.structures()
+        self.events.active()
+        for name in _ACTIVE_EVENTS:
+            getattr(self.events, name)()
+
+    def unused_color(self, preferred: tuple[int, int, int] | None = None) -> tuple[int, int, int]:
+        """``preferred`` if no structure has it, else the first palette colour not in use."""
+        used = {s.color for s in self.structures}
+        if preferred is not None and tuple(preferred) not in used:
+            return tuple(int(c) for c in preferred)
+        return next((c for c in STRUCTURE_COLORS if c not in used),
+                    STRUCTURE_COLORS[len(self.structures) % len(STRUCTURE_COLORS)])
 
     def remove_structure(self, structure: Structure) -> None:
         """Remove a structure; the last one is replaced by an empty structure."""
@@ -441,11 +463,16 @@ class WorkspaceState:
         self.structures.remove(structure)
         structure._notify = lambda s, what: None
         if not self.structures:
-            self.add_structure(Structure(), activate=True)
-            return
-        self.events.structures()
-        if structure is self._active:
-            self.set_active(self.structures[min(index, len(self.structures) - 1)])
+            self.replace_structures([Structure()])
+        else:
+            was_active = structure is self._active
+            if was_active:
+                self._active = self.structures[min(index, len(self.structures) - 1)]
+            self.events.structures()
+            if was_active:
+                self.events.active()
+                for name in _ACTIVE_EVENTS:
+                    getattr(self.events, name)()
         self.events.edited("structures")
 
     def set_active(self, structure: Structure | int) -> None:

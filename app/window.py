@@ -35,6 +35,7 @@ from app.panels.fit import FitPanel
 from app.panels.planning import PlanningPanel
 from app.panels.side import SidePanel
 from app.panels.status import CursorReadout, FitReadout
+from app.panels.structures import StructuresPanel
 from app.panels.tools import WINDOW_PRESETS, ToolsPanel
 from app.plan_controller import PlanController
 from app.planning import PlanningState
@@ -44,6 +45,7 @@ from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
 from app.workers import error_message
 from core.io.points import is_markups_file
+from core.model_library import list_library
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "run_gui"]
 
@@ -59,6 +61,7 @@ EXPORTS = {"labels": ("label map", formats.LABEL_FILTER, "segmentation.nii.gz"),
 OPEN_DIALOGS = {"image": ("Open image", formats.IMAGE_FILTER),
                 "model": ("Load shape model", formats.MODEL_FILTER),
                 "session": ("Open session", "Sessions (*.json);;All files (*)"),
+                "structure": ("Add a structure's model", "Shape models (*.npz *.h5);;All files (*)"),
                 "points": ("Import points", "Points (*.csv *.tsv *.fcsv *.mrk.json *.json);;"
                                              "All files (*)")}
 
@@ -91,9 +94,15 @@ class MainWindow(QMainWindow):
         self.refit.failed.connect(lambda m: self.statusBar().showMessage(f"Fit not updated: {m}", 8000))
         self.factors_panel = FactorsPanel(self.state)
         self.tools_panel = ToolsPanel(self)
+        self.structures_panel = StructuresPanel(self.state, list_library)
+        self.structures_panel.add_model.connect(self.add_structure)
+        self.structures_panel.add_file.connect(lambda: self.open_dialog("structure"))
+        self.structures_panel.add_empty.connect(lambda: self.state.add_structure())
+        self.structures_panel.remove.connect(self.remove_structure)
         create_menus(self)
         self.toolbar = create_toolbar(self)
-        self.side_dock = SidePanel([("Tools", self.tools_panel, 0), ("Fit", self.fit_panel, 0),
+        self.side_dock = SidePanel([("Structures", self.structures_panel, 0),
+                                    ("Tools", self.tools_panel, 0), ("Fit", self.fit_panel, 0),
                                     ("Deformation factors", self.factors_panel, 1)], self)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.side_dock)
         self._create_planning()
@@ -210,6 +219,19 @@ class MainWindow(QMainWindow):
             self.load_model(demo.demo_model())
         self.state.clear_history()
 
+    def add_structure(self, path: str | os.PathLike) -> bool:
+        """A new structure with the model file ``path``, made active (errors are shown)."""
+        return self._guarded(lambda: self.show_message(self.sessions.add_structure(path)[1]))
+
+    def remove_structure(self, structure) -> None:
+        if len(structure.points) and not self._quiet_errors() and QMessageBox.question(
+                self, "Remove structure", f"Remove {structure.label} and its "
+                f"{len(structure.points)} contour point(s)?") != QMessageBox.StandardButton.Yes:
+            return
+        self.refit.cancel(structure)
+        self.state.remove_structure(structure)
+        self.show_message(f"Removed {structure.label}")
+
     def import_points(self, path: str | os.PathLike) -> None:
         self.show_message(self.exports.import_points(path))
 
@@ -242,7 +264,9 @@ class MainWindow(QMainWindow):
     def open_dialog(self, what: str) -> None:
         title, filt = OPEN_DIALOGS[what]
         path, _ = QFileDialog.getOpenFileName(self, title, self._start_dir(), filt)
-        if path:
+        if path and what == "structure":
+            self.add_structure(path)
+        elif path:
             self.open_path(path)
 
     def open_dicom_dialog(self) -> None:

@@ -46,8 +46,18 @@ The JSON layout (``format_version`` 1)::
       "fit": {"method": "gmm-iso", "prior_weight": 1.0, ...},
       "window": [width, level],            # or null
       "crosshair": [x, y, z],              # or null
+      "structures": [{...}, ...],          # optional: several structures (see below)
+      "active_structure": 0,               # index into "structures"
       "info": {...}                        # free-form (e.g. when and by what it was saved)
     }
+
+A session with several structures (issue 14) keeps format version 1: the top-level
+``model``, ``points``, ``normals``, ``point_slices``, ``coef`` and ``pose`` are those of the
+active structure (so an older reader opens that one), and ``structures`` lists every
+structure as ``{"name", "side", "color": [r, g, b] (0..1), "visible", "locked", "model",
+"model_absolute", "points", "normals", "point_slices", "coef", "pose", "placement"}`` with
+the same conventions as the top level. A session with one plain structure has no
+``structures`` key, as before.
 
 Any array may also be written packed, ``{"dtype": "<f8", "shape": [P, 3], "base64": ...}``
 (little-endian bytes), as the recovery files do; both forms are read.
@@ -109,6 +119,11 @@ class Session:
         Crosshair position, world RAS mm.
     info : dict
         Free-form metadata.
+    structures : list of SessionStructure
+        Every structure when there are several (else empty); the top-level model, points,
+        coefficients and pose are then those of ``structures[active_structure]``.
+    active_structure : int
+        Index of the active structure in ``structures``.
 
     ``image=`` and ``model=`` are accepted as aliases of ``image_path=`` and ``model_path=``,
     and ``fit_method=`` / ``prior_weight=`` set the matching ``fit`` entries.
@@ -125,6 +140,8 @@ class Session:
     window: tuple[float, float] | None
     crosshair: np.ndarray | None
     info: dict[str, Any] = field(default_factory=dict)
+    structures: list[SessionStructure] = field(default_factory=list)
+    active_structure: int = 0
 
     def __init__(self, image_path: str | os.PathLike | None = None,
                  model_path: str | os.PathLike | None = None,
@@ -134,7 +151,8 @@ class Session:
                  window: Any = None, crosshair: np.ndarray | None = None,
                  info: dict[str, Any] | None = None, *,
                  image: str | os.PathLike | None = None, model: str | os.PathLike | None = None,
-                 fit_method: str | None = None, prior_weight: float | None = None):
+                 fit_method: str | None = None, prior_weight: float | None = None,
+                 structures: list[SessionStructure] | None = None, active_structure: int = 0):
         image_path = image_path if image_path is not None else image
         model_path = model_path if model_path is not None else model
         self.image_path = Path(image_path) if image_path not in (None, "") else None
@@ -154,6 +172,8 @@ class Session:
         self.window = None if window is None else tuple(_float_array(window, "window").tolist())
         self.crosshair = None if crosshair is None else _float_array(crosshair, "crosshair")
         self.info = dict(info or {})
+        self.structures = list(structures or [])
+        self.active_structure = int(active_structure)
         problem = self.validate()
         if problem:
             raise ValueError(problem)
@@ -233,6 +253,12 @@ class Session:
             value = self.fit.get(key)
             if value is not None and value not in allowed:
                 return f"fit {key} {_short(value)} is not one of {', '.join(allowed)}"
+        for k, st in enumerate(self.structures):
+            if not isinstance(st, SessionStructure):
+                return f"structures[{k}] must be a SessionStructure"
+        if self.structures and not 0 <= self.active_structure < len(self.structures):
+            return (f"active_structure {self.active_structure} is not an index of the "
+                    f"{len(self.structures)} structures")
         return None
 
     def model_problem(self, model) -> str | None:
@@ -244,7 +270,123 @@ class Session:
 
     def missing_files(self) -> list[Path]:
         """Referenced image/model files that do not exist (after :func:`load_session`)."""
-        return [p for p in (self.image_path, self.model_path) if p is not None and not p.exists()]
+        paths = [self.image_path, self.model_path] + [st.model_path for st in self.structures]
+        return list(dict.fromkeys(p for p in paths if p is not None and not p.exists()))
+
+
+@dataclass(eq=False)
+class SessionStructure:
+    """One structure of a session with several (``Session.structures``).
+
+    ``color`` is RGB in 0..1 (or None: the GUI's default); the arrays follow the top-level
+    conventions of :class:`Session`; ``placement`` is the pose the user set (the pose
+    prior's centre), or None.
+    """
+
+    name: str = ""
+    side: str = ""
+    color: tuple[float, float, float] | None = None
+    visible: bool = True
+    locked: bool = False
+    model_path: Path | None = None
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    normals: np.ndarray | None = None
+    point_slices: list[tuple[str, float]] | None = None
+    coef: np.ndarray | None = None
+    pose: np.ndarray | None = None
+    placement: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.name, self.side = str(self.name), str(self.side)
+        self.visible, self.locked = bool(self.visible), bool(self.locked)
+        if self.model_path not in (None, ""):
+            self.model_path = Path(self.model_path)
+        else:
+            self.model_path = None
+        if self.color is not None:
+            color = _float_array(self.color, "structure color")
+            if color.shape != (3,) or not np.all((color >= 0) & (color <= 1)):
+                raise ValueError(f"structure color must be [r, g, b] in 0..1, got {self.color!r}")
+            self.color = tuple(color.tolist())
+        self.points = _float_array(self.points, "structure points").reshape(-1, 3)
+        for name in ("normals", "coef", "pose", "placement"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, _float_array(value, f"structure {name}"))
+        if self.point_slices is not None:
+            self.point_slices = _plane_list(self.point_slices)
+        p = len(self.points)
+        if self.normals is not None and self.normals.shape != (p, 3):
+            raise ValueError(f"structure normals must be ({p}, 3), got {self.normals.shape}")
+        if self.point_slices is not None and len(self.point_slices) != p:
+            raise ValueError(f"structure point_slices must have {p} entries, got {len(self.point_slices)}")
+        for name in ("pose", "placement"):
+            value = getattr(self, name)
+            if value is not None and (value.shape != (4, 4) or not np.all(np.isfinite(value))):
+                raise ValueError(f"structure {name} must be a finite 4x4 matrix")
+        if not np.all(np.isfinite(self.points)):
+            raise ValueError("structure points contain NaN or infinite values")
+
+
+def _structure_document(st: SessionStructure, base: Path | None, array, packed: bool) -> dict[str, Any]:
+    return {"name": st.name, "side": st.side,
+            "color": None if st.color is None else list(st.color),
+            "visible": st.visible, "locked": st.locked,
+            "model": _relative(st.model_path, base), "model_absolute": _relative(st.model_path, None),
+            "points": array(st.points), "normals": array(st.normals),
+            "point_slices": _slices_document(st.point_slices, packed),
+            "coef": array(st.coef), "pose": array(st.pose), "placement": array(st.placement)}
+
+
+def _slices_document(slices: list[tuple[str, float]] | None, packed: bool) -> Any:
+    if slices is None:
+        return None
+    if packed:
+        return {"plane": _packed([PLANE_NAMES.index(n) for n, _ in slices], "<i1"),
+                "depth": _packed([d for _, d in slices])}
+    return [[name, depth] for name, depth in slices]
+
+
+def _slices_from(slices: Any) -> Any:
+    """Per-point slice records from their JSON form (lists, or packed planes and depths)."""
+    if isinstance(slices, dict):
+        planes = _unpacked(slices.get("plane"), "point_slices plane")
+        depths = _unpacked(slices.get("depth"), "point_slices depth")
+        if planes is None or depths is None or np.shape(planes) != np.shape(depths):
+            raise ValueError("point_slices plane and depth lists differ in length")
+        slices = list(zip(np.asarray(planes).tolist(), np.asarray(depths).tolist()))
+    return slices
+
+
+def _structures_from(value: Any, base: Path | None, source: Path) -> list[SessionStructure]:
+    if value is None:
+        return []
+    if not isinstance(value, list):
+        raise ValueError("structures must be a list of objects")
+    out = []
+    for k, doc in enumerate(value):
+        if not isinstance(doc, dict):
+            raise ValueError(f"structures[{k}] must be an object")
+        try:
+            points = _unpacked(doc.get("points"), "points")
+            out.append(SessionStructure(
+                name=doc.get("name") or "", side=doc.get("side") or "", color=doc.get("color"),
+                visible=doc.get("visible", True), locked=doc.get("locked", False),
+                model_path=_located(doc, "model", base, source),
+                points=points if points is not None else np.zeros((0, 3)),
+                normals=_unpacked(doc.get("normals"), "normals"),
+                point_slices=_slices_from(doc.get("point_slices")),
+                coef=_unpacked(doc.get("coef"), "coef"), pose=_unpacked(doc.get("pose"), "pose"),
+                placement=_unpacked(doc.get("placement"), "placement")))
+        except ValueError as exc:
+            raise ValueError(f"structures[{k}]: {exc}") from None
+    return out
+
+
+def _active_index(value: Any) -> int:
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise ValueError(f"active_structure must be an index, got {value!r}")
+    return value
 
 
 def _short(value: Any) -> str:
@@ -368,14 +510,7 @@ def _to_document(session: Session, base: Path | None, packed: bool = False) -> d
             return None
         return _packed(a) if packed else a.tolist()
 
-    slices = session.point_slices
-    if slices is None:
-        slice_doc = None
-    elif packed:
-        slice_doc = {"plane": _packed([PLANE_NAMES.index(n) for n, _ in slices], "<i1"),
-                     "depth": _packed([d for _, d in slices])}
-    else:
-        slice_doc = [[name, depth] for name, depth in slices]
+    slice_doc = _slices_document(session.point_slices, packed)
     info = dict(session.info)
     info["saved"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     return {
@@ -393,6 +528,8 @@ def _to_document(session: Session, base: Path | None, packed: bool = False) -> d
         "fit": session.fit,
         "window": None if session.window is None else list(session.window),
         "crosshair": array(session.crosshair),
+        **({"structures": [_structure_document(st, base, array, packed) for st in session.structures],
+            "active_structure": session.active_structure} if session.structures else {}),
         "info": info,
     }
 
@@ -416,13 +553,7 @@ def _from_document(doc: Any, source: Path, base: Path | None) -> Session:
         if not isinstance(doc.get(key) or {}, dict):
             raise DataFileError(source, f"'{key}' must be a JSON object")
     try:
-        slices = doc.get("point_slices")
-        if isinstance(slices, dict):
-            planes = _unpacked(slices.get("plane"), "point_slices plane")
-            depths = _unpacked(slices.get("depth"), "point_slices depth")
-            if planes is None or depths is None or np.shape(planes) != np.shape(depths):
-                raise ValueError("point_slices plane and depth lists differ in length")
-            slices = list(zip(np.asarray(planes).tolist(), np.asarray(depths).tolist()))
+        slices = _slices_from(doc.get("point_slices"))
         points = _unpacked(doc.get("points"), "points")
         return Session(
             image_path=_located(doc, "image", base, source),
@@ -432,6 +563,8 @@ def _from_document(doc: Any, source: Path, base: Path | None) -> Session:
             coef=_unpacked(doc.get("coef"), "coef"), pose=_unpacked(doc.get("pose"), "pose"),
             fit=doc.get("fit") or {}, window=doc.get("window"),
             crosshair=_unpacked(doc.get("crosshair"), "crosshair"), info=doc.get("info") or {},
+            structures=_structures_from(doc.get("structures"), base, source),
+            active_structure=_active_index(doc.get("active_structure", 0)),
         )
     except (ValueError, TypeError, OverflowError) as exc:
         raise DataFileError(source, f"invalid session: {exc}") from None

@@ -162,7 +162,7 @@ def test_remove_structures_and_properties(model):
 def test_model_name_and_placement(model):
     state = WorkspaceState()
     state.set_model(model, Path("models") / "caudate-left.npz")
-    assert state.active.name == "caudate-left"
+    assert state.active.label == "caudate (left)"        # from the file name (no header)
     target = np.array([10.0, -5.0, 3.0])
     state.place_at(target)
     assert state.surface_vertices().mean(axis=0) == pytest.approx(target)
@@ -199,3 +199,35 @@ def test_events_hold_bound_methods_weakly():
     del listener
     events.changed.emit()                      # the dead listener is dropped, no error
     assert len(events.changed) == 0
+
+
+def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
+    """The autosave (packed arrays) carries all structures; the sessions open as they were."""
+    from app.controllers import SessionController
+    from core import session as sessions
+    from core.io import save_model
+
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    path = tmp_path / "left_caudate.npz"
+    save_model(path, model)
+    state = WorkspaceState()
+    controller = SessionController(state)
+    state.set_image(Volume(np.zeros((40, 40, 40), np.float32), np.diag([1.0, 1, 1, 1])))
+    controller.open_model(path)
+    state.add_point([1.0, 2.0, 3.0], "axial", 3.0)
+    second, _ = controller.add_structure(path)
+    second.set_properties(name="other", side="right")
+    second.set_coefficient(1, 0.5)
+    for k in range(3):
+        state.add_point([k, 1.0, 4.0], "coronal", 1.0)
+    controller.write_recovery({"method": "icp", "pose": "rigid", "prior_weight": 1.0})
+    restored = WorkspaceState()
+    recovered, question = SessionController(restored).pending_recovery() or (None, "")
+    assert recovered is None          # this process is alive: its own file is not offered
+    session = sessions.load_session(sessions.recovery_path())
+    SessionController(restored).apply(session)
+    a, b = restored.structures
+    assert restored.active is b and (len(a.points), len(b.points)) == (1, 3)
+    assert b.label == "other (right)" and b.coef[1] == pytest.approx(0.5)
+    assert np.array_equal(b.points.frame, second.points.frame)
+    assert a.model_path == path and b.model is a.model          # one file, loaded once
