@@ -22,7 +22,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import (QApplication, QDockWidget, QFileDialog, QMainWindow, QMessageBox,
                                QScrollArea)
@@ -94,11 +93,10 @@ class MainWindow(QMainWindow):
         self.refit.failed.connect(lambda m: self.statusBar().showMessage(f"Fit not updated: {m}", 8000))
         self.factors_panel = FactorsPanel(self.state)
         self.tools_panel = ToolsPanel(self)
-        self.structures_panel = StructuresPanel(self.state, list_library)
-        self.structures_panel.add_model.connect(self.add_structure)
+        self.structures_panel = StructuresPanel(self.state, self.sessions, self.refit, list_library)
         self.structures_panel.add_file.connect(lambda: self.open_dialog("structure"))
-        self.structures_panel.add_empty.connect(lambda: self.state.add_structure())
-        self.structures_panel.remove.connect(self.remove_structure)
+        self.structures_panel.message.connect(self.show_message)
+        self.structures_panel.error.connect(self.show_error)
         create_menus(self)
         self.toolbar = create_toolbar(self)
         self.side_dock = SidePanel([("Structures", self.structures_panel, 0),
@@ -221,16 +219,10 @@ class MainWindow(QMainWindow):
 
     def add_structure(self, path: str | os.PathLike) -> bool:
         """A new structure with the model file ``path``, made active (errors are shown)."""
-        return self._guarded(lambda: self.show_message(self.sessions.add_structure(path)[1]))
+        return self.structures_panel.add_structure(path)
 
     def remove_structure(self, structure) -> None:
-        if len(structure.points) and not self._quiet_errors() and QMessageBox.question(
-                self, "Remove structure", f"Remove {structure.label} and its "
-                f"{len(structure.points)} contour point(s)?") != QMessageBox.StandardButton.Yes:
-            return
-        self.refit.cancel(structure)
-        self.state.remove_structure(structure)
-        self.show_message(f"Removed {structure.label}")
+        self.structures_panel.remove_structure(structure, ask=not self._quiet_errors())
 
     def import_points(self, path: str | os.PathLike) -> None:
         self.show_message(self.exports.import_points(path))
@@ -451,10 +443,7 @@ class MainWindow(QMainWindow):
         """Colour the 3D surface by the touched factor's displacement for a few seconds."""
         if index >= 0 and self.state.model is not None:
             self._factor_timer.start()
-            move = self.state.active.factor_displacement(index)
-            share = float(np.mean(move > 0.1 * move.max())) if move.max() > 0 else 0.0
-            self.show_message(f"Factor {index + 1}: moves {100 * share:.0f}% of the surface "
-                              f"(up to {move.max():.1f} mm per SD)", 4000)
+            self.show_message(self.factors_panel.describe(index), 4000)
         if self.workspace.volume_view is not None:
             self.workspace.volume_view.show_factor(index)
 

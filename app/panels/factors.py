@@ -113,6 +113,13 @@ class FactorsPanel(QWidget):
         self.factor_touched.emit(index)
         self.state.set_coefficient(index, sd * float(np.sqrt(model.coef_var[index])))
 
+    def describe(self, index: int) -> str:
+        """What factor ``index`` does, for the status bar."""
+        move = self.state.active.factor_displacement(index)
+        share = float(np.mean(move > 0.1 * move.max())) if move.max() > 0 else 0.0
+        return (f"Factor {index + 1}: moves {100 * share:.0f}% of the surface "
+                f"(up to {move.max():.1f} mm per SD)")
+
     def set_factor_sd(self, index: int, sd: float) -> None:
         """Set factor ``index`` to ``sd`` standard deviations (as a slider move would)."""
         self.sliders[index].setValue(int(round(sd * STEPS_PER_SD)))

@@ -5,8 +5,9 @@ side, colour, visibility and lock are edited here and written to the workspace m
 (:meth:`app.state.Structure.set_properties`); the table follows the model's events, with
 its own signals blocked while it does (no feedback loop). *Add* offers the model library
 (``core.model_library``: ``resources/models/`` and the user's model folder), a model file, or
-an empty structure; the window does the adding (``add_model(path)`` / ``add_file()`` /
-``add_empty()``) and the removing (``remove(structure)``).
+an empty structure; adding and removing go through the session controller (and stop the
+removed structure's refit). ``add_file()`` asks the window for a file dialog; ``message`` and
+``error`` are for its status bar.
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ from __future__ import annotations
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QAbstractItemView, QColorDialog, QComboBox, QHBoxLayout,
-                               QHeaderView, QMenu, QPushButton, QTableWidget, QTableWidgetItem,
-                               QToolButton, QVBoxLayout, QWidget)
+                               QHeaderView, QMenu, QMessageBox, QPushButton, QTableWidget,
+                               QTableWidgetItem, QToolButton, QVBoxLayout, QWidget)
 
 from app.state import SIDES, Structure, WorkspaceState
+from app.workers import error_message
 
 COLUMNS = ("", "", "Name", "Side", "Model", "Lock")
 VISIBLE, COLOR, NAME, SIDE, MODEL, LOCK = range(len(COLUMNS))
@@ -26,14 +28,16 @@ VISIBLE, COLOR, NAME, SIDE, MODEL, LOCK = range(len(COLUMNS))
 class StructuresPanel(QWidget):
     """List of the workspace's structures; see the module docstring."""
 
-    add_model = Signal(str)           # a library model's path
-    add_file = Signal()               # ask for a model file
-    add_empty = Signal()
-    remove = Signal(object)           # the Structure to remove
+    add_file = Signal()               # ask for a model file (the window's dialog)
+    message = Signal(str)
+    error = Signal(str)
 
-    def __init__(self, state: WorkspaceState, library=None, parent: QWidget | None = None):
+    def __init__(self, state: WorkspaceState, sessions, refit, library=None,
+                 parent: QWidget | None = None):
         super().__init__(parent)
         self.state = state
+        self.sessions = sessions      # app.controllers.SessionController
+        self.refit = refit            # app.refit.RefitController
         self._library = library       # () -> list of core.model_library.LibraryEntry
         self._syncing = False
         layout = QVBoxLayout(self)
@@ -67,7 +71,7 @@ class StructuresPanel(QWidget):
         row.addWidget(self.color_button)
         row.addWidget(self.remove_button)
         layout.addLayout(row)
-        self.remove_button.clicked.connect(lambda: self.remove.emit(self.state.active))
+        self.remove_button.clicked.connect(lambda: self.remove_structure(self.state.active))
         self.color_button.clicked.connect(self.choose_color)
         self.table.itemChanged.connect(self._on_item_changed)
         self.table.itemSelectionChanged.connect(self._on_selection)
@@ -181,10 +185,30 @@ class StructuresPanel(QWidget):
                 continue
             action = self.add_menu.addAction(
                 f"{entry.structure.label} — {entry.path.name}",
-                lambda path=str(entry.path): self.add_model.emit(path))
+                lambda path=str(entry.path): self.add_structure(path))
             action.setToolTip(f"{entry.path}: {entry.n_factors} factors, {entry.n_vertices} vertices")
         if not entries:
             self.add_menu.addAction("(no library models found)").setEnabled(False)
         self.add_menu.addSeparator()
         self.add_menu.addAction("From a model file…", self.add_file.emit)
-        self.add_menu.addAction("Empty structure (points only)", self.add_empty.emit)
+        self.add_menu.addAction("Empty structure (points only)", lambda: self.state.add_structure())
+
+    # -- adding and removing -----------------------------------------------------------------
+    def add_structure(self, path) -> bool:
+        """A new active structure with the model file ``path``; False (and ``error``) if unreadable."""
+        try:
+            _, text = self.sessions.add_structure(path)
+        except (ValueError, OSError) as exc:
+            self.error.emit(error_message(exc))
+            return False
+        self.message.emit(text)
+        return True
+
+    def remove_structure(self, structure: Structure, ask: bool = True) -> None:
+        if ask and len(structure.points) and QMessageBox.question(
+                self, "Remove structure", f"Remove {structure.label} and its "
+                f"{len(structure.points)} contour point(s)?") != QMessageBox.StandardButton.Yes:
+            return
+        self.refit.cancel(structure)
+        self.state.remove_structure(structure)
+        self.message.emit(f"Removed {structure.label}")
