@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from app.state import FRAME_NAMES, STRUCTURE_COLORS, Points, Structure, WorkspaceState
-from core.io import load_model, load_volume, save_mesh, save_points, save_volume
+from core.io import DataFileError, load_model, load_volume, save_mesh, save_points, save_volume
 
 
 class SessionController:
@@ -161,6 +161,13 @@ class SessionController:
         if session.model_path is not None and session.model_path.exists():
             # refuse a session that does not fit its model before applying any of it
             sessions.check_session_model(session, load_model(session.model_path), path)
+        for k, st in enumerate(session.structures):
+            if st.model_path is not None and st.model_path.exists() and st.coef is not None:
+                n_factors = load_model(st.model_path).n_factors
+                if st.coef.shape[0] != n_factors:
+                    raise DataFileError(path, f"structure {k + 1} ({st.name or 'unnamed'}) holds "
+                                              f"{st.coef.shape[0]} shape coefficients but its model "
+                                              f"has {n_factors} factors")
         return session
 
     def save(self, path: str | os.PathLike, fit_settings: dict) -> str:
