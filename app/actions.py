@@ -13,7 +13,7 @@ SHORTCUTS = [
     ("Ctrl+O", "Open image"), ("Ctrl+M", "Load model"), ("Ctrl+Shift+O", "Open session"),
     ("Ctrl+S", "Save session"), ("Ctrl+E", "Export label map, mesh and points"),
     ("Ctrl+Z", "Undo"), ("Ctrl+Shift+Z", "Redo"),
-    ("Delete", "Remove the point under the cursor (else the last point)"),
+    ("Delete", "Remove the point under the cursor (else the last one on this slice)"),
     ("Page Up / Page Down, wheel", "Next / previous slice in the active view"),
     ("N / D / W", "Tool: navigate / draw contour / window-level"),
     ("P", "Place the model at the crosshair"), ("R", "Reset the views"),
@@ -76,7 +76,7 @@ def create_actions(w) -> None:
     w.act_undo = a("&Undo", w.undo, "Ctrl+Z")
     w.act_redo = a("&Redo", w.redo, "Ctrl+Shift+Z")
     w.act_delete = a("&Delete point", w.delete_point, key.Delete,
-                    "Remove the point under the cursor, else the last point")
+                    "Remove the point under the cursor, else the last one on this slice")
     w.act_clear_slice = a("Clear &slice", w.clear_active_slice, None,
                          "Remove the points of the active view's slice")
     w.act_clear_points = a("Clear &all points", state.clear_points)

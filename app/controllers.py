@@ -50,14 +50,25 @@ class SessionController:
         structure.set_model(model, path, coef=coef, pose=pose)
         structure.clear_history()
         self.center_on_model()
-        centre = structure.surface_vertices().mean(axis=0)
-        if self.state.volume is not None:
-            lo, hi = self.state.volume.world_bounds()
-            if np.any(centre < lo) or np.any(centre > hi):
-                return (f"Model {Path(path).name} lies outside the image: "
-                        "use 'Place here' to move it to the crosshair")
+        warning = self.overlap_warning(structure)
+        if warning:
+            return warning
         return (f"Loaded model {Path(path).name}: {model.method}, "
                 f"{model.n_factors} factors, {model.n_vertices} vertices")
+
+    def overlap_warning(self, structure: Structure | None = None) -> str:
+        """A warning when a structure's model and the image do not overlap at all, else ""."""
+        volume = self.state.volume
+        for s in [structure] if structure is not None else self.state.structures:
+            vertices = s.surface_vertices()
+            if vertices is None or volume is None:
+                continue
+            lo, hi = volume.world_bounds()
+            if np.any(vertices.max(axis=0) < lo) or np.any(vertices.min(axis=0) > hi):
+                name = s.model_path.name if s.model_path else s.label
+                return (f"Warning: model {name} and the image do not overlap (the model is "
+                        f"outside the image): use 'Place here' to move it to the crosshair")
+        return ""
 
     def center_on_model(self) -> None:
         vertices = self.state.surface_vertices()
@@ -256,6 +267,33 @@ class ExportController:
             raise ValueError("no contour points to export")
         save_points(path, s.points.xyz, s.point_normals())
         return f"Exported {len(s.points)} points to {Path(path).name}"
+
+    def nothing_to_export(self, what: str = "all") -> str:
+        """Why there is nothing to export (``what``: labels, mesh, points, all), or ""."""
+        state = self.state
+        if state.volume is None and what in ("labels", "all"):
+            return "nothing to export: open an image first"
+        if state.model is None and what in ("labels", "mesh"):
+            return "nothing to export: load a model first"
+        if what == "points" and len(state.points) == 0:
+            return "no contour points to export"
+        if what == "all" and state.model is None and len(state.points) == 0:
+            return "nothing to export: load a model or draw contour points first"
+        return ""
+
+    def outputs(self, folder: str | os.PathLike) -> list[Path]:
+        """The files :meth:`export_all` writes into ``folder``."""
+        folder = Path(folder)
+        names = []
+        if self.state.model is not None and self.state.volume is not None:
+            names += ["segmentation.nii.gz", "surface.vtk"]
+        if len(self.state.points):
+            names += ["points.csv", "points.mrk.json"]
+        return [folder / name for name in names]
+
+    def existing_outputs(self, folder: str | os.PathLike) -> list[Path]:
+        """Files of an earlier export that :meth:`export_all` would overwrite."""
+        return [p for p in self.outputs(folder) if p.exists()]
 
     def export_all(self, folder: str | os.PathLike) -> list[Path]:
         """Label map, mesh and points (CSV and Slicer markups) into ``folder``."""

@@ -130,12 +130,19 @@ class RefitController(QObject):
             runner.cancel()
             s.set_fit_info(FitInfo(message=""))
             return None
-        from core.reconstruction import fit_points
+        from core.reconstruction import MIN_POINTS, fit_points
 
+        settings = self.settings()
+        need = MIN_POINTS.get(settings["pose"], 1)
+        if len(s.points) < need:           # not an error: the user is still drawing
+            runner.cancel()
+            s.set_fit_info(FitInfo(level="info", message=(
+                f"Draw {need - len(s.points)} more point(s): a fit with pose "
+                f"'{settings['pose']}' needs at least {need}.")))
+            return None
         model, version = s.model, s.model_version
         points = s.points.xyz.copy()
         normals = s.point_normals()
-        settings = self.settings()
         init = self._warm_start(s)
         placement = None if s.placement is None else s.placement.copy()
         edit_time = time.perf_counter()

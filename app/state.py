@@ -112,6 +112,7 @@ class FitInfo:
     seconds: float = float("nan")          # round trip: edit -> result applied
     fit_seconds: float = float("nan")      # the fit alone, in the worker
     message: str = ""
+    level: str = "error"                   # of the message: "error" (red) or "info" (a hint)
 
     @classmethod
     def from_result(cls, result, seconds: float) -> FitInfo:

@@ -200,6 +200,7 @@ class MainWindow(QMainWindow):
             if path is None:
                 return  # the user cancelled the series choice
         message = self.sessions.open_image(path, series=series)
+        message = self.sessions.overlap_warning() or message
         self.show_message(message + (f" ({notes[0]})" if notes else ""))
 
     def load_model(self, path: str | os.PathLike, coef=None, pose=None) -> None:
@@ -283,6 +284,10 @@ class MainWindow(QMainWindow):
         return written
 
     def export_dialog(self, what: str) -> None:
+        problem = self.exports.nothing_to_export(what)
+        if problem:                                  # say so before any file dialog
+            self.show_error(problem)
+            return
         title, filt, default = EXPORTS[what]
         path, _ = QFileDialog.getSaveFileName(self, f"Export {title}",
                                               str(Path(self._start_dir()) / default), filt)
@@ -290,9 +295,25 @@ class MainWindow(QMainWindow):
             self._guarded(lambda: self.show_message(getattr(self.exports, f"export_{what}")(path)))
 
     def export_all_dialog(self) -> None:
+        problem = self.exports.nothing_to_export("all")
+        if problem:
+            self.show_error(problem)
+            return
         folder = QFileDialog.getExistingDirectory(self, "Export into folder", self._start_dir())
-        if folder:
-            self._guarded(lambda: self.export_all(folder))
+        if not folder:
+            return
+        existing = self.exports.existing_outputs(folder)
+        if existing and not self.ask(f"{', '.join(p.name for p in existing)} already exist in "
+                                     f"{folder}. Overwrite?"):
+            self.show_message("Export cancelled: nothing overwritten")
+            return
+        self._guarded(lambda: self.export_all(folder))
+
+    def ask(self, question: str) -> bool:
+        """A yes/no question (without dialogs, e.g. in tests: no)."""
+        if self._quiet_errors():
+            return False
+        return QMessageBox.question(self, "SSM Studio", question) == QMessageBox.StandardButton.Yes
 
     def _guarded(self, fn) -> bool:
         try:
@@ -328,6 +349,9 @@ class MainWindow(QMainWindow):
         self.show_message(f"Opened session {Path(path).name}")
 
     def save_session(self, ask: bool = False, path: str | os.PathLike | None = None) -> bool:
+        if self.state.image_path is None:            # say so before any file dialog
+            self.show_error("nothing to save: open an image first")
+            return False
         target = Path(path) if path else self.session_path
         if target is None or ask:
             chosen, _ = QFileDialog.getSaveFileName(self, "Save session",
@@ -406,13 +430,17 @@ class MainWindow(QMainWindow):
             self.show_message("Redone")
 
     def delete_point(self) -> None:
+        """The point under the cursor, else the last point drawn on the active view's slice."""
         view = self.workspace.views[self.active_view]
         if self.cursor_label.hover is not None:
             x, y = view.world_to_screen(self.cursor_label.hover)
             if view.delete_point_near(x, y):
                 return
-        if len(self.state.points):
-            self.state.remove_point(len(self.state.points) - 1)
+        here = view.points_here()
+        if len(here) and not self.state.active.locked:
+            self.state.remove_point(int(here[-1]))
+        else:
+            self.show_message(f"No point to delete on this {self.active_view} slice")
 
     def clear_active_slice(self) -> None:
         view = self.workspace.views[self.active_view]

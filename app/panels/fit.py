@@ -109,7 +109,8 @@ class FitPanel(QWidget):
                 lines.append(f"fit {1000 * info.fit_seconds:.0f} ms, "
                              f"edit to display {1000 * info.seconds:.0f} ms")
         if info.message:
-            lines.append(f"<span style='color:#c0392b'>{info.message}</span>")
+            color = "#c0392b" if info.level == "error" else "#7f8c8d"
+            lines.append(f"<span style='color:{color}'>{info.message}</span>")
         if not lines:
             lines.append("No fit yet: draw contour points in a slice view.")
         self.result.setText("<br>".join(lines))

@@ -421,6 +421,11 @@ class SliceView(QWidget):
         self.state.add_point(world, self.frame_name, self.depth, checkpoint=checkpoint)
         return world
 
+    def points_here(self) -> np.ndarray:
+        """Indices of the active structure's points drawn on this view's slice, in order."""
+        return np.flatnonzero(self.state.points.on_slice(self.frame_index, self.depth,
+                                                         self._step() / 2))
+
     def point_near(self, x: float, y: float, radius_px: float = 8.0) -> int | None:
         """Index of the contour point on this slice nearest to pixel (x, y), within the radius."""
         pts = self.state.points

@@ -1,0 +1,138 @@
+"""Issue 17's segmentation-side defects, each driven as a user meets it (each failed before)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("PySide6")
+pytestmark = pytest.mark.gui
+
+from PySide6.QtCore import QPoint, Qt  # noqa: E402
+from PySide6.QtTest import QTest  # noqa: E402
+from PySide6.QtWidgets import QFileDialog  # noqa: E402
+
+from app import demo  # noqa: E402
+from app.window import MainWindow  # noqa: E402
+
+
+def _need_demo():
+    if demo.demo_image() is None or demo.demo_model() is None:
+        pytest.skip("demo image or model missing from resources/")
+
+
+@pytest.fixture
+def make_window(qtbot, tmp_path, monkeypatch):
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
+    made = []
+
+    def make(load_demo=True, size=(1300, 900)):
+        win = MainWindow(with_3d=False, recovery=False)
+        qtbot.addWidget(win)
+        win.resize(*size)
+        if load_demo:
+            _need_demo()
+            win.load_demo()
+        win.show()
+        qtbot.waitExposed(win)
+        made.append(win)
+        return win
+
+    yield make
+    for win in made:
+        win.refit.cancel()
+        win.refit.wait()
+        win.close()
+
+
+def click(view, world):
+    x, y = view.world_to_screen(world)
+    QTest.mouseClick(view, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
+                     QPoint(int(round(x)), int(round(y))))
+
+
+# -- defect 7: messages and guards -----------------------------------------------------------
+
+def test_too_few_points_for_the_pose_is_a_hint_not_an_error(make_window):
+    window = make_window()
+    window.fit_panel.set_settings(pose="similarity")
+    window.set_tool("draw")
+    view = window.workspace.views["axial"]
+    click(view, window.state.crosshair)
+    window.wait_for_refit()
+    info = window.state.fit_info
+    assert info.level == "info" and "2 more point" in info.message
+    assert "#c0392b" not in window.fit_panel.result.text()          # not shown in red
+    assert window.runner.n_started == 0                               # no fit was tried
+    click(view, window.state.crosshair + [4.0, 0, 0])
+    click(view, window.state.crosshair + [0, 5.0, 0])
+    window.wait_for_refit(20000)
+    assert window.state.fit_info.n_iter > 0 and not window.state.fit_info.message
+
+
+def test_save_and_export_without_an_image_say_so_before_any_dialog(make_window, monkeypatch):
+    window = make_window(load_demo=False)
+    opened = []
+    monkeypatch.setattr(QFileDialog, "getSaveFileName",
+                        staticmethod(lambda *a, **k: opened.append("save") or ("", "")))
+    monkeypatch.setattr(QFileDialog, "getExistingDirectory",
+                        staticmethod(lambda *a, **k: opened.append("folder") or ""))
+    assert not window.save_session(ask=True)
+    assert "open an image first" in window.statusBar().currentMessage()
+    window.export_dialog("labels")
+    window.export_dialog("points")
+    window.export_all_dialog()
+    assert opened == []
+    assert "nothing to export" in window.statusBar().currentMessage()
+
+
+def test_export_all_asks_before_overwriting_an_earlier_export(make_window, tmp_path, monkeypatch):
+    window = make_window()
+    folder = tmp_path / "case"
+    monkeypatch.setattr(QFileDialog, "getExistingDirectory", staticmethod(lambda *a, **k: str(folder)))
+    window.export_all_dialog()
+    first = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
+    assert set(first) == {"segmentation.nii.gz", "surface.vtk"}
+    window.state.place_at(window.state.crosshair + [3.0, 0, 0])      # a different result
+    questions = []
+    window.ask = lambda text: questions.append(text) or False
+    window.export_all_dialog()
+    assert questions and "segmentation.nii.gz" in questions[0]
+    assert {p.name: p.stat().st_mtime_ns for p in folder.iterdir()} == first   # untouched
+    window.ask = lambda text: True
+    window.export_all_dialog()
+    assert all(p.stat().st_mtime_ns != first[p.name] for p in folder.iterdir())
+
+
+def test_image_that_misses_the_model_is_warned_about(make_window, tmp_path):
+    from core.io import load_volume, save_volume
+
+    window = make_window()
+    image = load_volume(demo.demo_image())
+    far = image.affine.copy()
+    far[:3, 3] += [400.0, 0.0, 0.0]                                # scanner coordinates elsewhere
+    path = tmp_path / "far.nii.gz"
+    save_volume(path, image.data[::4, ::4, ::4], far @ np.diag([4.0, 4.0, 4.0, 1.0]))
+    window.load_image(path)
+    assert "do not overlap" in window.statusBar().currentMessage()
+
+
+def test_delete_without_a_point_under_the_cursor_stays_on_the_slice(make_window):
+    window = make_window()
+    window.set_tool("draw")
+    view = window.workspace.views["axial"]
+    c = window.state.crosshair
+    click(view, c)
+    click(view, c + [5.0, 0, 0])
+    window.state.step_slice("axial", 3)                  # a slice with no points
+    window.active_view = "axial"
+    window.cursor_label.on_hover(None)
+    window.delete_point()
+    assert len(window.state.points) == 2                 # nothing removed from the other slice
+    assert "No point to delete" in window.statusBar().currentMessage()
+    window.state.step_slice("axial", -3)
+    window.delete_point()                                # back on it: its last point goes
+    assert len(window.state.points) == 1
+    assert window.state.points.xyz[0] == pytest.approx(c, abs=1.0)
+    window.wait_for_refit()
