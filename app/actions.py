@@ -17,6 +17,7 @@ SHORTCUTS = [
     ("Page Up / Page Down, wheel", "Next / previous slice in the active view"),
     ("N / D / W", "Tool: navigate / draw contour / window-level"),
     ("P", "Place the model at the crosshair"), ("R", "Reset the views"),
+    ("F9", "Show / hide the side panel"),
     ("Left click (navigate)", "Move the crosshair"),
     ("Left click or drag (draw)", "Add contour points on the slice"),
     ("Ctrl+left click (draw)", "Delete the point under the cursor"),
@@ -89,6 +90,10 @@ def create_actions(w) -> None:
     w.act_prev_slice = a("Previous slice", lambda: state.step_slice(w.active_view, -1),
                         QKeySequence(Qt.Key.Key_PageDown))
     w.act_reset_views = a("&Reset views", w.reset_views, "R")
+    w.act_side_panel = a("Side &panel", lambda checked=False: None, "F9",
+                         "Show or hide the side panel (more room for the views)")
+    w.act_side_panel.setCheckable(True)
+    w.act_side_panel.setChecked(True)
     w.act_shortcuts = a("&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
     w.act_about = a("&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
     w.tool_group = QActionGroup(w)
@@ -113,7 +118,7 @@ def create_menus(w) -> None:
         "&Edit": (w.act_undo, w.act_redo, None, w.act_delete, w.act_clear_slice,
                   w.act_clear_points, None, w.act_place, w.act_reset_pose),
         "&View": (*w.tool_actions.values(), None, w.act_next_slice,
-                  w.act_prev_slice, w.act_reset_views),
+                  w.act_prev_slice, w.act_reset_views, w.act_side_panel),
     }
     for title, actions in menus.items():
         menu = bar.addMenu(title)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from app.state import FRAME_NAMES, STRUCTURE_COLORS, Points, Structure, WorkspaceState
+from app.state import FRAME_NAMES, STRUCTURE_COLORS, FitInfo, Points, Structure, WorkspaceState
 from core.io import DataFileError, load_model, load_volume, save_mesh, save_points, save_volume
 
 
@@ -155,6 +155,9 @@ class SessionController:
             if structure.color in used:
                 structure.color = next((c for c in STRUCTURE_COLORS if c not in used), structure.color)
             used.add(structure.color)
+        for structure in structures:         # the stored fit, read out (not "no fit yet")
+            if structure.model is not None and len(structure.points):
+                structure.fit_info = FitInfo(residual_mm=structure.residual_mm(), kind="restored")
         self.state.replace_structures(structures, session.active_structure if session.structures else 0)
         self.center_on_model()
         if session.window is not None:

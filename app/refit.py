@@ -49,8 +49,15 @@ class RefitController(QObject):
         state.events.points.connect(self._on_points)
 
     def _on_points(self) -> None:
-        if self.auto() and not self._suspended:
+        if self._suspended:
+            return
+        if self.auto():
             self.schedule()
+        elif self.state.model is not None and len(self.state.points):
+            from dataclasses import replace
+
+            s = self.state.active
+            s.set_fit_info(replace(s.fit_info, out_of_date=True))
 
     def settings_changed(self) -> None:
         """Another method or prior: no warm start from the old fits; refit the active one."""
@@ -181,7 +188,13 @@ class RefitController(QObject):
         s.set_surface(result.coef, result.pose, result.vertices)
         elapsed = time.perf_counter() - edit_time
         self.refit_times.append(elapsed)
-        s.set_fit_info(FitInfo.from_result(result, elapsed))
+        info = FitInfo.from_result(result, elapsed)
+        if s.manual_edit:                   # say that the slider values were refitted
+            s.manual_edit = False
+            info.level, info.message = "info", ("Refitted from your slider values: the points "
+                                                "now set the factors (untick 'Refit on every "
+                                                "edit' to keep shapes set by hand).")
+        s.set_fit_info(info)
         self.applied.emit(result)
 
     def _on_failed(self, s: Structure, message: str) -> None:

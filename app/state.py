@@ -46,26 +46,61 @@ SIDES = ("", "left", "right", "midline")
 
 @dataclass(frozen=True)
 class Points:
-    """Contour points: world positions with the slice each was drawn on.
+    """Contour points: world positions with the slice and the stroke each was drawn in.
 
-    xyz (P, 3) world RAS mm; frame (P,) index into FRAME_NAMES; depth (P,) slice depth (mm).
+    xyz (P, 3) world RAS mm; frame (P,) index into FRAME_NAMES; depth (P,) slice depth (mm);
+    stroke (P,) int: points of one stroke are joined in the views and get their normals from
+    each other. A stroke is one drag, or a chain of single clicks on one slice. Without
+    stroke labels (e.g. from a session file) each slice is one stroke.
     """
 
     xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     depth: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stroke: np.ndarray | None = None
+    dragged: np.ndarray | None = None      # (P,) bool: added by a drag (not a click chain)
+
+    def __post_init__(self) -> None:
+        if self.stroke is None or len(self.stroke) != len(self.xyz):
+            object.__setattr__(self, "stroke", self.slice_ids())
+        if self.dragged is None or len(self.dragged) != len(self.xyz):
+            object.__setattr__(self, "dragged", np.zeros(len(self.xyz), dtype=bool))
 
     def __len__(self) -> int:
         return int(len(self.xyz))
 
-    def append(self, xyz: np.ndarray, frame: int, depth: float) -> Points:
+    def append(self, xyz: np.ndarray, frame: int, depth: float, stroke: str = "click") -> Points:
+        """A new point: ``stroke`` "click" extends the slice's click chain (or starts one),
+        "drag" continues the drag that the previous point started or continued."""
+        here = np.flatnonzero(self.on_slice(frame, depth, 1e-6))
+        ids, dragged = self.stroke.copy(), self.dragged.copy()
+        fresh = int(ids.max()) + 1 if len(ids) else 0
+        if stroke == "drag" and len(self):
+            if not dragged[-1] and len(self) > 1 and ids[-2] == ids[-1]:
+                ids[-1] = fresh                       # the press point leaves the click chain
+                fresh += 1
+            dragged[-1] = True
+            label = ids[-1]
+        elif len(here) and not dragged[here[-1]]:
+            label = ids[here[-1]]
+        else:
+            label = fresh
         return Points(np.vstack([self.xyz, np.reshape(xyz, (1, 3))]),
-                      np.append(self.frame, int(frame)), np.append(self.depth, float(depth)))
+                      np.append(self.frame, int(frame)), np.append(self.depth, float(depth)),
+                      np.append(ids, label), np.append(dragged, stroke == "drag"))
 
     def remove(self, mask_or_index) -> Points:
         keep = np.ones(len(self), dtype=bool)
         keep[mask_or_index] = False
-        return Points(self.xyz[keep], self.frame[keep], self.depth[keep])
+        return Points(self.xyz[keep], self.frame[keep], self.depth[keep], self.stroke[keep],
+                      self.dragged[keep])
+
+    def stroke_ids(self) -> np.ndarray:
+        """(P,) int: one label per (slice, stroke)."""
+        if len(self) == 0:
+            return np.zeros(0, dtype=np.int64)
+        keys = np.stack([self.slice_ids(), self.stroke], axis=1)
+        return np.unique(keys, axis=0, return_inverse=True)[1].reshape(-1)
 
     def on_slice(self, frame: int, depth: float, tolerance: float) -> np.ndarray:
         """Mask (P,) of points drawn on the slice (frame, depth)."""
@@ -84,12 +119,12 @@ class Points:
     def normals(self, surface: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(P, 3) unit in-plane normals, NaN rows for single points on their slice.
 
-        Per slice, from the drawing order (outwards from the points' centroid); with
+        Per stroke, from the drawing order (outwards from the points' centroid); with
         ``surface`` = (vertices (N, 3), vertex normals (N, 3)) of the current fit, each
-        slice's sign is the one agreeing with the surface (``core.planes.slice_contour_normals``).
+        stroke's sign is the one agreeing with the surface (``core.planes.slice_contour_normals``).
         """
         plane_normals = np.array([FRAMES[name].n for name in FRAME_NAMES], dtype=np.float64)
-        return slice_contour_normals(self.xyz, self.slice_ids(), plane_normals[self.frame],
+        return slice_contour_normals(self.xyz, self.stroke_ids(), plane_normals[self.frame],
                                      surface)
 
 
@@ -113,6 +148,8 @@ class FitInfo:
     fit_seconds: float = float("nan")      # the fit alone, in the worker
     message: str = ""
     level: str = "error"                   # of the message: "error" (red) or "info" (a hint)
+    kind: str = "fit"                      # "fit", "manual" (slider edit), "restored" (session)
+    out_of_date: bool = False              # the points changed since (automatic refit off)
 
     @classmethod
     def from_result(cls, result, seconds: float) -> FitInfo:
@@ -151,6 +188,7 @@ class Structure:
         self.points = Points()
         self.fit_info = FitInfo()
         self.last_fit = None                   # core FitResult of the current surface (warm start)
+        self.manual_edit = False               # factors set by hand since the last refit
         self.model_version = 0                 # bumped when the model is replaced
         self._undo: list[Snapshot] = []
         self._redo: list[Snapshot] = []
@@ -257,10 +295,27 @@ class Structure:
         self._notify(self, "surface")
 
     def set_coefficient(self, index: int, value: float) -> None:
+        """A factor set by hand (slider): the read-out shows the residual of the new shape."""
         coef = self.coef.copy()
         coef[index] = value
         self.set_surface(coef, self.pose)
+        self._manual_readout()
         self._notify(self, "edited")
+
+    def residual_mm(self) -> float:
+        """Mean distance (mm) from the contour points to the current surface (NaN if none)."""
+        if self.model is None or len(self.points) == 0:
+            return float("nan")
+        from core.geometry import surface_distance
+
+        return float(np.mean(surface_distance(self.points.xyz, self.surface_vertices(),
+                                              self.model.faces)))
+
+    def _manual_readout(self) -> None:
+        self.manual_edit = True
+        self.set_fit_info(FitInfo(residual_mm=self.residual_mm(), kind="manual", level="info",
+                                  message="Shape set with the sliders (not refitted): the next "
+                                          "refit starts from it and re-optimises the factors."))
 
     def reset_coefficients(self) -> None:
         """Back to the mean shape, keeping the pose (undoable)."""
@@ -268,6 +323,7 @@ class Structure:
             return
         self.checkpoint()
         self.set_surface(np.zeros(self.model.n_factors), self.pose)
+        self._manual_readout()
         self._notify(self, "edited")
 
     def place_at(self, xyz: np.ndarray) -> None:
@@ -313,9 +369,12 @@ class Structure:
         if edited:
             self._notify(self, "edited")
 
-    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True) -> None:
-        """Append a contour point drawn on slice (frame, depth). ``checkpoint`` starts an undo step."""
-        self.set_points(self.points.append(xyz, FRAME_NAMES.index(frame_name), depth), checkpoint)
+    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True,
+                  stroke: str = "click") -> None:
+        """Append a contour point drawn on slice (frame, depth). ``checkpoint`` starts an undo
+        step; ``stroke`` is "click" or "drag" (see :meth:`Points.append`)."""
+        self.set_points(self.points.append(xyz, FRAME_NAMES.index(frame_name), depth, stroke),
+                        checkpoint)
 
     def remove_point(self, index: int) -> None:
         if 0 <= index < len(self.points):
@@ -550,8 +609,9 @@ class WorkspaceState:
     def set_fit_info(self, info: FitInfo) -> None:
         self._active.set_fit_info(info)
 
-    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True) -> None:
-        self._active.add_point(xyz, frame_name, depth, checkpoint=checkpoint)
+    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True,
+                  stroke: str = "click") -> None:
+        self._active.add_point(xyz, frame_name, depth, checkpoint=checkpoint, stroke=stroke)
 
     def remove_point(self, index: int) -> None:
         self._active.remove_point(index)

@@ -103,6 +103,9 @@ class MainWindow(QMainWindow):
                                     ("Tools", self.tools_panel, 0), ("Fit", self.fit_panel, 0),
                                     ("Deformation factors", self.factors_panel, 1)], self)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.side_dock)
+        self.resizeDocks([self.side_dock], [340], Qt.Orientation.Horizontal)
+        self.act_side_panel.toggled.connect(lambda on: self._show_segment_controls(
+            self.tabs.currentWidget() is self.workspace if hasattr(self, "tabs") else True))
         self._create_planning()
 
         self.workspace.volume_view_created.connect(self._wire_volume_view)
@@ -524,8 +527,9 @@ class MainWindow(QMainWindow):
     # -- builder tab ----------------------------------------------------------------------------
     def _show_segment_controls(self, visible: bool) -> None:
         """The side panel and the drawing tools belong to the Segment tab only."""
-        self.side_dock.setVisible(visible)
-        self.plan_dock.setVisible(visible)
+        shown = visible and self.act_side_panel.isChecked()     # F9 hides the side docks
+        self.side_dock.setVisible(shown)
+        self.plan_dock.setVisible(shown)
         self.cursor_label.setVisible(visible)
         self.fit_label.setVisible(visible)
         for act in (*self.tool_actions.values(), self.act_undo, self.act_redo, self.act_place,

@@ -136,3 +136,125 @@ def test_delete_without_a_point_under_the_cursor_stays_on_the_slice(make_window)
     assert len(window.state.points) == 1
     assert window.state.points.xyz[0] == pytest.approx(c, abs=1.0)
     window.wait_for_refit()
+
+
+# -- defect 6: stale read-outs ----------------------------------------------------------------
+
+RING = [(6 * np.cos(t), 9 * np.sin(t), 0.0) for t in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+
+
+def _draw_ring(window):
+    window.set_tool("draw")
+    view = window.workspace.views["axial"]
+    for d in RING:
+        click(view, window.state.crosshair + np.asarray(d))
+
+
+def test_slider_edit_updates_the_residual_and_the_next_refit_says_it_refitted(make_window):
+    from core.geometry import surface_distance
+
+    window = make_window()
+    _draw_ring(window)
+    window.wait_for_refit(20000)
+    fitted = window.state.fit_info.residual_mm
+    window.factors_panel.set_factor_sd(0, 2.5)
+    info = window.state.fit_info
+    state = window.state
+    expected = np.mean(surface_distance(state.points.xyz, state.surface_vertices(), state.model.faces))
+    assert info.residual_mm == pytest.approx(expected) and info.residual_mm != pytest.approx(fitted)
+    assert "after your edit" in window.fit_panel.result.text()
+    click(window.workspace.views["axial"], window.state.crosshair + [0.0, -9.5, 0.0])
+    window.wait_for_refit(20000)
+    assert "slider values" in window.state.fit_info.message        # not silently undone
+    assert window.state.fit_info.n_iter > 0
+
+
+def test_without_automatic_refit_the_fit_is_marked_out_of_date(make_window):
+    window = make_window()
+    _draw_ring(window)
+    window.wait_for_refit(20000)
+    window.fit_panel.auto.setChecked(False)
+    click(window.workspace.views["axial"], window.state.crosshair + [0.0, -9.5, 0.0])
+    assert window.state.fit_info.out_of_date
+    assert "Out of date" in window.fit_panel.result.text()
+    window.fit_panel.refit_button.click()
+    window.wait_for_refit(20000)
+    assert not window.state.fit_info.out_of_date and "Out of date" not in window.fit_panel.result.text()
+
+
+def test_reopened_session_reads_out_its_fit(make_window, tmp_path):
+    window = make_window()
+    _draw_ring(window)
+    window.wait_for_refit(20000)
+    residual = window.state.fit_info.residual_mm
+    path = tmp_path / "s.json"
+    assert window.save_session(path=path)
+    other = make_window(load_demo=False)
+    other.open_session(path)
+    assert "No fit yet" not in other.fit_panel.result.text()
+    assert "restored" in other.fit_panel.result.text()
+    assert other.state.fit_info.residual_mm == pytest.approx(residual, abs=0.05)
+
+
+# -- defect 8: strokes and the small-window layout ---------------------------------------------
+
+def _drag(view, a, b, steps=12):
+    start, end = view.world_to_screen(a), view.world_to_screen(b)
+    QTest.mousePress(view, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
+                     QPoint(*np.rint(start).astype(int)))
+    for t in np.linspace(0, 1, steps):
+        QTest.mouseMove(view, QPoint(*np.rint((1 - t) * start + t * end).astype(int)))
+    QTest.mouseRelease(view, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
+                       QPoint(*np.rint(end).astype(int)))
+
+
+def test_separate_strokes_on_one_slice_are_not_joined(make_window):
+    from app.views.slice_view import POINT_COLOR
+
+    window = make_window()
+    window.set_tool("draw")
+    view = window.workspace.views["axial"]
+    c = window.state.crosshair
+    _drag(view, c + [-14.0, -8.0, 0], c + [-14.0, 8.0, 0])      # left side, downwards
+    _drag(view, c + [14.0, 8.0, 0], c + [14.0, -8.0, 0])        # right side, upwards
+    pts = window.state.points
+    first = pts.stroke[0]
+    assert len(np.unique(pts.stroke)) == 2 and np.sum(pts.stroke == first) >= 5
+    # nothing painted on the straight line that used to join the end of one to the other
+    image = view.grab().toImage()
+    ratio = image.width() / view.width()
+    gap = 0.5 * (pts.xyz[pts.stroke == first][-1] + pts.xyz[pts.stroke != first][0])
+    x, y = view.world_to_screen(gap)
+    target = (POINT_COLOR.red(), POINT_COLOR.green(), POINT_COLOR.blue())
+    for dx in range(-2, 3):
+        color = image.pixelColor(int((x + dx) * ratio), int(y * ratio))
+        assert (color.red(), color.green(), color.blue()) != target
+    # single clicks on a slice still make one contour
+    window.undo()
+    window.undo()
+    for d in ([0, 5.0, 0], [5.0, 0, 0], [0, -5.0, 0]):
+        click(view, c + d)
+    assert len(np.unique(window.state.points.stroke)) == 1
+    window.wait_for_refit(20000)
+
+
+def test_small_window_keeps_titles_off_the_letters_and_the_side_panel_can_go(make_window, qtbot):
+    window = make_window(size=(800, 600))
+    window.render_now()
+    for name, view in window.workspace.views.items():
+        layout = view.label_layout()
+        title, top = layout["title"][0], layout["top"][0]
+        assert not title.intersects(top), name
+        assert layout["window"][0].left() > layout["bottom"][0].right() or \
+            not layout["window"][0].intersects(layout["bottom"][0]), name
+    view_menu = [m for m in window.menuBar().actions() if m.text() == "&View"][0].menu()
+    assert window.act_side_panel in view_menu.actions()
+    width = window.workspace.views["axial"].width()
+    window.act_side_panel.trigger()
+    qtbot.waitUntil(lambda: window.workspace.views["axial"].width() > width + 80, timeout=3000)
+    assert not window.side_dock.isVisible()
+    window.tabs.setCurrentIndex(1) if window.tabs.count() > 1 else None
+    window.tabs.setCurrentIndex(0)
+    assert not window.side_dock.isVisible()          # stays hidden across tab switches
+    window.act_side_panel.trigger()
+    assert window.side_dock.isVisible()

@@ -42,6 +42,9 @@ class FitPanel(QWidget):
         self.prior.setSingleStep(0.25)
         self.prior.setValue(1.0)
         self.prior.setToolTip("Weight of the Gaussian shape prior (0 = none; larger = closer to the mean shape)")
+        for combo in (self.method, self.pose):      # long item texts must not widen the panel
+            combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+            combo.setMinimumContentsLength(14)
         form.addRow("Method", self.method)
         form.addRow("Pose", self.pose)
         form.addRow("Prior weight", self.prior)
@@ -100,6 +103,9 @@ class FitPanel(QWidget):
     def _show(self) -> None:
         info = self.state.fit_info
         lines = []
+        if info.kind != "fit" and not math.isnan(info.residual_mm):
+            source = "restored from the session" if info.kind == "restored" else "after your edit"
+            lines.append(f"<b>Residual</b> {info.residual_mm:.2f} mm ({source})")
         if info.n_iter:
             residual = "–" if math.isnan(info.residual_mm) else f"{info.residual_mm:.2f} mm"
             lines.append(f"<b>Residual</b> {residual} &nbsp; <b>Iterations</b> {info.n_iter}")
@@ -108,6 +114,9 @@ class FitPanel(QWidget):
             if not math.isnan(info.seconds):
                 lines.append(f"fit {1000 * info.fit_seconds:.0f} ms, "
                              f"edit to display {1000 * info.seconds:.0f} ms")
+        if info.out_of_date:
+            lines.append("<span style='color:#d35400'><b>Out of date:</b> the points changed "
+                         "since this fit. Press <i>Refit now</i>.</span>")
         if info.message:
             color = "#c0392b" if info.level == "error" else "#7f8c8d"
             lines.append(f"<span style='color:{color}'>{info.message}</span>")

@@ -24,4 +24,4 @@ class SidePanel(QDockWidget):
             layout.addWidget(box, stretch)
             self.boxes[title] = box
         self.setWidget(panel)
-        self.setMinimumWidth(330)
+        self.setMinimumWidth(280)

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 from PySide6.QtCore import QLineF, QPointF, QRectF, Qt, Signal
-from PySide6.QtGui import QColor, QFont, QImage, QPainter, QPen
+from PySide6.QtGui import QColor, QFont, QFontMetricsF, QImage, QPainter, QPen
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
 from app.state import FRAME_NAMES, Structure, WorkspaceState
@@ -260,7 +260,9 @@ class SliceView(QWidget):
         if here.any():
             idx = np.flatnonzero(here)
             painter.setPen(QPen(POINT_COLOR, 1))
-            painter.drawPolyline([QPointF(x, y) for x, y in xy[idx]])
+            for stroke in np.unique(pts.stroke[idx]):     # strokes are not joined to each other
+                line = idx[pts.stroke[idx] == stroke]
+                painter.drawPolyline([QPointF(x, y) for x, y in xy[line]])
             painter.setPen(QPen(QColor(0, 0, 0), 1))
             painter.setBrush(POINT_COLOR)
             for x, y in xy[idx]:
@@ -276,32 +278,60 @@ class SliceView(QWidget):
         painter.setPen(color)
         painter.drawText(rect, flags, text)
 
-    def _paint_labels(self, painter: QPainter) -> None:
+    def _label_fonts(self) -> tuple[QFont, QFont]:
+        letters = QFont(self.font())
+        letters.setPointSize(13)
+        letters.setBold(True)
+        small = QFont(self.font())
+        small.setPointSize(9)
+        return letters, small
+
+    def label_layout(self) -> dict[str, tuple[QRectF, str, QColor, QFont]]:
+        """Where each overlay text goes: name -> (tight rectangle, text, colour, font).
+
+        The orientation letters sit at the middle of each edge, the slice title top left and
+        window/level bottom right; when the title reaches the top letter (narrow views, e.g.
+        an 800x600 window) the letter moves below the title instead of under it.
+        """
         labels = self.frame.edge_labels()
-        font = QFont(self.font())
-        font.setPointSize(13)
-        font.setBold(True)
-        painter.setFont(font)
+        letters, small = self._label_fonts()
+        big, little = QFontMetricsF(letters), QFontMetricsF(small)
         w, h, m = self.width(), self.height(), 6
-        flags = Qt.AlignmentFlag
-        text = self._text
-        text(painter, QRectF(m, 0, 30, h), flags.AlignLeft | flags.AlignVCenter, labels["left"], LABEL_COLOR)
-        text(painter, QRectF(w - 30 - m, 0, 30, h), flags.AlignRight | flags.AlignVCenter, labels["right"], LABEL_COLOR)
-        text(painter, QRectF(0, m, w, 24), flags.AlignHCenter | flags.AlignTop, labels["top"], LABEL_COLOR)
-        text(painter, QRectF(0, h - 24 - m, w, 24), flags.AlignHCenter | flags.AlignBottom, labels["bottom"], LABEL_COLOR)
-        font.setPointSize(9)
-        font.setBold(False)
-        painter.setFont(font)
         axis = "xyz"[int(np.argmax(np.abs(self.frame.n)))]
         lo, hi = self._depth_range
         index = int(round((self.depth - lo) / self._step())) + 1
         total = int(round((hi - lo) / self._step())) + 1
-        text(painter, QRectF(m, m, w, 20), flags.AlignLeft | flags.AlignTop,
-             f"{self.frame_name.capitalize()}  {axis} = {self.depth:.1f} mm  ({index}/{total})",
-             VIEW_COLORS[self.frame_name])
-        text(painter, QRectF(0, 0, w - m, h - m), flags.AlignRight | flags.AlignBottom,
-             f"W {self.state.window:.0f}  L {self.state.level:.0f}", QColor(170, 170, 170))
+        title = f"{self.frame_name.capitalize()}  {axis} = {self.depth:.1f} mm  ({index}/{total})"
+        wl = f"W {self.state.window:.0f}  L {self.state.level:.0f}"
+
+        def box(text, metrics, x, y, anchor_x="left", anchor_y="top"):
+            tw, th = metrics.horizontalAdvance(text), metrics.height()
+            x = {"left": x, "center": x - tw / 2, "right": x - tw}[anchor_x]
+            y = {"top": y, "center": y - th / 2, "bottom": y - th}[anchor_y]
+            return QRectF(x, y, tw, th)
+
+        out = {"title": (box(title, little, m, m), title, VIEW_COLORS[self.frame_name], small),
+               "window": (box(wl, little, w - m, h - m, "right", "bottom"), wl,
+                          QColor(170, 170, 170), small)}
+        top = box(labels["top"], big, w / 2, m, "center")
+        if top.intersects(out["title"][0].adjusted(-4, 0, 4, 0)):
+            top.moveTop(out["title"][0].bottom() + 2)
+        out["top"] = (top, labels["top"], LABEL_COLOR, letters)
+        out["bottom"] = (box(labels["bottom"], big, w / 2, h - m, "center", "bottom"),
+                         labels["bottom"], LABEL_COLOR, letters)
+        out["left"] = (box(labels["left"], big, m, h / 2, "left", "center"), labels["left"],
+                       LABEL_COLOR, letters)
+        out["right"] = (box(labels["right"], big, w - m, h / 2, "right", "center"),
+                        labels["right"], LABEL_COLOR, letters)
+        return out
+
+    def _paint_labels(self, painter: QPainter) -> None:
+        center = Qt.AlignmentFlag.AlignCenter
+        for rect, text, color, font in self.label_layout().values():
+            painter.setFont(font)
+            self._text(painter, rect.adjusted(-2, 0, 2, 0), center, text, color)
         if self.hasFocus():
+            w, h = self.width(), self.height()
             painter.setPen(QPen(VIEW_COLORS[self.frame_name], 2))
             painter.drawRect(QRectF(1, 1, w - 2, h - 2))
 
@@ -354,7 +384,8 @@ class SliceView(QWidget):
         elif kind == "draw":
             world = self.screen_to_world(x, y)
             if drag["last"] is None or math.dist(world, drag["last"]) >= DRAW_SPACING_MM:
-                drag["last"] = self.add_point_at(x, y, checkpoint=drag["last"] is None)
+                drag["last"] = self.add_point_at(x, y, checkpoint=drag["last"] is None,
+                                                 stroke="click" if drag["last"] is None else "drag")
         elif kind == "window":
             dx, dy = x - drag["xy"][0], y - drag["xy"][1]
             window0, level0 = drag["wl"]
@@ -405,7 +436,8 @@ class SliceView(QWidget):
         super().focusOutEvent(event)
 
     # -- drawing -------------------------------------------------------------------------------
-    def add_point_at(self, x: float, y: float, checkpoint: bool = True) -> np.ndarray | None:
+    def add_point_at(self, x: float, y: float, checkpoint: bool = True,
+                     stroke: str = "click") -> np.ndarray | None:
         """Add a contour point on this slice under widget pixel (x, y); returns it (world)."""
         world = self.screen_to_world(x, y)
         active = self.state.active
@@ -418,7 +450,7 @@ class SliceView(QWidget):
             if np.any(world < lo - 1e-6) or np.any(world > hi + 1e-6):
                 self.message.emit("Point outside the image: not added")
                 return None
-        self.state.add_point(world, self.frame_name, self.depth, checkpoint=checkpoint)
+        self.state.add_point(world, self.frame_name, self.depth, checkpoint=checkpoint, stroke=stroke)
         return world
 
     def points_here(self) -> np.ndarray:
