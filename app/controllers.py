@@ -39,6 +39,10 @@ class SessionController:
         name = formats.remember_display_name(path)  # before set_image updates the title
         self.state.set_image(volume, path)
         self.center_on_model()
+        if not volume.orientation_known:
+            return (f"Warning: {name} has neither sform nor qform: its orientation "
+                    "is unknown, LEFT AND RIGHT MAY BE SWAPPED. Views show '?' for the sides; "
+                    "exports ask for confirmation.")
         return (f"Opened {name}: {volume.shape[0]}x{volume.shape[1]}x"
                 f"{volume.shape[2]} voxels, {' '.join(f'{s:.2g}' for s in volume.spacing)} mm")
 
@@ -314,15 +318,36 @@ class ExportController:
         return written
 
     def import_points(self, path: str | os.PathLike) -> str:
-        """Add points from CSV / Slicer markups; each is assigned to the nearest axial slice."""
+        """Add points from CSV / Slicer markups, grouped by the plane each contour lies on
+        (``core.planes.group_coplanar``), with the file's normals when it has them.
+
+        A group on an axial, coronal or sagittal plane is filed on that slice (so *Clear
+        slice* removes it); an oblique one on the slice of the axis closest to its normal.
+        """
         from core.io import load_points
+        from core.planes import FRAMES, group_coplanar
 
         pset = load_points(path)
-        points = self.state.points
-        for xyz in pset.points:
-            points = points.append(xyz, 0, float(xyz[2]))
-        self.state.set_points(points, checkpoint=True)
-        return f"Imported {len(pset)} point(s) from {Path(path).name}"
+        xyz = np.asarray(pset.points, dtype=np.float64).reshape(-1, 3)
+        labels, normals, _ = group_coplanar(xyz)
+        frames = np.zeros(len(xyz), dtype=np.int64)
+        depths = np.zeros(len(xyz))
+        tilted = 0
+        for g, normal in enumerate(normals):
+            axis = int(np.argmax(np.abs(normal)))          # 0 x: sagittal, 1 y: coronal, 2 z: axial
+            name = ("sagittal", "coronal", "axial")[axis]
+            tilted += int(abs(normal[axis]) < 0.999)
+            members = labels == g
+            frames[members] = FRAME_NAMES.index(name)
+            depths[members] = float(np.mean(FRAMES[name].depth(xyz[members])))
+        given = np.full_like(xyz, np.nan) if pset.normals is None else np.asarray(pset.normals, float)
+        imported = Points(xyz, frames, depths, labels, np.ones(len(xyz), dtype=bool), given)
+        self.state.set_points(self.state.points.extend(imported), checkpoint=True)
+        planes = len(normals)
+        note = f", {tilted} oblique" if tilted else ""
+        kept = ", normals kept" if pset.normals is not None else ""
+        return (f"Imported {len(pset)} point(s) on {planes} plane(s){note} from "
+                f"{Path(path).name}{kept}")
 
 
 def _point_slices(points: Points) -> list[tuple[str, float]]:

@@ -59,12 +59,15 @@ class Points:
     depth: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stroke: np.ndarray | None = None
     dragged: np.ndarray | None = None      # (P,) bool: added by a drag (not a click chain)
+    given: np.ndarray | None = None        # (P, 3) normals that came with the points (NaN: none)
 
     def __post_init__(self) -> None:
         if self.stroke is None or len(self.stroke) != len(self.xyz):
             object.__setattr__(self, "stroke", self.slice_ids())
         if self.dragged is None or len(self.dragged) != len(self.xyz):
             object.__setattr__(self, "dragged", np.zeros(len(self.xyz), dtype=bool))
+        if self.given is None or len(self.given) != len(self.xyz):
+            object.__setattr__(self, "given", np.full((len(self.xyz), 3), np.nan))
 
     def __len__(self) -> int:
         return int(len(self.xyz))
@@ -87,13 +90,21 @@ class Points:
             label = fresh
         return Points(np.vstack([self.xyz, np.reshape(xyz, (1, 3))]),
                       np.append(self.frame, int(frame)), np.append(self.depth, float(depth)),
-                      np.append(ids, label), np.append(dragged, stroke == "drag"))
+                      np.append(ids, label), np.append(dragged, stroke == "drag"),
+                      np.vstack([self.given, np.full((1, 3), np.nan)]))
+
+    def extend(self, other: Points) -> Points:
+        """These points, then ``other``'s (its strokes kept apart from these)."""
+        offset = int(self.stroke.max()) + 1 if len(self) else 0
+        return Points(np.vstack([self.xyz, other.xyz]), np.append(self.frame, other.frame),
+                      np.append(self.depth, other.depth), np.append(self.stroke, other.stroke + offset),
+                      np.append(self.dragged, other.dragged), np.vstack([self.given, other.given]))
 
     def remove(self, mask_or_index) -> Points:
         keep = np.ones(len(self), dtype=bool)
         keep[mask_or_index] = False
         return Points(self.xyz[keep], self.frame[keep], self.depth[keep], self.stroke[keep],
-                      self.dragged[keep])
+                      self.dragged[keep], self.given[keep])
 
     def stroke_ids(self) -> np.ndarray:
         """(P,) int: one label per (slice, stroke)."""
@@ -124,8 +135,10 @@ class Points:
         stroke's sign is the one agreeing with the surface (``core.planes.slice_contour_normals``).
         """
         plane_normals = np.array([FRAMES[name].n for name in FRAME_NAMES], dtype=np.float64)
-        return slice_contour_normals(self.xyz, self.stroke_ids(), plane_normals[self.frame],
-                                     surface)
+        out = slice_contour_normals(self.xyz, self.stroke_ids(), plane_normals[self.frame], surface)
+        given = np.all(np.isfinite(self.given), axis=1)
+        out[given] = self.given[given]            # normals that came with imported points
+        return out
 
 
 @dataclass(frozen=True)
@@ -659,6 +672,11 @@ class WorkspaceState:
         self.events.image()
         self.events.window()
         self.events.crosshair()
+
+    @property
+    def orientation_known(self) -> bool:
+        """False when the image's file does not say how its voxels lie (left/right unknown)."""
+        return self.volume is None or self.volume.orientation_known
 
     def set_window(self, window: float, level: float) -> None:
         self.window = max(float(window), 1e-6)

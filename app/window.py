@@ -281,7 +281,16 @@ class MainWindow(QMainWindow):
         event.acceptProposedAction()
 
     # -- export ---------------------------------------------------------------------------------
+    def confirm_orientation(self) -> bool:
+        """Exports of an image whose orientation is unknown need an explicit yes."""
+        return self.state.orientation_known or self.ask(
+            "The image's file has neither sform nor qform: its orientation is unknown and left "
+            "and right may be swapped in what you export. Export anyway?")
+
     def export_all(self, folder: str | os.PathLike) -> list[Path]:
+        if not self.confirm_orientation():
+            self.show_message("Export cancelled: the image's orientation is unknown")
+            return []
         written = self.exports.export_all(folder)
         self.show_message(f"Exported {len(written)} file(s) to {folder}")
         return written
@@ -290,6 +299,9 @@ class MainWindow(QMainWindow):
         problem = self.exports.nothing_to_export(what)
         if problem:                                  # say so before any file dialog
             self.show_error(problem)
+            return
+        if not self.confirm_orientation():
+            self.show_message("Export cancelled: the image's orientation is unknown")
             return
         title, filt, default = EXPORTS[what]
         path, _ = QFileDialog.getSaveFileName(self, f"Export {title}",

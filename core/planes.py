@@ -365,3 +365,76 @@ def slice_contour_normals(points: np.ndarray, slice_ids: np.ndarray, plane_norma
                 normals = -normals
         out[idx] = normals
     return out
+
+
+def _plane_fit(points: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares plane of (K, 3) points: unit normal, offset n.x, max |distance|."""
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=True)
+    normal = vt[-1]
+    distance = (points - centre) @ normal
+    return normal, float(normal @ centre), float(np.abs(distance).max())
+
+
+def group_coplanar(points: np.ndarray, tolerance_mm: float = 0.5
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split points listed contour by contour into the planes they were drawn on.
+
+    Consecutive points stay in one group while they all lie within ``tolerance_mm`` of their
+    least-squares plane (any orientation); a point off that plane starts the next group. A
+    group's first point that lies on the previous group's plane as well (contours on
+    crossing planes meet on a line) is given to the group whose plane it fits after the
+    split. Groups of fewer than three points get the plane of their neighbours when they fit
+    it, else the plane through them normal to the smallest spread.
+
+    Parameters
+    ----------
+    points : (P, 3) ndarray
+        Points in file order (world mm).
+    tolerance_mm : float
+        Largest distance from a group's plane.
+
+    Returns
+    -------
+    labels : (P,) int ndarray
+        Group of each point, 0..G-1 in file order.
+    normals : (G, 3) ndarray
+        Unit plane normal of each group (sign: largest component positive).
+    offsets : (G,) ndarray
+        ``normal . x`` of the plane of each group.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = len(points)
+    starts = [0]
+    i = 0
+    while i < n:
+        j = i + 1
+        while j < n and (j + 1 - i < 4 or _plane_fit(points[i:j + 1])[2] <= tolerance_mm):
+            j += 1
+        # points i..j-1 are coplanar; with fewer than 4 the plane is not yet pinned down,
+        # so the run is cut where a 4-point window stops being planar
+        if j < n:
+            starts.append(j)
+        i = j
+    labels = np.zeros(n, dtype=np.int64)
+    for g, start in enumerate(starts):
+        labels[start:] = g
+    # a boundary point fitting the next group's plane better goes there
+    for g in range(1, len(starts)):
+        first, last = starts[g], starts[g + 1] if g + 1 < len(starts) else n
+        prev = np.flatnonzero(labels == g - 1)
+        if len(prev) > 3 and last - first >= 3:
+            nxt, off, _ = _plane_fit(points[first:last])
+            if abs(points[prev[-1]] @ nxt - off) <= tolerance_mm:
+                labels[prev[-1]] = g
+    groups = np.unique(labels)
+    labels = np.searchsorted(groups, labels)
+    normals = np.zeros((len(groups), 3))
+    offsets = np.zeros(len(groups))
+    for g in range(len(groups)):
+        normal, offset, _ = _plane_fit(points[labels == g]) if np.sum(labels == g) >= 3 else \
+            (np.array([0.0, 0.0, 1.0]), float(points[labels == g][0, 2]), 0.0)
+        if normal[np.argmax(np.abs(normal))] < 0:
+            normal, offset = -normal, -offset
+        normals[g], offsets[g] = normal, offset
+    return labels, normals, offsets

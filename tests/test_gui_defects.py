@@ -258,3 +258,72 @@ def test_small_window_keeps_titles_off_the_letters_and_the_side_panel_can_go(mak
     assert not window.side_dock.isVisible()          # stays hidden across tab switches
     window.act_side_panel.trigger()
     assert window.side_dock.isVisible()
+
+
+# -- defect 2: laterality ---------------------------------------------------------------------
+
+def test_image_without_sform_or_qform_is_marked_unknown_and_exports_ask(make_window, tmp_path):
+    import nibabel as nib
+
+    from core.io import load_volume
+
+    window = make_window()
+    demo_image = load_volume(demo.demo_image())
+    header = nib.Nifti1Header()
+    header.set_data_shape(demo_image.shape)
+    image = nib.Nifti1Image(demo_image.data, None, header)
+    image.set_sform(None, code=0)
+    image.set_qform(None, code=0)
+    path = tmp_path / "no_orientation.nii.gz"
+    nib.save(image, str(path))
+    window.load_image(path)
+    assert not window.state.orientation_known
+    assert "orientation is unknown" in window.statusBar().currentMessage()
+    for name, view in window.workspace.views.items():
+        layout = view.label_layout()
+        assert {layout[edge][1] for edge in ("left", "right", "top", "bottom")} == {"?"}, name
+        assert "orientation unknown" in layout["title"][1]
+    window.state.place_at(window.state.crosshair)
+    questions = []
+    window.ask = lambda text: questions.append(text) or False
+    assert window.export_all(tmp_path / "out") == [] and not (tmp_path / "out").exists()
+    assert "left" in questions[0] and "right" in questions[0]
+    window.ask = lambda text: True
+    assert len(window.export_all(tmp_path / "out")) == 2
+    window.load_image(demo.demo_image())                # a known orientation: letters again
+    assert window.workspace.views["axial"].label_layout()["left"][1] == "R"
+
+
+# -- defect 5: imported points -----------------------------------------------------------------
+
+def test_imported_contours_are_grouped_by_plane_and_keep_their_normals(make_window, tmp_path):
+    from core.io import load_points, save_points
+
+    window = make_window()
+    source = demo.demo_points()
+    if source is None:
+        pytest.skip("demo contour points missing")
+    pset = load_points(source)
+    window.import_points(source)
+    pts = window.state.points
+    assert len(pts) == len(pset) and pts.n_slices() == 3                  # three contours
+    assert window.tools_panel.count.text() == f"{len(pset)} contour point(s) on 3 slice(s)"
+    assert np.allclose(window.state.active.point_normals(), pset.normals, atol=1e-6)
+    # each contour is on its own axis-aligned slice: Clear slice removes one of them
+    sagittal = pts.frame == 2
+    x = float(np.mean(pts.xyz[sagittal, 0]))
+    window.state.set_crosshair(np.r_[x, window.state.crosshair[1:]])
+    window.active_view = "sagittal"
+    window.clear_active_slice()
+    assert len(window.state.points) == len(pset) - int(sagittal.sum())
+    # a tilted contour without normals: one group, normals perpendicular in its plane
+    t = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    tilt = np.radians(25)
+    ring = np.stack([8 * np.cos(t), 6 * np.sin(t) * np.cos(tilt), 6 * np.sin(t) * np.sin(tilt)], 1)
+    ring += window.state.crosshair
+    save_points(tmp_path / "tilted.csv", ring)
+    window.state.clear_points()
+    window.import_points(tmp_path / "tilted.csv")
+    assert window.state.points.n_slices() == 1
+    assert "1 oblique" in window.statusBar().currentMessage()
+    window.wait_for_refit(20000)

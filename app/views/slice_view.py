@@ -294,6 +294,8 @@ class SliceView(QWidget):
         an 800x600 window) the letter moves below the title instead of under it.
         """
         labels = self.frame.edge_labels()
+        if not self.state.orientation_known:         # never show R/L as if they were known
+            labels = {edge: "?" for edge in labels}
         letters, small = self._label_fonts()
         big, little = QFontMetricsF(letters), QFontMetricsF(small)
         w, h, m = self.width(), self.height(), 6
@@ -302,6 +304,8 @@ class SliceView(QWidget):
         index = int(round((self.depth - lo) / self._step())) + 1
         total = int(round((hi - lo) / self._step())) + 1
         title = f"{self.frame_name.capitalize()}  {axis} = {self.depth:.1f} mm  ({index}/{total})"
+        if not self.state.orientation_known:
+            title += "  orientation unknown"
         wl = f"W {self.state.window:.0f}  L {self.state.level:.0f}"
 
         def box(text, metrics, x, y, anchor_x="left", anchor_y="top"):

@@ -82,6 +82,9 @@ class VolumeView(QWidget):
         return None if entry is None else entry[1]
 
     def _on_image(self) -> None:
+        known = self.state.orientation_known
+        self.plotter.add_text("" if known else "Orientation unknown: left/right may be swapped",
+                              position="upper_left", font_size=9, color="red", name="orientation")
         self._mark("planes", "camera")
 
     def _on_planes(self) -> None:

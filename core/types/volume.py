@@ -67,6 +67,13 @@ class Volume:
         return np.linalg.norm(self.affine[:3, :3], axis=0)
 
     @property
+    def orientation_known(self) -> bool:
+        """False for a NIfTI file with neither sform nor qform (both codes 0): its affine is
+        nibabel's voxel-size-only fallback, so left and right cannot be told apart."""
+        o = self.orientation
+        return o is None or o.sform_code > 0 or o.qform_code > 0
+
+    @property
     def is_oblique(self) -> bool:
         """True when the voxel axes are not aligned with the world axes."""
         direction = self.affine[:3, :3] / self.spacing
