@@ -29,6 +29,7 @@ from PySide6.QtWidgets import (QApplication, QDockWidget, QFileDialog, QMainWind
 from app import demo, formats
 from app.actions import SHORTCUTS, create_actions, create_menus, create_toolbar
 from app.controllers import ExportController, SessionController
+from app.dialogs import ExportActions, SessionActions
 from app.panels.factors import FactorsPanel
 from app.panels.fit import FitPanel
 from app.panels.planning import PlanningPanel
@@ -53,10 +54,6 @@ TOOL_HINTS = {"navigate": "Navigate: click to move the crosshair",
                       "Ctrl+click deletes a point",
               "window": "Window/level: drag left-right for width, up-down for level"}
 
-EXPORTS = {"labels": ("label map", formats.LABEL_FILTER, "segmentation.nii.gz"),
-           "mesh": ("surface mesh", "Meshes (*.vtk *.vtp *.stl *.ply *.obj)", "surface.vtk"),
-           "points": ("points", "CSV (*.csv);;Slicer markups (*.mrk.json)", "points.csv")}
-
 OPEN_DIALOGS = {"image": ("Open image", formats.IMAGE_FILTER),
                 "model": ("Load shape model", formats.MODEL_FILTER),
                 "session": ("Open session", "Sessions (*.json);;All files (*)"),
@@ -78,6 +75,8 @@ class MainWindow(QMainWindow):
         self.state = WorkspaceState()
         self.sessions = SessionController(self.state)
         self.exports = ExportController(self.state)
+        self.export_actions = ExportActions(self)
+        self.session_actions = SessionActions(self)
         self.session_path: Path | None = None
         self.active_view = "axial"
         self._closing = False
@@ -282,47 +281,16 @@ class MainWindow(QMainWindow):
 
     # -- export ---------------------------------------------------------------------------------
     def confirm_orientation(self) -> bool:
-        """Exports of an image whose orientation is unknown need an explicit yes."""
-        return self.state.orientation_known or self.ask(
-            "The image's file has neither sform nor qform: its orientation is unknown and left "
-            "and right may be swapped in what you export. Export anyway?")
+        return self.export_actions.confirm_orientation()
 
     def export_all(self, folder: str | os.PathLike) -> list[Path]:
-        if not self.confirm_orientation():
-            self.show_message("Export cancelled: the image's orientation is unknown")
-            return []
-        written = self.exports.export_all(folder)
-        self.show_message(f"Exported {len(written)} file(s) to {folder}")
-        return written
+        return self.export_actions.export_all(folder)
 
     def export_dialog(self, what: str) -> None:
-        problem = self.exports.nothing_to_export(what)
-        if problem:                                  # say so before any file dialog
-            self.show_error(problem)
-            return
-        if not self.confirm_orientation():
-            self.show_message("Export cancelled: the image's orientation is unknown")
-            return
-        title, filt, default = EXPORTS[what]
-        path, _ = QFileDialog.getSaveFileName(self, f"Export {title}",
-                                              str(Path(self._start_dir()) / default), filt)
-        if path:
-            self._guarded(lambda: self.show_message(getattr(self.exports, f"export_{what}")(path)))
+        self.export_actions.export_dialog(what)
 
     def export_all_dialog(self) -> None:
-        problem = self.exports.nothing_to_export("all")
-        if problem:
-            self.show_error(problem)
-            return
-        folder = QFileDialog.getExistingDirectory(self, "Export into folder", self._start_dir())
-        if not folder:
-            return
-        existing = self.exports.existing_outputs(folder)
-        if existing and not self.ask(f"{', '.join(p.name for p in existing)} already exist in "
-                                     f"{folder}. Overwrite?"):
-            self.show_message("Export cancelled: nothing overwritten")
-            return
-        self._guarded(lambda: self.export_all(folder))
+        self.export_actions.export_all_dialog()
 
     def ask(self, question: str) -> bool:
         """A yes/no question (without dialogs, e.g. in tests: no)."""
@@ -364,56 +332,14 @@ class MainWindow(QMainWindow):
         self.show_message(f"Opened session {Path(path).name}")
 
     def save_session(self, ask: bool = False, path: str | os.PathLike | None = None) -> bool:
-        if self.state.image_path is None:            # say so before any file dialog
-            self.show_error("nothing to save: open an image first")
-            return False
-        target = Path(path) if path else self.session_path
-        if target is None or ask:
-            chosen, _ = QFileDialog.getSaveFileName(self, "Save session",
-                                                    str(Path(self._start_dir()) / "session.json"),
-                                                    "Sessions (*.json)")
-            if not chosen:
-                return False
-            target = Path(chosen)
-        message = []
-        if not self._guarded(lambda: message.append(self.sessions.save(target, self.fit_panel.settings))):
-            return False
-        self.session_path = target
-        self._mark_saved()
-        self.show_message(message[0])
-        return True
+        return self.session_actions.save_session(ask, path)
 
     def write_recovery(self) -> None:
-        if not self.recovery_enabled:
-            return
-        try:
-            self.sessions.write_recovery(self.fit_panel.settings)
-        except ImportError:
-            return
-        except (ValueError, OSError) as exc:
-            self.statusBar().showMessage(f"Autosave failed: {error_message(exc)}", 8000)
+        self.session_actions.write_recovery()
 
     def offer_recovery(self, ask=None) -> bool:
         """If a recovery file exists, ask (``ask(text) -> bool``) and restore it; True if restored."""
-        try:
-            pending = self.sessions.pending_recovery()
-        except (ValueError, OSError) as exc:
-            self.show_message(f"Recovery file unreadable, ignored: {error_message(exc)}")
-            return False
-        if pending is None:
-            return False
-        session, question = pending
-        ask = ask or (lambda text: QMessageBox.question(self, "Recover unsaved work?", text)
-                      == QMessageBox.StandardButton.Yes)
-        if not ask(question):
-            self.sessions.clear_recovery()
-            return False
-        if not self._guarded(lambda: self.apply_session(session)):
-            return False
-        self.unsaved = True                      # recovered work is not saved anywhere yet
-        self._update_title()
-        self.show_message("Recovered the unsaved session")
-        return True
+        return self.session_actions.offer_recovery(ask)
 
     def _on_edited(self, what: str = "") -> None:
         if not self.unsaved:

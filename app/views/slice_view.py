@@ -278,56 +278,9 @@ class SliceView(QWidget):
         painter.setPen(color)
         painter.drawText(rect, flags, text)
 
-    def _label_fonts(self) -> tuple[QFont, QFont]:
-        letters = QFont(self.font())
-        letters.setPointSize(13)
-        letters.setBold(True)
-        small = QFont(self.font())
-        small.setPointSize(9)
-        return letters, small
-
     def label_layout(self) -> dict[str, tuple[QRectF, str, QColor, QFont]]:
-        """Where each overlay text goes: name -> (tight rectangle, text, colour, font).
-
-        The orientation letters sit at the middle of each edge, the slice title top left and
-        window/level bottom right; when the title reaches the top letter (narrow views, e.g.
-        an 800x600 window) the letter moves below the title instead of under it.
-        """
-        labels = self.frame.edge_labels()
-        if not self.state.orientation_known:         # never show R/L as if they were known
-            labels = {edge: "?" for edge in labels}
-        letters, small = self._label_fonts()
-        big, little = QFontMetricsF(letters), QFontMetricsF(small)
-        w, h, m = self.width(), self.height(), 6
-        axis = "xyz"[int(np.argmax(np.abs(self.frame.n)))]
-        lo, hi = self._depth_range
-        index = int(round((self.depth - lo) / self._step())) + 1
-        total = int(round((hi - lo) / self._step())) + 1
-        title = f"{self.frame_name.capitalize()}  {axis} = {self.depth:.1f} mm  ({index}/{total})"
-        if not self.state.orientation_known:
-            title += "  orientation unknown"
-        wl = f"W {self.state.window:.0f}  L {self.state.level:.0f}"
-
-        def box(text, metrics, x, y, anchor_x="left", anchor_y="top"):
-            tw, th = metrics.horizontalAdvance(text), metrics.height()
-            x = {"left": x, "center": x - tw / 2, "right": x - tw}[anchor_x]
-            y = {"top": y, "center": y - th / 2, "bottom": y - th}[anchor_y]
-            return QRectF(x, y, tw, th)
-
-        out = {"title": (box(title, little, m, m), title, VIEW_COLORS[self.frame_name], small),
-               "window": (box(wl, little, w - m, h - m, "right", "bottom"), wl,
-                          QColor(170, 170, 170), small)}
-        top = box(labels["top"], big, w / 2, m, "center")
-        if top.intersects(out["title"][0].adjusted(-4, 0, 4, 0)):
-            top.moveTop(out["title"][0].bottom() + 2)
-        out["top"] = (top, labels["top"], LABEL_COLOR, letters)
-        out["bottom"] = (box(labels["bottom"], big, w / 2, h - m, "center", "bottom"),
-                         labels["bottom"], LABEL_COLOR, letters)
-        out["left"] = (box(labels["left"], big, m, h / 2, "left", "center"), labels["left"],
-                       LABEL_COLOR, letters)
-        out["right"] = (box(labels["right"], big, w - m, h / 2, "right", "center"),
-                        labels["right"], LABEL_COLOR, letters)
-        return out
+        """Where each overlay text goes (see :func:`label_layout`)."""
+        return label_layout(self)
 
     def _paint_labels(self, painter: QPainter) -> None:
         center = Qt.AlignmentFlag.AlignCenter
@@ -480,3 +433,56 @@ class SliceView(QWidget):
             return False
         self.state.remove_point(index)
         return True
+
+
+def _label_fonts(view: SliceView) -> tuple[QFont, QFont]:
+    letters = QFont(view.font())
+    letters.setPointSize(13)
+    letters.setBold(True)
+    small = QFont(view.font())
+    small.setPointSize(9)
+    return letters, small
+
+
+def label_layout(view: SliceView) -> dict[str, tuple[QRectF, str, QColor, QFont]]:
+    """Where each overlay text goes: name -> (tight rectangle, text, colour, font).
+
+    The orientation letters sit at the middle of each edge, the slice title top left and
+    window/level bottom right; when the title reaches the top letter (narrow views, e.g.
+    an 800x600 window) the letter moves below the title instead of under it.
+    """
+    labels = view.frame.edge_labels()
+    if not view.state.orientation_known:         # never show R/L as if they were known
+        labels = {edge: "?" for edge in labels}
+    letters, small = _label_fonts(view)
+    big, little = QFontMetricsF(letters), QFontMetricsF(small)
+    w, h, m = view.width(), view.height(), 6
+    axis = "xyz"[int(np.argmax(np.abs(view.frame.n)))]
+    lo, hi = view._depth_range
+    index = int(round((view.depth - lo) / view._step())) + 1
+    total = int(round((hi - lo) / view._step())) + 1
+    title = f"{view.frame_name.capitalize()}  {axis} = {view.depth:.1f} mm  ({index}/{total})"
+    if not view.state.orientation_known:
+        title += "  orientation unknown"
+    wl = f"W {view.state.window:.0f}  L {view.state.level:.0f}"
+
+    def box(text, metrics, x, y, anchor_x="left", anchor_y="top"):
+        tw, th = metrics.horizontalAdvance(text), metrics.height()
+        x = {"left": x, "center": x - tw / 2, "right": x - tw}[anchor_x]
+        y = {"top": y, "center": y - th / 2, "bottom": y - th}[anchor_y]
+        return QRectF(x, y, tw, th)
+
+    out = {"title": (box(title, little, m, m), title, VIEW_COLORS[view.frame_name], small),
+           "window": (box(wl, little, w - m, h - m, "right", "bottom"), wl,
+                      QColor(170, 170, 170), small)}
+    top = box(labels["top"], big, w / 2, m, "center")
+    if top.intersects(out["title"][0].adjusted(-4, 0, 4, 0)):
+        top.moveTop(out["title"][0].bottom() + 2)
+    out["top"] = (top, labels["top"], LABEL_COLOR, letters)
+    out["bottom"] = (box(labels["bottom"], big, w / 2, h - m, "center", "bottom"),
+                     labels["bottom"], LABEL_COLOR, letters)
+    out["left"] = (box(labels["left"], big, m, h / 2, "left", "center"), labels["left"],
+                   LABEL_COLOR, letters)
+    out["right"] = (box(labels["right"], big, w - m, h / 2, "right", "center"),
+                    labels["right"], LABEL_COLOR, letters)
+    return out

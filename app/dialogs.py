@@ -1,0 +1,135 @@
+"""The window's file dialogs and questions around exports, sessions and crash recovery.
+
+What happens is in the controllers (:mod:`app.controllers`); these only ask the user (file
+dialogs, yes/no questions through the window's ``ask``, which tests replace) and report in
+the window's status bar. The window delegates its ``export_*`` and session methods here.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from PySide6.QtWidgets import QFileDialog, QMessageBox
+
+from app import formats
+from app.workers import error_message
+
+EXPORTS = {"labels": ("label map", formats.LABEL_FILTER, "segmentation.nii.gz"),
+           "mesh": ("surface mesh", "Meshes (*.vtk *.vtp *.stl *.ply *.obj)", "surface.vtk"),
+           "points": ("points", "CSV (*.csv);;Slicer markups (*.mrk.json)", "points.csv")}
+
+
+class ExportActions:
+    """Export dialogs: say why nothing can be exported before any dialog, confirm an unknown
+    orientation, and never overwrite an earlier export without asking."""
+
+    def __init__(self, window):
+        self.w = window
+
+    def confirm_orientation(self) -> bool:
+        """Exports of an image whose orientation is unknown need an explicit yes."""
+        w = self.w
+        return w.state.orientation_known or w.ask(
+            "The image's file has neither sform nor qform: its orientation is unknown and left "
+            "and right may be swapped in what you export. Export anyway?")
+
+    def export_all(self, folder: str | os.PathLike) -> list[Path]:
+        w = self.w
+        if not w.confirm_orientation():
+            w.show_message("Export cancelled: the image's orientation is unknown")
+            return []
+        written = w.exports.export_all(folder)
+        w.show_message(f"Exported {len(written)} file(s) to {folder}")
+        return written
+
+    def export_dialog(self, what: str) -> None:
+        w = self.w
+        problem = w.exports.nothing_to_export(what)
+        if problem:                                  # say so before any file dialog
+            w.show_error(problem)
+            return
+        if not w.confirm_orientation():
+            w.show_message("Export cancelled: the image's orientation is unknown")
+            return
+        title, filt, default = EXPORTS[what]
+        path, _ = QFileDialog.getSaveFileName(w, f"Export {title}",
+                                              str(Path(w._start_dir()) / default), filt)
+        if path:
+            w._guarded(lambda: w.show_message(getattr(w.exports, f"export_{what}")(path)))
+
+    def export_all_dialog(self) -> None:
+        w = self.w
+        problem = w.exports.nothing_to_export("all")
+        if problem:
+            w.show_error(problem)
+            return
+        folder = QFileDialog.getExistingDirectory(w, "Export into folder", w._start_dir())
+        if not folder:
+            return
+        existing = w.exports.existing_outputs(folder)
+        if existing and not w.ask(f"{', '.join(p.name for p in existing)} already exist in "
+                                  f"{folder}. Overwrite?"):
+            w.show_message("Export cancelled: nothing overwritten")
+            return
+        w._guarded(lambda: w.export_all(folder))
+
+
+class SessionActions:
+    """Save-session dialog, autosave and the recovery offer at start-up."""
+
+    def __init__(self, window):
+        self.w = window
+
+    def save_session(self, ask: bool = False, path: str | os.PathLike | None = None) -> bool:
+        w = self.w
+        if w.state.image_path is None:            # say so before any file dialog
+            w.show_error("nothing to save: open an image first")
+            return False
+        target = Path(path) if path else w.session_path
+        if target is None or ask:
+            chosen, _ = QFileDialog.getSaveFileName(w, "Save session",
+                                                    str(Path(w._start_dir()) / "session.json"),
+                                                    "Sessions (*.json)")
+            if not chosen:
+                return False
+            target = Path(chosen)
+        message = []
+        if not w._guarded(lambda: message.append(w.sessions.save(target, w.fit_panel.settings))):
+            return False
+        w.session_path = target
+        w._mark_saved()
+        w.show_message(message[0])
+        return True
+
+    def write_recovery(self) -> None:
+        w = self.w
+        if not w.recovery_enabled:
+            return
+        try:
+            w.sessions.write_recovery(w.fit_panel.settings)
+        except (ValueError, OSError) as exc:
+            w.statusBar().showMessage(f"Autosave failed: {error_message(exc)}", 8000)
+
+    def offer_recovery(self, ask=None) -> bool:
+        """If a recovery file exists, ask (``ask(text) -> bool``) and restore it; True if restored."""
+        w = self.w
+        try:
+            pending = w.sessions.pending_recovery()
+        except (ValueError, OSError) as exc:
+            w.show_message(f"Recovery file unreadable, ignored: {error_message(exc)}")
+            return False
+        if pending is None:
+            return False
+        session, question = pending
+        ask = ask or (lambda text: QMessageBox.question(w, "Recover unsaved work?", text)
+                      == QMessageBox.StandardButton.Yes)
+        if not ask(question):
+            w.sessions.clear_recovery()
+            return False
+        if not w._guarded(lambda: w.apply_session(session)):
+            return False
+        w.unsaved = True                      # recovered work is not saved anywhere yet
+        w._update_title()
+        w.show_message("Recovered the unsaved session")
+        return True
