@@ -34,10 +34,20 @@ class ExportActions:
             "The image's file has neither sform nor qform: its orientation is unknown and left "
             "and right may be swapped in what you export. Export anyway?")
 
+    def confirm_fit(self) -> bool:
+        """Exporting a fit flagged as implausible needs an explicit yes."""
+        w = self.w
+        warnings = w.state.fit_info.warnings
+        return not warnings or w.ask("The fit looks implausible: " + "; ".join(warnings)
+                                     + ". Export it anyway?")
+
     def export_all(self, folder: str | os.PathLike) -> list[Path]:
         w = self.w
         if not w.confirm_orientation():
             w.show_message("Export cancelled: the image's orientation is unknown")
+            return []
+        if not self.confirm_fit():
+            w.show_message("Export cancelled: the fit looks implausible")
             return []
         written = w.exports.export_all(folder)
         w.show_message(f"Exported {len(written)} file(s) to {folder}")
@@ -51,6 +61,9 @@ class ExportActions:
             return
         if not w.confirm_orientation():
             w.show_message("Export cancelled: the image's orientation is unknown")
+            return
+        if what != "points" and not self.confirm_fit():
+            w.show_message("Export cancelled: the fit looks implausible")
             return
         title, filt, default = EXPORTS[what]
         path, _ = QFileDialog.getSaveFileName(w, f"Export {title}",

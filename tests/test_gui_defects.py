@@ -327,3 +327,38 @@ def test_imported_contours_are_grouped_by_plane_and_keep_their_normals(make_wind
     assert window.state.points.n_slices() == 1
     assert "1 oblique" in window.statusBar().currentMessage()
     window.wait_for_refit(20000)
+
+
+# -- defect 1: a bad fit is flagged ------------------------------------------------------------
+
+def test_implausible_fit_is_flagged_and_export_asks(make_window, tmp_path):
+    window = make_window()
+    window.fit_panel.set_settings(pose="none")          # the model cannot follow the points
+    window.set_tool("draw")
+    view = window.workspace.views["axial"]
+    far = window.state.crosshair + np.array([30.0, 25.0, 0.0])
+    for t in np.linspace(0, 2 * np.pi, 10, endpoint=False):
+        click(view, far + [6 * np.cos(t), 6 * np.sin(t), 0.0])
+    window.wait_for_refit(30000)
+    info = window.state.fit_info
+    assert info.n_iter > 0 and info.warnings
+    assert any("from the surface" in w for w in info.warnings)
+    text = window.fit_panel.result.text()
+    assert "implausible" in text and "Check this fit" in text
+    questions = []
+    window.ask = lambda q: questions.append(q) or False
+    assert window.export_all(tmp_path / "out") == [] and "implausible" in questions[0]
+    # a good fit is not flagged
+    window.state.clear_points()
+    window.fit_panel.set_settings(pose="similarity")
+    window.state.reset_placement()
+    centre = window.state.surface_vertices().mean(axis=0)
+    from core.slicing import polylines
+
+    line = polylines(window.state.surface_vertices(), window.state.model.faces,
+                     np.array([0, 0, window.state.crosshair[2]]), np.array([0, 0, 1.0]))[0]
+    for p in line.points[:: max(1, len(line.points) // 10)]:
+        click(view, p)
+    window.wait_for_refit(30000)
+    assert window.state.fit_info.n_iter > 0 and window.state.fit_info.warnings == ()
+    assert np.isfinite(centre).all()

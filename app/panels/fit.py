@@ -110,7 +110,12 @@ class FitPanel(QWidget):
             residual = "–" if math.isnan(info.residual_mm) else f"{info.residual_mm:.2f} mm"
             lines.append(f"<b>Residual</b> {residual} &nbsp; <b>Iterations</b> {info.n_iter}")
             state = "converged" if info.converged else "stopped"
+            if info.warnings:
+                state = "implausible fit" + (" (converged)" if info.converged else "")
             lines.append(f"{state}: {info.stop_reason}" if info.stop_reason else state)
+        if info.warnings:
+            lines.append("<span style='color:#c0392b'><b>Check this fit:</b> "
+                         + "; ".join(info.warnings) + ".</span>")
             if not math.isnan(info.seconds):
                 lines.append(f"fit {1000 * info.fit_seconds:.0f} ms, "
                              f"edit to display {1000 * info.seconds:.0f} ms")

@@ -73,6 +73,7 @@ class VolumeView(QWidget):
         events.structure_changed.connect(self._on_structure)
         events.structures.connect(self._on_structures)
         events.active.connect(self._on_active)
+        events.fit_info.connect(self._on_fit_info)
         self._mark("planes", "surface", "points", "camera")
 
     @property
@@ -96,6 +97,12 @@ class VolumeView(QWidget):
     def _on_active(self) -> None:
         self._factor = None
         self._mark("surface", "points")
+
+    def _on_fit_info(self) -> None:
+        warnings = self.state.fit_info.warnings
+        self.plotter.add_text("Implausible fit: " + "; ".join(warnings) if warnings else "",
+                              position="lower_right", font_size=8, color="red", name="plausibility")
+        self._mark()
 
     def _on_structure(self, structure: Structure, what: str) -> None:
         if what == "model":
