@@ -52,11 +52,13 @@ def _ds(values) -> str:
 
 def write_series(folder: Path, image, uid: str = UID_ROOT + ".1", description: str = "T1 test",
                  positions=None, orientations=None, keep=None, name="IM{:04d}.dcm",
-                 patient_name: str = "DOE^JANE", patient_id: str = "PID-12345") -> list[Path]:
+                 patient_name: str = "DOE^JANE", patient_id: str = "PID-12345",
+                 compressor: str | None = None) -> list[Path]:
     """Write a 3D SimpleITK image as a DICOM MR series, one file a slice (SimpleITK/GDCM).
 
     ``positions`` / ``orientations`` (per slice) override the true geometry tags (to make
-    tilted, mixed or gapped series); ``keep`` selects which slices are written.
+    tilted, mixed or gapped series); ``keep`` selects which slices are written;
+    ``compressor`` writes compressed transfer syntaxes (GDCM's encoders).
     """
     import SimpleITK as sitk
 
@@ -65,6 +67,10 @@ def write_series(folder: Path, image, uid: str = UID_ROOT + ".1", description: s
     true_orient = _ds([d[0, 0], d[1, 0], d[2, 0], d[0, 1], d[1, 1], d[2, 1]])
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
+    if compressor is not None:  # GDCM's encoders: "JPEG", "JPEG2000", "JPEGLS", "RLE"
+        writer.SetImageIO("GDCMImageIO")
+        writer.UseCompressionOn()
+        writer.SetCompressor(compressor)
     files = []
     depth = image.GetDepth()
     for k in (range(depth) if keep is None else keep):

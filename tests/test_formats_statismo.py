@@ -164,3 +164,24 @@ def test_noise_variance_floors_the_fit_variance(tmp_path):
         results[noise] = fit_points(model, user.points, user.normals, max_iter=30)
     assert results[0.0].sigma2 < 1.0
     assert results[2.25].sigma2 >= 2.25 - 1e-9
+
+
+def test_reads_a_statismo_08_file_with_an_embedded_vtk_reference(tmp_path):
+    """Old files (vtkPolyDataRepresenter): the reference mesh is a VTK file stored as bytes."""
+    from core.io import TriMesh, load_model, save_mesh
+
+    mean, basis, variance, faces = _pca_parts(seed=2)
+    save_mesh(tmp_path / "ref.vtk", TriMesh(mean * FLIP, faces))
+    raw = np.frombuffer((tmp_path / "ref.vtk").read_bytes(), dtype=np.uint8)
+    write_like_statismo(tmp_path / "old.h5", mean * FLIP, basis, variance, faces, version=(0, 8),
+                        representer="vtkPolyDataRepresenter", dataset_type="",
+                        drop=("representer/points", "representer/cells", "version/majorVersion",
+                              "version/minorVersion"), modelinfo=False)
+    with h5py.File(tmp_path / "old.h5", "a") as h5:
+        h5.create_dataset("representer/reference", data=raw)
+    model = load_model(tmp_path / "old.h5")
+    assert np.array_equal(model.faces, faces)
+    assert np.allclose(model.world_instance(), mean, atol=1e-4)
+    assert np.allclose(model.coef_var, variance, rtol=1e-5)
+    gram = model.basis.T @ model.basis  # the U sqrt(lambda) of 0.8 became orthonormal U
+    assert np.allclose(gram, np.eye(len(gram)), atol=1e-4)
