@@ -7,6 +7,8 @@
    ``core.io.load_volume(folder)``: series discovery, header checks of the first file,
    reading with every slice's tags kept, the geometry checks (orientation, tilt, gaps,
    spacing, 4D), the LPS -> RAS affine and the [i, j, k] array. Target: < 2x SimpleITK.
+   Then the same series beside a 20-slice localizer in one folder: choosing by UID (and by
+   most files) against SimpleITK's GetGDCMSeriesIDs + GetGDCMSeriesFileNames(uid) + Execute.
 2. The same volume as NIfTI (.nii.gz), NRRD (gzip) and MetaImage (.mha, compressed):
    ``load_volume`` against ``nibabel.load(...).get_fdata``-free ``dataobj`` reading and
    ``SimpleITK.ReadImage`` + array.
@@ -47,6 +49,15 @@ def _sitk_series(folder: Path, to_array: bool):
     return sitk.GetArrayFromImage(image) if to_array else image
 
 
+def _sitk_two(folder: Path, uid: str):
+    import SimpleITK as sitk
+
+    assert uid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), uid))
+    return reader.Execute()
+
+
 def _sitk_file(path: Path):
     import SimpleITK as sitk
 
@@ -82,6 +93,14 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         synth.write_series(tmp / "series", image, description="bench")
         written = time.perf_counter() - start
+        two = tmp / "two-series"  # the same series plus a 20-slice localizer
+        for f in (tmp / "series").iterdir():
+            two.mkdir(exist_ok=True)
+            (two / f.name).symlink_to(f)
+        scout = synth.oblique_image((size[0], size[1], 20), (0.94, 0.94, 5.0), seed=1)
+        synth.write_series(two, scout, uid=synth.UID_ROOT + ".2", description="scout",
+                           name="S{:04d}.dcm")
+        uid = synth.UID_ROOT + ".1"
         for name in ("v.nii.gz", "v.nrrd", "v.mha"):
             writer = sitk.ImageFileWriter()
             writer.SetFileName(str(tmp / name))
@@ -93,6 +112,13 @@ def main(argv: list[str] | None = None) -> int:
                 "SimpleITK ImageSeriesReader (Execute)": lambda: _sitk_series(folder, False),
                 "SimpleITK ImageSeriesReader + array": lambda: _sitk_series(folder, True),
                 "SSM Studio load_volume (checked)": lambda: load_volume(folder),
+            },
+            f"DICOM folder with 2 series ({size[2]} + 20 files)": {
+                "SimpleITK GetGDCMSeriesIDs + FileNames(uid) + Execute":
+                    lambda: _sitk_two(two, uid),
+                "SSM Studio load_volume(series=uid)": lambda: load_volume(two, series=uid),
+                "SSM Studio load_volume (most files, said)": lambda: load_volume(two,
+                                                                                notify=len),
             },
             "NIfTI .nii.gz": {
                 "nibabel (dataobj array)": lambda: _nibabel(tmp / "v.nii.gz"),
@@ -110,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         # correctness first: every reader of a group gives the same voxels
         truth = sitk.GetArrayFromImage(image).T
-        for path in (folder, tmp / "v.nii.gz", tmp / "v.nrrd", tmp / "v.mha"):
+        for path in (folder, two, tmp / "v.nii.gz", tmp / "v.nrrd", tmp / "v.mha"):
             assert np.array_equal(load_volume(path).data, truth), path
         print(f"(series written by SimpleITK in {written:.2f} s; machine shared, times are "
               "upper bounds; median of "
