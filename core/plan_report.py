@@ -123,7 +123,9 @@ def plan_from_session(session) -> tuple[list[PlannedStructure], ACPCFrame | None
         if path is None:
             continue
         model = load_model(path)
-        name = _field(rec, "name") or structure_info(model, path).label
+        name, side = _field(rec, "name"), _field(rec, "side")
+        # as the workspace labels its structures: "name (side)"
+        name = (f"{name} ({side})" if side else name) if name else structure_info(model, path).label
         color = _field(rec, "color")
         item = per.get(i, {})
         structures.append(planned_structure(name, model, _field(rec, "coef"), _field(rec, "pose"),

@@ -167,3 +167,31 @@ def test_plan_cli_gives_the_gui_report_from_the_saved_session(window, tmp_path, 
     assert window.save_session(path=session)
     assert cli_main(["plan", "--session", str(session), "--out", str(tmp_path / "p2.json")]) == 0
     assert "acpc" not in json.loads((tmp_path / "p2.json").read_text())
+
+
+def test_two_structures_plan_in_gui_and_headless(window, tmp_path, resources_dir):
+    """Two library structures, a trajectory each: the saved session plans both headless."""
+    from app.state import Structure
+    from core.cli import main as cli_main
+
+    planning, panel, state = window.planning, window.planning_panel, window.state
+    right = state.add_structure(Structure())
+    window.sessions.open_model(resources_dir / "models" / "right_caudate.npz", structure=right)
+    assert state.active is right and right.side == "right"
+    for s, offset in ((state.structures[0], [-10.0, 20.0, 55.0]), (right, [10.0, 20.0, 55.0])):
+        state.set_active(s)
+        state.set_crosshair(planning.target_of(s) + offset)
+        panel.set_entry_here()
+    for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
+        _set_at(window, name, xyz)
+    session = tmp_path / "two.json"
+    assert window.save_session(path=session)
+    assert cli_main(["plan", "--session", str(session), "--out", str(tmp_path / "plan.json")]) == 0
+    rows = json.loads((tmp_path / "plan.json").read_text())["structures"]
+    assert len(rows) == 2 and all("trajectory" in r for r in rows)
+    assert rows[0]["centroid_acpc"][0] < 0 < rows[1]["centroid_acpc"][0]   # left, right
+    assert "right" in rows[1]["name"]
+    gui = planning.report()["structures"]
+    for a, b in zip(gui, rows):
+        np.testing.assert_allclose(a["trajectory"]["entry"], b["trajectory"]["entry"], atol=1e-9)
+        assert a["volume_mm3"] == pytest.approx(b["volume_mm3"], rel=1e-9)
