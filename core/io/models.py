@@ -161,7 +161,7 @@ def _dtype_name(dtype: np.dtype) -> str:
 
 
 _SUSPICIOUS_RATIO = 200  # float model data compress ~1.1-3x; zeros by ~1000x
-_SUSPICIOUS_SIZE = 64 << 20
+_SUSPICIOUS_SIZE = 16 << 20
 
 
 def _check_members(path: Path) -> None:

@@ -59,6 +59,11 @@ def load_obj(path: Path) -> tuple[TriMesh, str | None]:
         data, _, comment = line.partition(b"#")
         if comment and space is None and not vertex_rows:
             space = space_in_text(comment)
+        try:
+            data.decode("utf-8")  # comments may be in any encoding, records are text
+        except UnicodeDecodeError:
+            raise DataFileError(path, f"line {number}: not text (binary data in an OBJ "
+                                      "record)") from None
         words = data.split()  # any whitespace: spaces, tabs, indentation
         if not words:
             continue

@@ -143,10 +143,13 @@ def _ply_ascii_element(path: Path, lines: list[bytes], start: int,
                     col += 1
                 else:
                     length = int(table[0, col]) if n else 0
+                    if n and np.any(table[:, col] != length):
+                        break  # lists of different lengths: read row by row below
                     out[name] = table[:, col + 1:col + 1 + length]
                     col += 1 + length
-            if col == table.shape[1]:
-                return out, start + n
+            else:
+                if col == table.shape[1]:
+                    return out, start + n
         out = {name: [] for name, _, _ in element.properties}
         for row in tokens:
             values = [float(v) for v in row]
@@ -159,8 +162,8 @@ def _ply_ascii_element(path: Path, lines: list[bytes], start: int,
                     length = int(values[col])
                     out[name].append(np.array(values[col + 1:col + 1 + length]))
                     col += 1 + length
-            if col > len(values):
-                raise ValueError("row too short")
+            if col != len(values):
+                raise ValueError("row length does not match its list counts")
     except (ValueError, IndexError):
         raise DataFileError(path, f"PLY element '{element.name}' has non-numeric or missing "
                                   "values") from None
@@ -195,10 +198,24 @@ def load_ply(path: Path) -> tuple[TriMesh, str | None]:
     key = next((k for k in ("vertex_indices", "vertex_index") if k in face), None)
     if key is None:
         raise DataFileError(path, "mesh has no triangles (no 'face' element: points only)")
-    faces = polygons_to_triangles(face[key])
+    faces = polygons_to_triangles(_integer_lists(path, face[key]))
     header = raw[:body_start]
     comments = b"\n".join(ln for ln in header.splitlines() if ln.startswith(b"comment"))
     return TriMesh(vertices, faces, path.name), space_in_text(comments)
+
+
+def _integer_lists(path: Path, lists: np.ndarray | list) -> np.ndarray | list:
+    """Face index lists as int64, refusing values no int64 holds (an ASCII '1e20')."""
+    groups = [lists] if isinstance(lists, np.ndarray) else lists
+    for group in groups:
+        values = np.asarray(group)
+        if values.size and values.dtype.kind == "f" and \
+                not np.all(np.isfinite(values) & (np.abs(values) < 2.0**62)):
+            raise DataFileError(path, "faces index vertices that do not exist (an index is "
+                                      "out of any integer range)")
+    if isinstance(lists, np.ndarray):
+        return lists.astype(np.int64)
+    return [np.asarray(group).astype(np.int64) for group in lists]
 
 
 def _read_ply_body(path: Path, raw: bytes, fmt: str, elements: list[_PlyElement],

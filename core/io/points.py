@@ -117,7 +117,8 @@ def _load_points_csv(path: Path, delimiter: str | None = None) -> PointSet:
             raise DataFileError(path, f"non-numeric value '{bad.strip()[:40]}' on line "
                                       f"{line}") from None
     if skipped:
-        _note(path, f"{skipped} points marked not defined were skipped")
+        _note(path, f"{skipped} point{'s' if skipped > 1 else ''} marked not defined "
+                    "skipped")
     table = np.array(values, dtype=np.float64).reshape(-1, len(columns))
     flip = _LPS_FLIP if space == "LPS" else np.ones(3)
     return PointSet(table[:, :3] * flip, table[:, 3:6] if has_normals else None)
@@ -251,7 +252,8 @@ def _load_points_markups(path: Path) -> PointSet:
             else:
                 normals.append(None)
     if previews:
-        _note(path, f"{previews} control points in 'preview' state (not placed) were skipped")
+        _note(path, f"{previews} control point{'s' if previews > 1 else ''} in 'preview' "
+                    "state (being placed, no position) skipped")
     has_normals = bool(points) and all(n is not None for n in normals) and \
         doc.get("ssmStudioNormals", False) is not False
     return PointSet(np.array(points).reshape(-1, 3),
