@@ -1004,3 +1004,486 @@ def test_expand_and_load_meshes_keep_order_and_report_bad_files(tmp_path):
     assert [p.name for p, _ in loaded] == ["a.ply", "b.vtk"]
     assert all(m.n_vertices == sphere.n_vertices for _, m in loaded)
     assert list(failures) == [str(folder / "c.stl")] and "empty" in failures[str(folder / "c.stl")]
+
+
+# --------------------------------------------------------------------------------------
+# Issue 18: damaged files, Slicer's coordinate systems, headers ITK reads differently
+# --------------------------------------------------------------------------------------
+
+_LEGACY_HEAD = "# vtk DataFile Version 4.2\ntest\nASCII\n"
+_FOUR_POINTS = "POINTS 4 float\n0 0 0 10 0 0 0 10 0 10 10 0\n"
+_TETRA_POINTS = "POINTS 4 float\n0 0 0 10 0 0 0 10 0 0 0 10\n"
+
+
+@pytest.mark.parametrize("name, body, phrase", [
+    # each of these crashed the process (segfault in VTK's filters) or passed garbage on
+    ("poly_index", "DATASET POLYDATA\n" + _FOUR_POINTS + "POLYGONS 2 9\n4 0 1 3 2\n3 0 1 99999\n",
+     "refer to point 99999"),
+    ("poly_negative", "DATASET POLYDATA\n" + _FOUR_POINTS + "POLYGONS 1 4\n3 0 1 -7\n",
+     "refer to point -7"),
+    ("strip_index", "DATASET POLYDATA\n" + _FOUR_POINTS + "TRIANGLE_STRIPS 1 5\n4 0 1 2 77\n",
+     "refer to point 77"),
+    ("poly_count_overrun", "DATASET POLYDATA\n" + _FOUR_POINTS + "POLYGONS 1 4\n9 0 1 2\n",
+     "refer to point"),
+    ("poly_fewer_cells", "DATASET POLYDATA\n" + _FOUR_POINTS + "POLYGONS 2 4\n3 0 1 2\n",
+     "the header declares 2 cells"),
+    ("ug_index", "DATASET UNSTRUCTURED_GRID\n" + _TETRA_POINTS +
+     "CELLS 1 5\n4 0 1 2 99999999\nCELL_TYPES 1\n10\n", "refer to point 99999999"),
+    ("ug_cell_type", "DATASET UNSTRUCTURED_GRID\n" + _TETRA_POINTS +
+     "CELLS 1 5\n4 0 1 2 3\nCELL_TYPES 1\n255\n", "cell type 255"),
+    ("ug_type_size", "DATASET UNSTRUCTURED_GRID\n" + _TETRA_POINTS +
+     "CELLS 1 5\n4 0 1 2 3\nCELL_TYPES 1\n5\n", "type 5 has 4 points"),
+    ("points_huge", "DATASET POLYDATA\nPOINTS 2000000000 float\n0 0 0\n", "2000000000 points"),
+])
+def test_damaged_legacy_vtk_is_refused_before_vtk_filters(tmp_path, name, body, phrase):
+    path = tmp_path / f"{name}.vtk"
+    path.write_text(_LEGACY_HEAD + body)
+    with pytest.raises(DataFileError, match=phrase) as info:
+        io.load_mesh(path)
+    assert str(info.value).startswith(str(path))
+
+
+def test_vtp_claiming_two_billion_points_is_refused_before_reading(tmp_path):
+    io.save_mesh(tmp_path / "m.vtp", sphere_mesh())
+    text = (tmp_path / "m.vtp").read_bytes().replace(
+        f'NumberOfPoints="{sphere_mesh().n_vertices}"'.encode(), b'NumberOfPoints="2000000000"')
+    (tmp_path / "huge.vtp").write_bytes(text)  # VTK aborted with std::bad_alloc (exit 134)
+    with pytest.raises(DataFileError, match="huge.vtp: .*declares 2000000000 points"):
+        io.load_mesh(tmp_path / "huge.vtp")
+
+
+def test_batch_reading_survives_a_native_reader_crash(tmp_path):
+    """A reader that dies of SIGSEGV costs its file only (load_meshes(isolate=True))."""
+    import signal
+
+    from core.io import registry
+
+    def crashing_reader(path):
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+    registry.register(registry.FileFormat(".crash", "mesh", "crashing", read=crashing_reader))
+    try:
+        io.save_mesh(tmp_path / "a.vtk", sphere_mesh())
+        io.save_mesh(tmp_path / "c.ply", sphere_mesh())
+        (tmp_path / "b.crash").write_text("anything")
+        files = [tmp_path / "a.vtk", tmp_path / "b.crash", tmp_path / "c.ply"]
+        loaded, failures = io.load_meshes(files, isolate=True)
+    finally:
+        del registry._FORMATS[("mesh", ".crash")]
+    assert [p.name for p, _ in loaded] == ["a.vtk", "c.ply"]
+    assert list(failures) == [str(tmp_path / "b.crash")]
+    assert "SIGSEGV" in failures[str(tmp_path / "b.crash")]
+    np.testing.assert_allclose(loaded[1][1].vertices, sphere_mesh().vertices)
+
+
+def test_unstructured_grid_keeps_the_file_point_numbering(tmp_path):
+    """Before: vtkDataSetSurfaceFilter renumbered the points (README says indices are kept)."""
+    path = tmp_path / "ug.vtk"
+    # point 0 is unused; the tetra uses points 1..4 in a scrambled order
+    path.write_text(_LEGACY_HEAD + "DATASET UNSTRUCTURED_GRID\nPOINTS 5 float\n"
+                    "99 99 99 0 0 0 0 0 10 10 0 0 0 10 0\nCELLS 1 5\n4 1 3 4 2\n"
+                    "CELL_TYPES 1\n10\n")
+    mesh = io.load_mesh(path)
+    assert mesh.n_vertices == 5
+    np.testing.assert_allclose(mesh.vertices[0], [99, 99, 99])
+    assert sorted(np.unique(mesh.faces)) == [1, 2, 3, 4]
+    assert len(mesh.faces) == 4
+    # every face is a face of the tetra (1, 3, 4, 2) in the file's numbering
+    assert {tuple(sorted(f)) for f in mesh.faces.tolist()} == \
+        {(1, 2, 3), (1, 2, 4), (1, 3, 4), (2, 3, 4)}
+
+
+def test_vtu_and_gzipped_gifti_are_read(tmp_path):
+    grid = pv.UnstructuredGrid(np.array([4, 0, 1, 2, 3]), np.array([10]),
+                               np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10.0]]))
+    grid.save(str(tmp_path / "t.vtu"))
+    mesh = io.load_mesh(tmp_path / "t.vtu")
+    assert mesh.n_vertices == 4 and len(mesh.faces) == 4
+    io.save_mesh(tmp_path / "s.gii", sphere_mesh())
+    (tmp_path / "s.gii.gz").write_bytes(gzip.compress((tmp_path / "s.gii").read_bytes()))
+    mesh = io.load_mesh(tmp_path / "s.gii.gz")
+    np.testing.assert_allclose(mesh.vertices, sphere_mesh().vertices, atol=1e-5)
+    np.testing.assert_array_equal(mesh.faces, sphere_mesh().faces)
+    assert tmp_path / "s.gii.gz" in io.expand_mesh_paths([tmp_path])
+    bad = bytearray((tmp_path / "s.gii.gz").read_bytes())
+    bad[-8] ^= 0xFF
+    (tmp_path / "crc.gii.gz").write_bytes(bytes(bad))
+    with pytest.raises(DataFileError, match="crc.gii.gz: .*gzip"):
+        io.load_mesh(tmp_path / "crc.gii.gz")
+
+
+def _slicer_lps_files(folder: Path, mesh: TriMesh) -> dict[str, Path]:
+    """The mesh in LPS as 3D Slicer writes it, one file per format, with SPACE=LPS tags."""
+    lps = TriMesh(mesh.vertices * [-1, -1, 1], mesh.faces)
+    poly = lps.to_polydata()
+    files = {}
+    writer = vtk.vtkPolyDataWriter()
+    writer.SetFileVersion(42)
+    writer.SetHeader("3D Slicer output. SPACE=LPS")
+    writer.SetFileName(str(folder / "slicer.vtk"))
+    writer.SetInputData(poly)
+    writer.Write()
+    files["vtk"] = folder / "slicer.vtk"
+    tagged = poly.copy()
+    tag = vtk.vtkStringArray()
+    tag.SetName("SPACE")
+    tag.InsertNextValue("LPS")
+    tagged.GetFieldData().AddArray(tag)
+    writer = vtk.vtkXMLPolyDataWriter()
+    writer.SetFileName(str(folder / "slicer.vtp"))
+    writer.SetInputData(tagged)
+    writer.Write()
+    files["vtp"] = folder / "slicer.vtp"
+    writer = vtk.vtkSTLWriter()
+    writer.SetHeader("3D Slicer output. SPACE=LPS")
+    writer.SetFileTypeToBinary()
+    writer.SetFileName(str(folder / "slicer.stl"))
+    writer.SetInputData(poly)
+    writer.Write()
+    files["stl"] = folder / "slicer.stl"
+    writer = vtk.vtkPLYWriter()
+    writer.AddComment("3D Slicer output. SPACE=LPS")
+    writer.SetFileName(str(folder / "slicer.ply"))
+    writer.SetInputData(poly)
+    writer.Write()
+    files["ply"] = folder / "slicer.ply"
+    lines = ["# 3D Slicer output. SPACE=LPS"] + [f"v {x} {y} {z}" for x, y, z in lps.vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in lps.faces]
+    (folder / "slicer.obj").write_text("\n".join(lines) + "\n")
+    files["obj"] = folder / "slicer.obj"
+    return files
+
+
+@pytest.mark.parametrize("fmt", ["vtk", "vtp", "stl", "ply", "obj"])
+def test_slicer_lps_meshes_are_read_in_ras(tmp_path, fmt):
+    """Before: read as RAS, i.e. mirrored to the other hemisphere."""
+    mesh = sphere_mesh()  # centre (12, -30, 5) RAS
+    path = _slicer_lps_files(tmp_path, mesh)[fmt]
+    read = io.load_mesh(path)
+    np.testing.assert_allclose(read.vertices.mean(axis=0), mesh.vertices.mean(axis=0),
+                               atol=1e-4)
+    if fmt != "stl":  # STL does not keep the vertex numbering
+        np.testing.assert_allclose(read.vertices, mesh.vertices, atol=1e-4)
+
+
+@pytest.mark.parametrize("suffix, tag", [
+    (".vtk", b"SSM Studio output. SPACE=RAS"), (".stl", b"SPACE=RAS"),
+    (".ply", b"comment SSM Studio output. SPACE=RAS"), (".obj", b"# SSM Studio output. SPACE=RAS"),
+    (".vtp", b'Name="SPACE"'),
+])
+def test_every_mesh_written_says_space_ras_and_reads_back(tmp_path, suffix, tag):
+    path = tmp_path / f"m{suffix}"
+    io.save_mesh(path, sphere_mesh())
+    raw = path.read_bytes()
+    assert tag in raw
+    if suffix == ".vtk":
+        assert raw.startswith(b"# vtk DataFile Version 4.2\n")  # readable by VTK < 9, Slicer
+    np.testing.assert_allclose(io.load_mesh(path).vertices.mean(axis=0),
+                               sphere_mesh().vertices.mean(axis=0), atol=1e-4)
+    io.save_mesh(tmp_path / f"lps{suffix}", sphere_mesh(), space="LPS")  # the user's choice
+    assert tag.replace(b"RAS", b"LPS") in (tmp_path / f"lps{suffix}").read_bytes() or \
+        suffix == ".vtp"
+    np.testing.assert_allclose(io.load_mesh(tmp_path / f"lps{suffix}").vertices.mean(axis=0),
+                               sphere_mesh().vertices.mean(axis=0), atol=1e-4)
+
+
+def test_sitk_sees_masks_where_it_sees_their_image_for_every_sform_qform_code(tmp_path):
+    """25 combinations of sform/qform codes 0-4 with different sform and qform matrices.
+
+    Before, ``save_volume`` wrote the affine into both with code 1: ITK read the image's
+    qform (sform code != 1) or its code-0 fallback and put the mask elsewhere (13 of 25).
+    """
+    sitk = pytest.importorskip("SimpleITK")
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    c, s = math.cos(0.3), math.sin(0.3)
+    sform = np.array([[c, -1.2 * s, 0, -60], [s, 1.2 * c, 0, 10], [0, 0, 1.5, 25], [0, 0, 0, 1]])
+    qform = np.array([[-1.0, 0, 0, 70], [0, 1.2, 0, -90], [0, 0, 1.5, 10], [0, 0, 0, 1]])
+    data = np.random.default_rng(0).random((6, 7, 8)).astype(np.float32)
+    disagree = []
+    for sform_code in range(5):
+        for qform_code in range(5):
+            img = nib.Nifti1Image(data, None)
+            img.header.set_qform(qform, code=qform_code)
+            img.header.set_sform(sform, code=sform_code)
+            nib.save(img, str(tmp_path / "image.nii.gz"))
+            volume = io.load_volume(tmp_path / "image.nii.gz")
+            io.save_volume(tmp_path / "mask.nii.gz", (volume.data > 0.5).astype(np.uint8),
+                           volume.affine, like=volume)
+            a = sitk.ReadImage(str(tmp_path / "image.nii.gz"))
+            b = sitk.ReadImage(str(tmp_path / "mask.nii.gz"))
+            index = (5, 6, 7)
+            if not np.allclose(a.TransformIndexToPhysicalPoint(index),
+                               b.TransformIndexToPhysicalPoint(index), atol=1e-3):
+                disagree.append((sform_code, qform_code))
+            np.testing.assert_allclose(io.load_volume(tmp_path / "mask.nii.gz").affine,
+                                       volume.affine, atol=1e-4)  # and nibabel agrees too
+    assert disagree == []
+
+
+def test_corrupt_gzip_crc_in_nifti_is_refused(tmp_path):
+    """Before: nibabel stopped reading before the CRC; segment exited 0 with wrong voxels."""
+    _save_raw_nifti(tmp_path / "good.nii.gz", np.arange(1000, dtype=np.float32).reshape(10, 10, 10))
+    raw = bytearray((tmp_path / "good.nii.gz").read_bytes())
+    raw[-8] ^= 0xFF  # the CRC-32 of the uncompressed data
+    (tmp_path / "crc.nii.gz").write_bytes(bytes(raw))
+    with pytest.raises(DataFileError, match="crc.nii.gz: corrupt gzip data"):
+        io.load_volume(tmp_path / "crc.nii.gz")
+
+
+@pytest.mark.parametrize("name, dims, extra, phrase", [
+    ("huge.nii.gz", (30000, 30000, 30000), 0, "30000x30000x30000 voxels"),
+    ("big.nii", (1400, 1400, 1400), 700, "image data are truncated"),  # 1 kB, 2.7 GB claimed
+])
+def test_nifti_declared_size_is_checked_before_allocating(tmp_path, name, dims, extra, phrase):
+    import tracemalloc
+
+    img = nib.Nifti1Image(np.zeros((2, 2, 2), np.float32), np.eye(4))
+    header = img.header.copy()
+    header.set_data_shape(dims)
+    raw = header.binaryblock + b"\x00" * 4 + b"\x00" * extra
+    path = tmp_path / name
+    path.write_bytes(gzip.compress(raw) if name.endswith(".gz") else raw)
+    tracemalloc.start()
+    try:
+        with pytest.raises(DataFileError, match=phrase):
+            io.load_volume(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 50e6  # before: 2.7 GB allocated before refusing
+
+
+def _npz_with_member(path: Path, name: str, shape: tuple, data: bytes) -> None:
+    import zipfile
+
+    io.save_model(path, small_model())
+    header = f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}"
+    header += " " * (117 - len(header)) + "\n"
+    with zipfile.ZipFile(path, "a", compression=zipfile.ZIP_DEFLATED) as archive:
+        with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+            member.write(b"\x93NUMPY\x01\x00" + (118).to_bytes(2, "little") + header.encode())
+            member.write(data)
+
+
+def test_model_npz_member_claiming_a_huge_shape_is_refused(tmp_path):
+    _npz_with_member(tmp_path / "shape.npz", "extra", (1000000000000, 3), b"\x00" * 48)
+    with pytest.raises(DataFileError, match=r"shape.npz: .*shape \(1000000000000, 3\)"):
+        io.load_model(tmp_path / "shape.npz")
+
+
+def test_model_npz_zip_bomb_is_refused_without_inflating(tmp_path):
+    import tracemalloc
+
+    n = 3 << 20  # 24 MB of zeros, ~25 kB compressed
+    path = tmp_path / "bomb.npz"
+    io.save_model(path, small_model())
+    import zipfile
+
+    with zipfile.ZipFile(path, "a", compression=zipfile.ZIP_DEFLATED) as archive:
+        with archive.open("zeros.npy", "w", force_zip64=True) as member:
+            header = f"{{'descr': '<f8', 'fortran_order': False, 'shape': ({n},), }}"
+            header += " " * (117 - len(header)) + "\n"
+            member.write(b"\x93NUMPY\x01\x00" + (118).to_bytes(2, "little") + header.encode())
+            for _ in range(24):
+                member.write(bytes(1 << 20))
+    tracemalloc.start()
+    try:
+        with pytest.raises(DataFileError, match="bomb.npz: .*zip bomb"):
+            io.load_model(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 10e6
+
+
+@pytest.mark.parametrize("change, phrase", [
+    ({"mean": "complex"}, "'mean' must hold real numbers, got complex numbers"),
+    ({"factors": "text"}, "'factors' must hold real numbers, got text"),
+    ({"coef_var": "text"}, "'coef_var' must hold real numbers, got text"),
+    ({"world_transform": "singular"}, "world_transform is singular"),
+    ({"world_transform": "projective"}, "world_transform is not affine"),
+])
+def test_model_loader_refuses_complex_text_and_singular_arrays(tmp_path, change, phrase):
+    """Before: complex parts dropped, text converted or refused deep in the fit, singular
+    transforms accepted (the later error then blamed the points file)."""
+    model = small_model()
+    arrays = {"mean": model.mean, "factors": model.factors, "coef_var": model.coef_var,
+              "faces": model.faces, "world_transform": model.world_transform}
+    key, kind = next(iter(change.items()))
+    arrays[key] = {"complex": lambda a: a + 1j, "text": lambda a: a.astype(str),
+                   "singular": lambda a: np.diag([1.0, 1.0, 0.0, 1.0]),
+                   "projective": lambda a: np.vstack([a[:3], [0.1, 0, 0, 1]])}[kind](arrays[key])
+    header = {"format": io.MODEL_FORMAT, "format_version": io.MODEL_FORMAT_VERSION,
+              "units": "mm", "method": "lsf", "params": {}, "source_meshes": [], "info": {}}
+    np.savez(tmp_path / "m.npz", header=np.array(json.dumps(header)), **arrays)
+    with pytest.raises(DataFileError, match=phrase):
+        io.load_model(tmp_path / "m.npz")
+
+
+@pytest.mark.parametrize("name, write, phrase", [
+    ("deep.mrk.json", lambda p: p.write_text("[" * 100000 + "]" * 100000), "nested too deeply"),
+    ("deep.npz", lambda p: np.savez(p, header=np.array("[" * 100000 + "]" * 100000)),
+     "nested too deeply"),
+    ("huge.obj", lambda p: p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 100000000000000000000\n"),
+     "face index out of range"),
+    ("scalar.ply", lambda p: p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 1\nproperty int vertex_indices\nend_header\n"
+        "0 0 0\n1 0 0\n0 1 0\n2\n"), "is a scalar, a face needs a list"),
+    ("count.ply", lambda p: p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n7 0 1 2\n"), "count.ply: PLY element 'face'"),
+])
+def test_former_tracebacks_are_one_line_errors(tmp_path, name, write, phrase):
+    path = tmp_path / name
+    write(path)
+    load = io.load_model if name.endswith(".npz") else \
+        io.load_points if name.endswith(".json") else io.load_mesh
+    with pytest.raises(DataFileError, match=phrase) as info:
+        load(path)
+    assert str(info.value).startswith(str(path)) and "\n" not in str(info.value)
+
+
+def test_obj_with_tabs_indentation_continuations_and_foreign_comments(tmp_path):
+    """Before: indented or tab-separated records were dropped (half of a two-object file)."""
+    text = ("# caf\xe9 in latin-1\no first\nv 0 0 0\nv\t10 0 0\n  v 0 10 0\nf 1 2 3\n"
+            "o second\n\tv 0 0 10\n    v 10 0 10\nv 0 \\\n  10 10\n\tf\t4 5 6  # a comment\n")
+    (tmp_path / "two.obj").write_bytes(text.encode("latin-1"))
+    mesh = io.load_mesh(tmp_path / "two.obj")
+    assert mesh.n_vertices == 6
+    np.testing.assert_allclose(mesh.vertices[5], [0, 10, 10])
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [3, 4, 5]])
+
+
+def test_stl_cannot_hold_corresponded_shapes(tmp_path):
+    """Before: align on STL outputs exited 0 with 6.8 mm RMS garbage."""
+    mesh = sphere_mesh()
+    with pytest.raises(DataFileError, match="s.stl: not written: STL files do not keep vertex"):
+        io.save_mesh(tmp_path / "s.stl", mesh, vertex_order=True)
+    io.save_mesh(tmp_path / "s.stl", mesh)
+    io.save_mesh(tmp_path / "s.vtk", mesh)
+    loaded, failures = io.load_meshes([tmp_path / "s.vtk", tmp_path / "s.stl"],
+                                      vertex_order=True)
+    assert [p.name for p, _ in loaded] == ["s.vtk"]
+    assert "do not keep vertex order" in failures[str(tmp_path / "s.stl")]
+
+
+def test_align_refuses_stl_inputs_by_name(tmp_path, capsys):
+    from core.cli import main
+
+    rng = np.random.default_rng(0)
+    names = []
+    for i, suffix in enumerate((".vtk", ".ply", ".obj", ".stl")):
+        mesh = sphere_mesh()
+        io.save_mesh(tmp_path / f"s{i}{suffix}",
+                     TriMesh(mesh.vertices + rng.normal(scale=0.2, size=mesh.vertices.shape),
+                             mesh.faces))
+        names.append(str(tmp_path / f"s{i}{suffix}"))
+    assert main(["align", *names, "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 's3.stl'}: STL files do not keep vertex order" in err
+    report = json.loads((tmp_path / "out" / "transforms.json").read_text())
+    assert len(report["shapes"]) == 3
+
+
+def test_folder_expansion_skips_hidden_and_temporary_files_and_stale_ones_are_cleaned(tmp_path):
+    """Before: a killed save's .NAME.XXXX.tmp.vtk was read as a 7th training shape."""
+    mesh = sphere_mesh()
+    io.save_mesh(tmp_path / "a.vtk", mesh)
+    io.save_mesh(tmp_path / "b.vtk", mesh)
+    for name in (".a.vtk.k2j3h4.tmp.vtk", ".a.99999999.x8d7.tmp.vtk", ".hidden.vtk", "c.vtk~"):
+        (tmp_path / name).write_bytes((tmp_path / "a.vtk").read_bytes())
+    assert [p.name for p in io.expand_mesh_paths([tmp_path])] == ["a.vtk", "b.vtk"]
+    # the next save of a.vtk removes the temporary of the process that no longer runs
+    io.save_mesh(tmp_path / "a.vtk", mesh)
+    assert not (tmp_path / ".a.99999999.x8d7.tmp.vtk").exists()
+    assert (tmp_path / ".hidden.vtk").exists()
+
+
+def test_special_files_are_named_for_what_they_are(tmp_path):
+    fifo = tmp_path / "pipe.vtk"
+    os.mkfifo(fifo)
+    with pytest.raises(DataFileError, match="pipe.vtk: is a named pipe"):
+        io.load_mesh(fifo)  # before: "file is empty" (or a hang)
+    with pytest.raises(DataFileError, match="/dev/zero: is a device"):
+        io.load_points("/dev/zero")
+
+
+def test_non_utf8_file_names_are_read_and_named(tmp_path):
+    """Before: a codec error that named no file, for valid files too."""
+    name = os.fsdecode(b"caf\xe9")
+    io.save_mesh(tmp_path / f"{name}.vtk", sphere_mesh())
+    io.save_mesh(tmp_path / f"{name}.vtp", sphere_mesh())
+    for suffix in (".vtk", ".vtp"):
+        np.testing.assert_allclose(io.load_mesh(tmp_path / f"{name}{suffix}").vertices,
+                                   sphere_mesh().vertices, atol=1e-5)
+    (tmp_path / f"{name}.stl").write_bytes(b"solid x\n")
+    with pytest.raises(DataFileError) as info:
+        io.load_mesh(tmp_path / f"{name}.stl")
+    assert "caf\ufffd.stl" in str(info.value)
+    str(info.value).encode("utf-8")  # printable
+
+
+def test_library_warnings_become_one_line_notes_naming_the_file(tmp_path, capsys):
+    """nibabel's warnings leaked to stderr as two-line reports; now one line each."""
+    from core.cli import main
+
+    img = nib.Nifti1Image(np.full((4, 4, 4), 1000, np.int16), np.eye(4))
+    img.header.set_slope_inter(1e38, 0)  # numpy warns: overflow encountered in cast
+    path = tmp_path / "odd.nii"
+    img.to_filename(str(path))
+    model = tmp_path / "m.npz"
+    io.save_model(model, small_model())
+    io.save_points(tmp_path / "p.csv", small_model().mean[:3])
+    main(["segment", "--model", str(model), "--points", str(tmp_path / "p.csv"), "--image",
+          str(path), "--out", str(tmp_path / "mask.nii.gz")])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert all(ln.startswith("ssm-studio segment: ") for ln in err), err
+    assert any("odd.nii" in ln and "warning" in ln for ln in err), err
+
+
+@pytest.mark.parametrize("name, text, expected", [
+    ("lps.csv", "label,l,p,s,defined,selected,visible,locked,description\n"
+                "F-1,-19.9,13.9,29.4,1,1,1,0,\nF-2,-7.4,-76.9,17.6,1,1,1,0,\nF-3,1,1,1,0,1,1,0,\n",
+     [[19.9, -13.9, 29.4], [7.4, 76.9, 17.6]]),
+    ("ras.csv", "label,r,a,s\nF-1,-19.9,13.9,29.4\n", [[-19.9, 13.9, 29.4]]),
+    ("lps.tsv", "label\tl\tp\ts\nF-1\t1\t2\t3\n", [[-1, -2, 3]]),
+    ("plain.csv", "x,y,z\n1,2,3\n", [[1, 2, 3]]),
+    ("new.fcsv", "# Markups fiducial file version = 4.11\n# CoordinateSystem = LPS\n"
+                 "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+                 "1,1,2,3,0,0,0,1,1,1,0,F-1,,\n", [[-1, -2, 3]]),
+    ("ras.fcsv", "# Markups fiducial file version = 4.10\n# CoordinateSystem = 0\n"
+                 "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+                 "1,1,2,3,0,0,0,1,1,1,0,F-1,,\n", [[1, 2, 3]]),
+    ("old.fcsv", "# Markups fiducial file version = 4.6\n"
+                 "vtkMRMLMarkupsFiducialNode_0,1,2,3,0,0,0,1,1,1,0,F-1,,\n", [[1, 2, 3]]),
+    ("empty_system.mrk.json", json.dumps({"markups": [{"coordinateSystem": "", "controlPoints": [
+        {"position": [1, 2, 3], "positionStatus": "defined"}]}]}), [[-1, -2, 3]]),
+    ("preview.json", json.dumps({"@schema": "markups-schema-v1.0.3.json", "markups": [{
+        "coordinateSystem": "RAS", "controlPoints": [
+            {"position": [1, 2, 3], "positionStatus": "defined"},
+            {"position": [], "positionStatus": "preview"}]}]}), [[1, 2, 3]]),
+])
+def test_slicer_point_files_read_in_ras(tmp_path, name, text, expected):
+    path = tmp_path / name
+    path.write_text(text)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        points = io.load_points(path)
+    np.testing.assert_allclose(points.points, expected)
+    notes = [str(w.message) for w in caught]
+    if name in ("lps.csv", "preview.json"):  # the skipped point is said, naming the file
+        assert len(notes) == 1 and notes[0].startswith(str(path)) and "skipped" in notes[0]
+    else:
+        assert notes == []
+
+
+def test_markups_json_is_recognised_as_points_not_session(tmp_path):
+    from core.io.points import is_markups_file
+    from core.session import Session, save_session
+
+    io.save_points(tmp_path / "p.json", np.array([[1.0, 2, 3]]))
+    save_session(tmp_path / "s.json", Session(points=[[1.0, 2, 3]]))
+    assert is_markups_file(tmp_path / "p.json")
+    assert not is_markups_file(tmp_path / "s.json")

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -340,3 +341,111 @@ def test_recovery_stores_absolute_paths(tmp_path, monkeypatch):
     doc = json.loads(path.read_text())
     assert doc["image"] == str(tmp_path / "scan.nii")
     assert doc["model"] == str(tmp_path / "models" / "m.npz")
+
+
+# --------------------------------------------------------------------------------------
+# Issue 18: deep JSON, options and coefficients that do not fit, PID-only recovery check
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name, doc, phrase", [
+    ("deep", "[" * 100000 + "]" * 100000, "nested too deeply"),  # was a RecursionError
+    ("method", {"fit": {"method": "magic"}}, "fit method 'magic' is not one of"),
+    ("pose", {"fit": {"pose": "wobbly"}}, "fit pose 'wobbly' is not one of"),
+    ("prior", {"fit": {"prior_weight": -2}}, "prior_weight must be a number >= 0"),
+    ("prior_bool", {"fit": {"prior_weight": True}}, "prior_weight must be a number"),
+])
+def test_session_errors_name_the_session(tmp_path, name, doc, phrase):
+    """Before: deep JSON gave a traceback; bad fit options failed later in the GUI's fit
+    panel with a message that did not name the session."""
+    path = tmp_path / f"{name}.json"
+    if isinstance(doc, str):
+        path.write_text(doc)
+    else:
+        path.write_text(json.dumps({"format": "ssm-studio-session", "format_version": 1,
+                                    "points": [[1, 2, 3]], **doc}))
+    with pytest.raises(DataFileError, match=phrase) as info:
+        sessions.load_session(path)
+    assert str(info.value).startswith(str(path))
+
+
+def _model(n_factors: int):
+    from core.shape_model import ShapeModel
+
+    mean = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    return ShapeModel(mean=mean, factors=np.ones((n_factors, 4, 3)),
+                      coef_var=np.ones(n_factors), faces=np.array([[0, 1, 2], [0, 1, 3]]))
+
+
+def test_session_whose_coefficients_do_not_fit_the_model_is_refused_whole(tmp_path):
+    """Before: three Qt-slot tracebacks, then the error; now one error naming the session,
+    raised before any of it is applied (the GUI's session controller reads through it)."""
+    from app.controllers import SessionController
+    from core.io import save_model
+
+    save_model(tmp_path / "m.npz", _model(3))
+    sessions.save_session(tmp_path / "s.json", Session(model=tmp_path / "m.npz",
+                                                       points=[[1.0, 2, 3]], coef=[0.1] * 5))
+    with pytest.raises(DataFileError, match="s.json: the session holds 5 shape coefficients "
+                                            "but the model has 3 factors"):
+        SessionController.read(tmp_path / "s.json")
+    sessions.check_session_model(Session(coef=[0.1] * 3), _model(3), tmp_path / "s.json")
+
+
+def test_zombie_recovery_writer_is_recognised_as_ended(state_dir):
+    """Before: os.kill(pid, 0) succeeds on a zombie, so the crashed run was never offered."""
+    code = ("import os, time\nfrom core import session as s\n"
+            "s.write_recovery(s.Session(points=[[4.0, 5.0, 6.0]]))\nos._exit(3)\n")
+    env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state_dir))
+    child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env)
+    try:
+        deadline = time.monotonic() + 30
+        while Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z":
+            assert time.monotonic() < deadline, "the child did not end"
+            time.sleep(0.02)
+        # its other threads may still be ending (holding the files) for a moment
+        while not sessions.previous_run_crashed():
+            assert time.monotonic() < deadline, "a zombie writer was taken for running"
+            time.sleep(0.02)
+        os.kill(child.pid, 0)  # the pid still "exists": it is a zombie, not reaped
+        np.testing.assert_array_equal(sessions.read_recovery().points, [[4.0, 5.0, 6.0]])
+    finally:
+        child.wait()
+
+
+def test_reused_pid_does_not_hide_a_crashed_run(state_dir):
+    """A recovery file whose writer ended, and whose pid now belongs to another process
+    (checked by the start time the writer recorded): offered (before: suppressed)."""
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        own = sessions.write_recovery(Session(points=[[7.0, 8.0, 9.0]]))
+        sessions._release_lock()  # as when this process has ended
+        doc = json.loads(own.read_text())
+        doc["writer"]["pid"] = other.pid
+        doc["writer"]["started"] -= 1000  # the writer started before the process now there
+        target = state_dir / f"recovery-{other.pid}-a.json"
+        target.write_text(json.dumps(doc))
+        own.unlink()
+        assert sessions.previous_run_crashed()
+        np.testing.assert_array_equal(sessions.read_recovery().points, [[7.0, 8.0, 9.0]])
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_running_writer_holds_its_lock(state_dir):
+    """A live instance (lock held) is not offered, even when its files look old."""
+    code = ("import sys, time\nfrom core import session as s\n"
+            "s.write_recovery(s.Session(points=[[1.0, 1.0, 1.0]]))\nprint('ready', flush=True)\n"
+            "sys.stdin.readline()\n")
+    env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state_dir))
+    child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env, text=True,
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        assert (state_dir / f"recovery-{child.pid}.lock").exists()
+        assert not sessions.previous_run_crashed()
+    finally:
+        child.kill()
+        child.wait()
+    assert sessions.previous_run_crashed()  # killed: the lock went with it
