@@ -161,6 +161,17 @@ def test_cli_build_and_convert_refuse_damaged_inputs(corpus, good, tmp_path, cap
     assert not problems, "\n".join(problems)
 
 
+def test_cli_plan_refuses_damaged_sessions(corpus, tmp_path, capsys):
+    if "plan" not in __import__("core.cli", fromlist=["command_modules"]).command_modules():
+        pytest.skip("no plan command")
+    problems = []
+    for case in _pick(corpus, "session"):
+        code, lines = _cli(["plan", "--session", str(case.path), "--out",
+                            str(tmp_path / "plan.json")], capsys)
+        problems += _cli_problems(f"plan --session {case.name}", case.path, code, lines)
+    assert not problems, "\n".join(problems)
+
+
 def test_cli_correspond_reports_a_damaged_mesh_and_goes_on(corpus, good, tmp_path, capsys):
     """One crashing-class file (a cell index past the points) among good ones: reported for
     that file, the others written (before: exit 139, no report)."""
