@@ -244,12 +244,12 @@ def _set_rotation(tx, previous) -> None:
 def register_sitk(fixed, moving, transform: str = "affine", *,
                   levels_mm: Sequence[float] = DEFAULT_LEVELS_MM, n_samples: int = 20000,
                   n_bins: int = 32, max_iterations: int = 200, random_state: int = 0,
-                  threads: int | None = None, initial=None,
+                  threads: int | None = None, initial=None, polish: bool = True,
                   progress: ProgressCallback | None = None) -> RegistrationResult:
     """Register two SimpleITK images; see :func:`register` for the parameters.
 
     ``initial`` is an optional RAS moving->fixed 4x4 starting matrix (default: the centres of
-    mass aligned).
+    mass aligned). ``polish`` repeats the finest level once with half the step and new samples.
     """
     sitk = _sitk()
     if transform not in TRANSFORMS:
@@ -285,7 +285,15 @@ def register_sitk(fixed, moving, transform: str = "affine", *,
     cancelled: list[BaseException] = []
     metric = np.nan
     initial_metric = np.nan
-    for li, res in enumerate(levels):
+    # Every level, then the finest once more from where it stopped with a smaller step and a
+    # fresh sample set: regular-step descent on a sampled metric stops early in a sampling
+    # artefact's shallow minimum, and the restart leaves it (measured: mean error over the
+    # brain 1.0-1.3 mm instead of 1.6-3.1 mm for pairs of 4 mm images).
+    schedule = [(li, res, res / 2.0) for li, res in enumerate(levels)]
+    if polish:
+        schedule.append((n_levels - 1, levels[-1], levels[-1] / 4.0))
+    n_stages = len(schedule)
+    for stage, (li, res, step) in enumerate(schedule):
         kind = transform
         if transform == "affine" and li == 0 and n_levels > 1 and initial is None:
             kind = "similarity"  # pose first, then the 12 parameters
@@ -295,18 +303,19 @@ def register_sitk(fixed, moving, transform: str = "affine", *,
         method = sitk.ImageRegistrationMethod()
         method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=int(n_bins))
         method.SetMetricSamplingStrategy(method.RANDOM)
-        method.SetMetricSamplingPercentage(min(1.0, n_samples / max(n_vox, 1)), int(random_state) + li + 1)
+        method.SetMetricSamplingPercentage(min(1.0, n_samples / max(n_vox, 1)),
+                                           int(random_state) + stage + 1)
         method.SetInterpolator(sitk.sitkLinear)
         method.SetOptimizerAsRegularStepGradientDescent(
-            learningRate=res / 2.0, minStep=res / 200.0, numberOfIterations=int(max_iterations),
+            learningRate=step, minStep=res / 200.0, numberOfIterations=int(max_iterations),
             relaxationFactor=0.6, gradientMagnitudeTolerance=1e-8)
         method.SetOptimizerScalesFromPhysicalShift()
         method.SetInitialTransform(current, inPlace=True)
-        if li == 0:
+        if stage == 0:
             initial_metric = float(method.MetricEvaluate(f_l, m_l))
 
-        def on_iteration(method=method, li=li) -> None:
-            frac = (li + min(method.GetOptimizerIteration() / max_iterations, 1.0)) / n_levels
+        def on_iteration(method=method, stage=stage, res=res) -> None:
+            frac = (stage + min(method.GetOptimizerIteration() / max_iterations, 1.0)) / n_stages
             try:
                 report(progress, frac, f"{res:g} mm: metric {method.GetMetricValue():.4f}")
             except BaseException as exc:  # Cancelled (or anything): stop the optimiser now
@@ -332,7 +341,7 @@ def register(moving_data: np.ndarray, moving_affine: np.ndarray, fixed_data: np.
              levels_mm: Sequence[float] = DEFAULT_LEVELS_MM, n_samples: int = 20000,
              n_bins: int = 32, max_iterations: int = 200, random_state: int = 0,
              threads: int | None = None, initial: np.ndarray | None = None,
-             progress: ProgressCallback | None = None) -> RegistrationResult:
+             polish: bool = True, progress: ProgressCallback | None = None) -> RegistrationResult:
     """Register the moving image onto the fixed image (mutual information, multi-resolution).
 
     Parameters
@@ -349,6 +358,7 @@ def register(moving_data: np.ndarray, moving_affine: np.ndarray, fixed_data: np.
     random_state : seed of the metric's sampling.
     threads : ITK threads (None: ITK's default, all cores).
     initial : (4, 4) RAS moving->fixed start (None: centres of mass aligned).
+    polish : run the finest level a second time (half the step, new samples).
     progress : callable ``progress(fraction, message)``; may raise ``Cancelled``.
 
     Returns
@@ -360,7 +370,7 @@ def register(moving_data: np.ndarray, moving_affine: np.ndarray, fixed_data: np.
                          volume_to_sitk(moving_data, moving_affine), transform,
                          levels_mm=levels_mm, n_samples=n_samples, n_bins=n_bins,
                          max_iterations=max_iterations, random_state=random_state,
-                         threads=threads, initial=initial, progress=progress)
+                         threads=threads, initial=initial, polish=polish, progress=progress)
 
 
 def register_volumes(moving, fixed, transform: str = "affine", **kwargs) -> RegistrationResult:

@@ -1,0 +1,413 @@
+"""The one executor for independent jobs: per-shape correspondence, per-fold evaluation, per-pair
+image registration. A job list runs in a local process pool (default) or, with a scheduler, as
+Dask tasks on a Dask distributed cluster (Rocklin, "Dask: parallel computation with blocked
+algorithms and task scheduling", SciPy 2015; the ``distributed`` scheduler) -- the same call,
+the same results.
+
+:func:`run_jobs` calls ``fn(arg, common)`` for every ``(key, arg)`` item:
+
+- ``common`` (e.g. the reference mesh, or the training shapes of all folds) is sent once per
+  worker process -- through the pool's initialiser, or scattered once to the Dask cluster --
+  not once per job;
+- jobs are submitted through a bounded window (a few per worker), and every result is handed
+  to ``on_result(key, result)`` as soon as it arrives, so a caller can write it and keep only a
+  summary: memory on the client stays flat in the number of jobs;
+- ``progress(fraction, message)`` follows completed jobs; raising
+  :class:`core.progress.Cancelled` from it (the GUI's Cancel) stops everything.
+
+Interruption (issue 18 item 14). :func:`termination_signals` (installed by the command line for
+every command) turns SIGTERM into :class:`Terminated`, as Python already turns SIGINT into
+``KeyboardInterrupt``. The executor's waits are short timeouts, so either exception surfaces
+within a fraction of a second; the pool's workers are then terminated (and ignore SIGINT
+themselves, so a Ctrl-C to the terminal's process group does not spray tracebacks), outstanding
+Dask futures are cancelled, and the exception propagates to the command, which writes what
+completed and exits 130 (SIGINT) or 143 (SIGTERM). On Linux, pool workers also ask the kernel
+for SIGTERM when their parent dies (``PR_SET_PDEATHSIG``), so even a SIGKILLed parent leaves
+no worker computing.
+
+Dask. ``scheduler`` is ``"local:N"`` (a ``LocalCluster`` of N single-threaded worker processes
+on this machine) or the address of a running scheduler (``tcp://host:8786``, started with
+``dask scheduler``; workers with ``dask worker ADDRESS``; they must have SSM Studio installed and
+see the input paths). :func:`use_scheduler` opens the client once for a whole command; jobs of
+a worker that dies are rescheduled on the others by Dask itself, so the run completes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import os
+import signal
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any
+
+from core.progress import ProgressCallback, report
+
+_SCHEDULER: contextvars.ContextVar = contextvars.ContextVar("ssm_studio_scheduler", default=None)
+_COMMON: Any = None  # a pool worker's copy of ``common``
+
+
+class Terminated(BaseException):
+    """Raised in the main thread when the process receives SIGTERM (exit code 128 + 15)."""
+
+    def __init__(self, signum: int = signal.SIGTERM):
+        super().__init__(f"terminated by signal {signum}")
+        self.signum = int(signum)
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+@contextlib.contextmanager
+def termination_signals() -> Iterator[None]:
+    """While active, SIGTERM raises :class:`Terminated` in the main thread (SIGINT stays
+    ``KeyboardInterrupt``). A no-op outside the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_term(signum, frame):
+        raise Terminated(signum)
+
+    previous_term = signal.signal(signal.SIGTERM, on_term)
+    previous_int = signal.getsignal(signal.SIGINT)
+    if previous_int in (signal.SIG_IGN, None):  # e.g. started in the background by a shell
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous_term)
+        if previous_int in (signal.SIG_IGN, None):
+            signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)
+
+
+# ----------------------------------------------------------------------------- scheduler choice
+
+def check_scheduler(value: str | None) -> str | None:
+    """Validate a ``--scheduler`` value: ``local:N`` or a scheduler address (one-line errors)."""
+    if value is None:
+        return None
+    value = str(value).strip()
+    if value.startswith("local:"):
+        n = value.split(":", 1)[1]
+        if not n.isdigit() or int(n) < 1:
+            raise ValueError(f"--scheduler local:N needs a positive number of workers, got {value!r}")
+        return value
+    if not value or " " in value:
+        raise ValueError(f"--scheduler expects local:N or a scheduler address like "
+                         f"tcp://host:8786, got {value!r}")
+    return value
+
+
+def _dask_client(scheduler: str):
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ValueError("--scheduler needs Dask distributed: pip install 'ssm-studio[cluster]'") from None
+    import logging
+
+    if scheduler.startswith("local:"):
+        cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1,
+                               processes=True, dashboard_address=None,
+                               silence_logs=logging.ERROR)
+        return Client(cluster), cluster
+    try:
+        return Client(scheduler, timeout="10s"), None
+    except (OSError, TimeoutError) as exc:
+        raise ValueError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+
+
+@contextlib.contextmanager
+def use_scheduler(scheduler: str | None) -> Iterator[Any]:
+    """Run every :func:`run_jobs` inside the block on this Dask scheduler (None: process pool).
+
+    Opens the client (and, for ``local:N``, the LocalCluster) once, closes it at the end.
+    Yields the ``distributed.Client`` (or None).
+    """
+    scheduler = check_scheduler(scheduler)
+    if scheduler is None:
+        token = _SCHEDULER.set(None)
+        try:
+            yield None
+        finally:
+            _SCHEDULER.reset(token)
+        return
+    client, cluster = _dask_client(scheduler)
+    token = _SCHEDULER.set(client)
+    try:
+        yield client
+    finally:
+        _SCHEDULER.reset(token)
+        with contextlib.suppress(Exception):
+            client.close(timeout=2)
+        if cluster is not None:
+            with contextlib.suppress(Exception):
+                cluster.close(timeout=2)
+
+
+def active_client():
+    """The Dask client set by :func:`use_scheduler`, or None."""
+    return _SCHEDULER.get()
+
+
+def runs_inline(n_jobs: int | None, n_items: int) -> bool:
+    """Whether :func:`run_jobs` would run in this process (no scheduler, one job or one core)."""
+    return active_client() is None and (resolve_jobs(n_jobs) <= 1 or n_items <= 1)
+
+
+def resolve_jobs(n_jobs: int | None) -> int:
+    """Worker processes for a pool: ``n_jobs`` or the CPU count."""
+    return max(1, int(n_jobs)) if n_jobs is not None else (os.cpu_count() or 1)
+
+
+# ----------------------------------------------------------------------------- pool workers
+
+_BLAS_KEYS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def single_threaded_children() -> Iterator[None]:
+    """Spawned workers inherit these: one BLAS thread each, so n processes fill n cores."""
+    saved = {key: os.environ.get(key) for key in _BLAS_KEYS}
+    os.environ.update({key: "1" for key in _BLAS_KEYS})
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def _die_with_parent() -> None:
+    """Linux: ask for SIGTERM when the parent process dies (no orphan keeps computing)."""
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+
+
+def _pool_init(common: Any, parent_pid: int) -> None:
+    global _COMMON
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it terminates us
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent()
+    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+        os._exit(1)
+    _COMMON = common
+
+
+def _pool_call(fn: Callable, key: Any, arg: Any) -> tuple[Any, Any]:
+    return key, fn(arg, _COMMON)
+
+
+def _dask_call(fn: Callable, arg: Any, common: Any) -> Any:
+    return fn(arg, common)
+
+
+# ----------------------------------------------------------------------------- executor
+
+class JobError(RuntimeError):
+    """A job raised; ``key`` says which (the original exception is chained)."""
+
+    def __init__(self, key: Any, exc: BaseException):
+        super().__init__(f"job {key!r} failed: {type(exc).__name__}: {exc}")
+        self.key = key
+
+
+def run_jobs(fn: Callable[[Any, Any], Any], items: Iterable[tuple[Any, Any]], *,
+             common: Any = None, n_jobs: int | None = None, total: int | None = None,
+             progress: ProgressCallback | None = None,
+             on_result: Callable[[Any, Any], Any] | None = None, label: str = "jobs",
+             scheduler: str | None = None, window: int | None = None,
+             retries: int = 0) -> dict[Any, Any]:
+    """Run ``fn(arg, common)`` for every ``(key, arg)`` of ``items``; results by key.
+
+    Parameters
+    ----------
+    fn : module-level callable (picklable)
+    items : iterable of (key, arg); consumed lazily through the submission window.
+    common : sent once per worker; ``fn`` receives it as its second argument.
+    n_jobs : pool processes (None: CPU count; 1 runs here, in order). Ignored on Dask.
+    total : number of items when ``items`` has no ``len``, for progress.
+    progress : ``progress(fraction, message)`` after every completed job; may raise
+        ``Cancelled`` to stop.
+    on_result : called in this process as each result arrives; what it returns is stored
+        instead of the result (return a small summary to keep memory flat).
+    label : word for the progress messages.
+    scheduler : ``local:N`` or an address; default: the one of the enclosing
+        :func:`use_scheduler`, else the process pool.
+    window : jobs in flight at once (default 4 per worker).
+    retries : Dask only: times a job that *raised* is retried (a job on a worker that died
+        is always rescheduled by Dask).
+
+    Raises
+    ------
+    JobError
+        A job raised (the others are stopped).
+    KeyboardInterrupt, Terminated, Cancelled
+        Propagated after the workers are stopped.
+    """
+    if total is None and isinstance(items, Sequence):
+        total = len(items)
+    iterator = iter(items)
+    keep = on_result if on_result is not None else (lambda key, result: result)
+    if scheduler is not None:
+        with use_scheduler(scheduler) as client:
+            return _run_dask(client, fn, iterator, common, total, progress, keep, label,
+                             window, retries)
+    client = active_client()
+    if client is not None:
+        return _run_dask(client, fn, iterator, common, total, progress, keep, label, window, retries)
+    n = resolve_jobs(n_jobs)
+    if n <= 1 or (total is not None and total <= 1):
+        return _run_inline(fn, iterator, common, total, progress, keep, label)
+    return _run_pool(fn, iterator, common, n if total is None else min(n, total), total,
+                     progress, keep, label, window)
+
+
+def _message(label: str, done: int, total: int | None) -> str:
+    return f"{label} {done}/{total}" if total else f"{label} {done}"
+
+
+def _run_inline(fn, iterator, common, total, progress, keep, label) -> dict:
+    results: dict = {}
+    for key, arg in iterator:
+        try:
+            out = fn(arg, common)
+        except Exception as exc:
+            raise JobError(key, exc) from exc
+        results[key] = keep(key, out)
+        report(progress, len(results) / total if total else 0.0, _message(label, len(results), total))
+    return results
+
+
+def _run_pool(fn, iterator, common, n, total, progress, keep, label, window) -> dict:
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    # spawn, not fork: no fork of a (possibly) multi-threaded GUI or BLAS process.
+    # concurrent.futures rather than multiprocessing.Pool: Pool.terminate() can deadlock on the
+    # task queue's lock held by a worker it kills; this executor survives killed workers.
+    with single_threaded_children():
+        executor = ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"),
+                                       initializer=_pool_init, initargs=(common, os.getpid()))
+    results: dict = {}
+    limit = max(1, int(window) if window else 4 * n)
+    in_flight: dict = {}
+    exhausted = False
+
+    def submit_more() -> None:
+        nonlocal exhausted
+        while not exhausted and len(in_flight) < limit:
+            try:
+                key, arg = next(iterator)
+            except StopIteration:
+                exhausted = True
+                return
+            in_flight[executor.submit(_pool_call, fn, key, arg)] = key
+
+    try:
+        submit_more()
+        while in_flight:
+            # short waits: SIGINT/SIGTERM are handled within a fraction of a second
+            finished, _ = wait(list(in_flight), timeout=0.1, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                key = in_flight.pop(fut)
+                exc = fut.exception()
+                if exc is not None:
+                    raise JobError(key, exc) from exc
+                results[key] = keep(key, fut.result()[1])
+                report(progress, len(results) / total if total else 0.0,
+                       _message(label, len(results), total))
+            submit_more()
+        executor.shutdown(wait=True)
+    except BaseException:
+        _terminate_executor(executor)
+        raise
+    return results
+
+
+def _terminate_executor(executor) -> None:
+    """Stop the workers now: SIGTERM, SIGKILL for any still alive after 1 s, no waiting on jobs."""
+    procs = list((getattr(executor, "_processes", None) or {}).values())
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    deadline = time.monotonic() + 1.0
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.kill()
+                p.join(0.5)
+    with contextlib.suppress(Exception):
+        executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _run_dask(client, fn, iterator, common, total, progress, keep, label, window, retries) -> dict:
+    from distributed import as_completed
+
+    n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+    limit = max(1, int(window) if window else 4 * n_workers)
+    tag = uuid.uuid4().hex[:8]
+    # One future for the whole object (scattering a dict or list would scatter its items).
+    common_future = (client.scatter([common], broadcast=True, hash=False)[0]
+                     if common is not None else None)
+    keys: dict = {}
+    results: dict = {}
+    pending = as_completed()
+    counter = 0
+    exhausted = False
+
+    def submit_more() -> None:
+        nonlocal counter, exhausted
+        while not exhausted and pending.count() < limit:
+            try:
+                key, arg = next(iterator)
+            except StopIteration:
+                exhausted = True
+                return
+            fut = client.submit(_dask_call, fn, arg, common_future, pure=False,
+                                key=f"ssm-{label.replace(' ', '_')}-{tag}-{counter}",
+                                retries=int(retries))
+            keys[fut.key] = key
+            counter += 1
+            pending.add(fut)
+
+    try:
+        submit_more()
+        while not pending.is_empty():
+            batch = pending.next_batch(block=False)
+            if not batch:
+                time.sleep(0.05)  # short waits: signals are handled promptly
+                continue
+            for fut in batch:
+                key = keys.pop(fut.key)
+                try:
+                    value = fut.result()
+                except Exception as exc:
+                    raise JobError(key, exc) from exc
+                fut.release()
+                results[key] = keep(key, value)
+                report(progress, len(results) / total if total else 0.0,
+                       _message(label, len(results), total))
+            submit_more()
+    except BaseException:
+        with contextlib.suppress(Exception):
+            client.cancel(list(pending.futures), force=True)
+        raise
+    finally:
+        if common_future is not None:
+            with contextlib.suppress(Exception):
+                common_future.release()
+    return results
