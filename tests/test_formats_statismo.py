@@ -185,3 +185,28 @@ def test_reads_a_statismo_08_file_with_an_embedded_vtk_reference(tmp_path):
     assert np.allclose(model.coef_var, variance, rtol=1e-5)
     gram = model.basis.T @ model.basis  # the U sqrt(lambda) of 0.8 became orthonormal U
     assert np.allclose(gram, np.eye(len(gram)), atol=1e-4)
+
+
+def test_demo_model_as_foreign_statismo_file_fits_to_the_same_surface(tmp_path):
+    """The demo LSF model written as .h5 and read back as another tool would (PCA form, LPS,
+    no ssmstudio group): the same Gaussian, so the fit to the demo contours is the same."""
+    from pathlib import Path
+
+    from core.io import load_model, load_points, save_model
+    from core.reconstruction import fit_points
+
+    demo = Path(__file__).resolve().parents[1] / "resources" / "demo"
+    if not (demo / "model.npz").exists() or not (demo / "contour_points.csv").exists():
+        pytest.skip("demo model or contour points missing")
+    model = load_model(demo / "model.npz")
+    save_model(tmp_path / "demo.h5", model)
+    with h5py.File(tmp_path / "demo.h5", "a") as h5:
+        del h5["ssmstudio"]
+    foreign = load_model(tmp_path / "demo.h5")
+    assert foreign.method == "statismo" and foreign.n_factors == model.n_factors
+    points = load_points(demo / "contour_points.csv")
+    ours = fit_points(model, points.points, points.normals)
+    theirs = fit_points(foreign, points.points, points.normals)
+    # float32 storage in the file: agreement to ~1e-4 mm on a 50 mm structure
+    assert np.abs(ours.vertices - theirs.vertices).max() < 1e-3
+    assert theirs.residual_mm == pytest.approx(ours.residual_mm, abs=1e-4)
