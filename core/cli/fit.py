@@ -86,12 +86,18 @@ def placement_from_arg(text: str | None, model) -> np.ndarray | None:
     return matrix
 
 
-def fit_from_args(args: argparse.Namespace):
-    """Load the model and points named in ``args`` and fit; returns (model, FitResult)."""
+def fit_from_args(args: argparse.Namespace, placement_of=None):
+    """Load the model and points named in ``args`` and fit; returns (model, FitResult).
+
+    ``placement_of(model)``, if given, returns the placement to use (``segment --auto-place``).
+    """
     model = load_model(args.model)
     points = load_points(args.points)
     normals = None if args.no_normals else points.normals
-    placement = placement_from_arg(getattr(args, "placement", None), model)
+    if placement_of is not None:
+        placement = placement_of(model)
+    else:
+        placement = placement_from_arg(getattr(args, "placement", None), model)
     try:
         result = fit_points(model, points.points, normals, method=args.method, pose=args.pose,
                             prior_weight=args.prior_weight, outlier_weight=args.outlier_weight,

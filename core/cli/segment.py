@@ -9,6 +9,10 @@ NIfTI (with the image's own sform, qform and codes when the image is NIfTI, so v
 read the qform where nibabel reads the sform agree; else the affine as both), NRRD or MHA (the same geometry in LPS), or
 ``.seg.nrrd``, a 3D Slicer Segmentation carrying the structure's ``--name`` and ``--color``.
 3D Slicer and ITK-SNAP open each aligned with the image.
+
+``--auto-place`` registers the image to the models' template first (``--template``, default the
+bundled MNI T1; affine, mutual information) and places the model through that transform
+(``core.placement``) instead of using the model's stored placement.
 """
 
 from __future__ import annotations
@@ -57,6 +61,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--color", type=_color, default=(0.9, 0.7, 0.2),
                         help="structure colour in a .seg.nrrd: r,g,b in 0-1 or #rrggbb")
     parser.add_argument("--mesh-out", type=Path, default=None, help="also write the fitted surface")
+    parser.add_argument("--auto-place", action="store_true",
+                        help="place the model by registering the image to the model's template "
+                             "(affine, mutual information) instead of --placement")
+    parser.add_argument("--template", default=None,
+                        help="template image for --auto-place (default: the bundled MNI ICBM152 "
+                             "T1, the demo models' space)")
 
 
 def save_label_map(path: Path, mask, affine, label: int, name: str, color, like=None) -> None:
@@ -81,15 +91,32 @@ def run(args: argparse.Namespace) -> int:
         print(f"ssm-studio segment: {message}", file=sys.stderr)
 
     image = load_volume(args.image, series=args.series, notify=notify)  # fail early, before fitting
-    model, result = fit_from_args(args)
+    placement_of, registration = None, None
+    if args.auto_place:
+        if args.placement is not None:
+            raise ValueError("--auto-place and --placement exclude each other")
+        from core.placement import placement_through, register_to_template
+        from core.progress import StderrProgress
+
+        registration = register_to_template(image, args.template,
+                                            progress=StderrProgress("registering"))
+        notify(f"registered {args.image} to the template in {registration.seconds:.1f} s "
+               f"(metric {registration.metric:.3f})")
+
+        def placement_of(model):
+            return placement_through(model, registration.transform)
+    elif args.template is not None:
+        raise ValueError("--template goes with --auto-place")
+    model, result = fit_from_args(args, placement_of)
     mask = voxelize(result.vertices, model.faces, image, label=args.label)
     name = args.name or Path(str(args.model)).name.split(".")[0]
     save_label_map(args.out, mask, image.affine, args.label, name, args.color, like=image)
     if args.mesh_out is not None:
         save_mesh(args.mesh_out, TriMesh(result.vertices, model.faces, Path(args.mesh_out).stem))
     volume_mm3 = mask_volume_mm3(mask, image.affine)
+    extra = {} if registration is None else {"auto_placement": registration.to_dict()}
     write_json(args.json, result, model=str(args.model), points=str(args.points),
-               image=str(args.image), mask=str(args.out), mask_volume_mm3=volume_mm3)
+               image=str(args.image), mask=str(args.out), mask_volume_mm3=volume_mm3, **extra)
     print(f"{args.out}: {summary(result)}; mask {volume_mm3 / 1000:.2f} cm^3")
     if volume_mm3 == 0:
         print(f"ssm-studio segment: warning: the fitted surface does not overlap {args.image}")
