@@ -30,7 +30,7 @@ import numpy as np
 
 from core.io import TriMesh
 from core.models import make_model, model_class
-from core.models.base import DeformationModel
+from core.models.base import ShapeModelEstimator
 from core.progress import ProgressCallback, report, sub_progress
 from core.shape_model import ShapeModel
 
@@ -73,7 +73,7 @@ class BuildResult:
     """
 
     model: ShapeModel
-    estimator: DeformationModel
+    estimator: ShapeModelEstimator
     names: list[str]
     meshes: list[TriMesh]
     shapes: np.ndarray
@@ -157,13 +157,15 @@ _align_stage = align
 
 def fit_model(aligned: np.ndarray, faces: np.ndarray, *, method: str = "pca",
               n_factors: int | None = None, method_params: dict[str, Any] | None = None,
-              progress: ProgressCallback | None = None) -> DeformationModel:
-    """Stage 3: fit the ``method`` estimator on aligned shapes (K, N, 3)."""
+              progress: ProgressCallback | None = None) -> ShapeModelEstimator:
+    """Stage 3: fit the ``method`` estimator on aligned shapes (K, N, 3); the mesh ``faces``
+    are its ``connectivity``."""
     params = dict(method_params or {})
     if n_factors is not None:
         params["n_factors"] = int(n_factors)
+    params["connectivity"] = faces
     estimator = make_model(method, **params)
-    return estimator.fit(aligned, faces, progress=progress)
+    return estimator.fit(aligned, progress=progress)
 
 
 def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = False,
@@ -194,36 +196,9 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
         raise ValueError(f"transform must be one of {', '.join(TRANSFORMS)}; got {transform!r}")
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
-    corr = None
-    failures: dict[str, str] = {}
-    if isinstance(meshes, np.ndarray):
-        if correspond:
-            raise ValueError("correspond=True needs meshes, not an array of shapes")
-        if faces is None:
-            raise ValueError("faces are required when building from an array of shapes")
-        shapes = np.asarray(meshes, dtype=np.float64)
-        if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 3:
-            raise ValueError(f"shapes must be (K >= 3, N, 3), got {shapes.shape}")
-        faces = np.asarray(faces, dtype=np.int64)
-        names = [f"shape{i}" for i in range(len(shapes))]
-        corresponded = [TriMesh(s, faces, n) for s, n in zip(shapes, names)]
-        p_corr = 0.0
-    elif correspond:
-        p_corr = 0.6
-        t0 = time.perf_counter()
-        corr = _correspond_stage(meshes, reference=reference, n_references=n_references,
-                                 n_jobs=n_jobs, progress=sub_progress(progress, 0.0, p_corr))
-        timings["correspondence"] = time.perf_counter() - t0
-        failures = dict(corr.failures)
-        corresponded = [m for m in corr.meshes if m is not None]
-        if len(corresponded) < 3:
-            raise ValueError(f"only {len(corresponded)} meshes could be put in correspondence "
-                             f"(failures: {failures}); a model needs at least 3")
-        names, shapes, faces = corresponded_shapes(corresponded)
-    else:
-        p_corr = 0.0
-        names, shapes, faces = corresponded_shapes(list(meshes))
-        corresponded = [m for m in meshes if m is not None]
+    names, shapes, faces, corresponded, corr, p_corr = _prepare_inputs(
+        meshes, correspond, faces, reference, n_references, n_jobs, progress, timings)
+    failures = dict(corr.failures) if corr is not None else {}
     p_align = p_corr + 0.1 * (1 - p_corr)
     t0 = time.perf_counter()
     alignment = _align_stage(shapes, method=align, transform=transform,
@@ -247,6 +222,37 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
     return BuildResult(model=model, estimator=estimator, names=names, meshes=corresponded,
                        shapes=shapes, aligned=alignment.aligned, transforms=alignment.transforms,
                        faces=faces, correspondence=corr, failures=failures, timings=timings)
+
+
+def _prepare_inputs(meshes, correspond: bool, faces, reference, n_references, n_jobs, progress,
+                    timings: dict):
+    """Stage 1 of :func:`build_model`: names, shapes (K, N, 3), faces, corresponded meshes,
+    the CorrespondenceResult (or None) and the progress share used."""
+    if isinstance(meshes, np.ndarray):
+        if correspond:
+            raise ValueError("correspond=True needs meshes, not an array of shapes")
+        if faces is None:
+            raise ValueError("faces are required when building from an array of shapes")
+        shapes = np.asarray(meshes, dtype=np.float64)
+        if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 3:
+            raise ValueError(f"shapes must be (K >= 3, N, 3), got {shapes.shape}")
+        faces = np.asarray(faces, dtype=np.int64)
+        names = [f"shape{i}" for i in range(len(shapes))]
+        return names, shapes, faces, [TriMesh(s, faces, n) for s, n in zip(shapes, names)], \
+            None, 0.0
+    if not correspond:
+        names, shapes, faces = corresponded_shapes(list(meshes))
+        return names, shapes, faces, [m for m in meshes if m is not None], None, 0.0
+    t0 = time.perf_counter()
+    corr = _correspond_stage(meshes, reference=reference, n_references=n_references,
+                             n_jobs=n_jobs, progress=sub_progress(progress, 0.0, 0.6))
+    timings["correspondence"] = time.perf_counter() - t0
+    corresponded = [m for m in corr.meshes if m is not None]
+    if len(corresponded) < 3:
+        raise ValueError(f"only {len(corresponded)} meshes could be put in correspondence "
+                         f"(failures: {dict(corr.failures)}); a model needs at least 3")
+    names, shapes, faces = corresponded_shapes(corresponded)
+    return names, shapes, faces, corresponded, corr, 0.6
 
 
 # --------------------------------------------------------------------------------------

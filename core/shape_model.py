@@ -46,7 +46,8 @@ class ShapeModel:
     coef_var : (M,) float ndarray
         Prior variance of each coefficient (> 0).
     faces : (F, 3) int ndarray
-        Triangles indexing the N vertices.
+        Triangles indexing the N vertices; (0, 3) for a point model learnt without a mesh
+        (an estimator fitted without ``connectivity``), which cannot be saved or shown.
     world_transform : (4, 4) float ndarray
         Model frame -> world (RAS, mm), homogeneous, column-vector convention.
     method : str
@@ -94,9 +95,11 @@ class ShapeModel:
         m = self.factors.shape[0]
         if self.coef_var.shape != (m,):
             return f"coef_var must have {m} entries (one per factor), got {self.coef_var.shape[0]}"
-        if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
+        if self.faces.size == 0:
+            self.faces = self.faces.reshape(0, 3)  # a point model without a mesh (see faces)
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
             return f"faces must be (F, 3) triangles, got shape {self.faces.shape}"
-        if self.faces.min() < 0 or self.faces.max() >= n:
+        if len(self.faces) and (self.faces.min() < 0 or self.faces.max() >= n):
             return f"faces index vertices outside 0..{n - 1}"
         if self.world_transform.shape != (4, 4):
             return f"world_transform must be 4x4, got {self.world_transform.shape}"
@@ -128,6 +131,32 @@ class ShapeModel:
         if coef.shape != (self.n_factors,):
             raise ValueError(f"expected {self.n_factors} coefficients, got {coef.shape[0]}")
         return self.mean + np.tensordot(coef, self.factors, axes=1)
+
+    def project(self, shapes: np.ndarray) -> np.ndarray:
+        """Least-squares coefficients (K, M) of shapes (K, N, 3) (or (M,) for one (N, 3)).
+
+        Solves the normal equations through the pseudo-inverse of the (M, M) Gram matrix with a
+        relative eigenvalue cut-off, so numerically dependent factors (e.g. more local factors
+        than training shapes) get the minimum-norm coefficients.
+        """
+        shapes = np.asarray(shapes, dtype=np.float64)
+        single = shapes.ndim == 2
+        shapes = shapes[None] if single else shapes
+        if shapes.shape[1:] != self.mean.shape:
+            raise ValueError(f"shapes must be (K, {self.n_vertices}, 3), got {shapes.shape}")
+        basis = self.basis
+        w, v = np.linalg.eigh(basis.T @ basis)
+        cutoff = 1e-12 * max(float(w[-1]) if len(w) else 0.0, 1e-300)
+        inv_w = np.where(w > cutoff, 1.0 / np.where(w > cutoff, w, 1.0), 0.0)
+        coef = ((shapes - self.mean).reshape(len(shapes), -1) @ basis) @ (v * inv_w) @ v.T
+        return coef[0] if single else coef
+
+    def instances(self, coef: np.ndarray) -> np.ndarray:
+        """Shapes (K, N, 3) for coefficient rows (K, M), in the model frame."""
+        coef = np.asarray(coef, dtype=np.float64)
+        if coef.ndim != 2 or coef.shape[1] != self.n_factors:
+            raise ValueError(f"expected (K, {self.n_factors}) coefficients, got {coef.shape}")
+        return self.mean + np.tensordot(coef, self.factors, axes=(1, 0))
 
     def to_world(self, points: np.ndarray) -> np.ndarray:
         """Map (N, 3) model-frame points to world coordinates with ``world_transform``."""

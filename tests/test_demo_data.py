@@ -178,8 +178,26 @@ def test_demo_model_loads_and_sits_on_the_training_shapes(demo, truth):
         residual -= (residual @ basis) @ basis.T
         assert np.sqrt((residual ** 2).sum(axis=1) / len(model.mean)).max() < 0.3  # mm RMS
     else:                                                      # built by core.pipeline
-        errors = model.info["ground_truth_correspondence_error_mm"]
-        assert errors["mean"] < 1.0 and errors["p95"] < 2.0
+        # Recomputed here, not read from the file's info: the true training shapes expressed
+        # in the model's topology (the reference mesh's vertices sit at known barycentric
+        # points of the base surface) are reproduced by the model to under half a millimetre
+        # (the correspondence error is the floor), each better than by its mean shape alone.
+        from core.alignment import apply_transform, fit_transform
+
+        names = list(truth["mesh_names"])
+        r = names.index(model.info["correspondence"]["reference"])
+        rows = slice(truth["remesh_offsets"][r], truth["remesh_offsets"][r + 1])
+        tri, bary = truth["remesh_triangles"][rows], truth["remesh_barycentric"][rows]
+        true = np.einsum("pj,kpjc->kpc", bary, shapes[:, truth["base_faces"][tri]])
+        to_model = np.linalg.inv(model.world_transform)
+        model_err, mean_err = [], []
+        for x in true:
+            x = apply_transform(to_model, x)
+            x = apply_transform(fit_transform(x, model.mean, "similarity"), x)
+            model_err.append(np.linalg.norm(model.instance(model.project(x)) - x, axis=1).mean())
+            mean_err.append(np.linalg.norm(model.mean - x, axis=1).mean())
+        assert max(model_err) < 0.5 and np.mean(model_err) < 0.85 * np.mean(mean_err)
+        assert np.all(np.array(model_err) < np.array(mean_err))
     # Placed in world: the mean lies on the population's mean surface (in the caudate).
     mean_surface = pv.PolyData(shapes.mean(axis=0), np.hstack(
         [np.full((len(truth["base_faces"]), 1), 3), truth["base_faces"]]).ravel())

@@ -9,10 +9,10 @@ import json
 import numpy as np
 import pytest
 
-from core.evaluation import (MEASURES, compactness, evaluate_methods, evaluate_model,
+from core.evaluation import (MEASURES, Realign, compactness, evaluate_methods, evaluate_model,
                              plot_metrics, sparse_fit, specificity, summary_table, to_json,
                              vertex_errors)
-from core.models import PCA
+from core.models import LSF, PCA, SPLOCS
 from core.models.synthetic import ellipsoid_surface, planted_shapes
 from core.progress import Cancelled
 
@@ -76,7 +76,8 @@ def test_specificity_closest_training_shape():
     shapes[1] += 10.0
     shapes[2] -= 10.0
     model = PCA(n_factors=1).fit(shapes)
-    model.coef_var_ = np.array([1e-20])  # samples = the mean = shape 0 exactly
+    model.model_.coef_var = np.array([1e-20])  # samples = the mean = shape 0 exactly
+    model.coef_cov_ = np.array([[1e-20]])
     avg, mx = specificity(model, shapes, 4, random_state=0)
     np.testing.assert_allclose(avg, 0.0, atol=1e-8)
     np.testing.assert_allclose(mx, 0.0, atol=1e-8)
@@ -126,21 +127,111 @@ def test_figure_json_and_table(tmp_path, subspace_shapes):
     assert "varimax" in table and "g0.05_avg" in table
 
 
-@pytest.mark.slow
-def test_lsf_sparse_reconstruction_beats_splocs_on_planted_shapes():
-    """The paper's claim, on shapes made of smooth local bumps with disjoint supports of
-    different sizes plus noise: over four draws, LSF's sparse reconstruction error (left-out
-    shape from 5% of its vertices) is lower on average and in most draws."""
-    base, faces = ellipsoid_surface(3)
-    errors = {"lsf": [], "splocs": []}
-    for seed in (1, 2, 3, 4):
-        data = planted_shapes(base, faces, n_shapes=14, n_factors=6, noise=0.05,
+def _posed(shapes, seed):
+    """Each shape under a random similarity transform (rotation, scale, translation)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for x in shapes:
+        r = Rotation.from_rotvec(rng.normal(scale=0.4, size=3)).as_matrix()
+        out.append(rng.uniform(0.8, 1.25) * x @ r.T + rng.normal(scale=20, size=3))
+    return np.stack(out)
+
+
+def test_true_leave_one_out_realigns_each_fold():
+    """Realign folds: the fold model is built on the K - 1 shapes aligned without the left-out
+    one, which is brought onto the fold mean by Procrustes; the generalisation error equals
+    that computed by hand, and differs from the fixed protocol, whose alignment saw it."""
+    from core.alignment import apply_transform, fit_transform
+    from core.pipeline import align
+
+    base, faces = ellipsoid_surface(2)
+    data = planted_shapes(base, faces, n_shapes=7, n_factors=3, noise=0.3, random_state=4)
+    posed = _posed(data.shapes, 5)
+    aligned = align(posed).aligned
+    kwargs = dict(n_factors=3, measures=("generalisation",), n_jobs=1)
+    fixed = evaluate_model("pca", aligned, faces, **kwargs)
+    true = evaluate_model("pca", aligned, faces, folds=Realign(posed, faces), **kwargs)
+    assert fixed["protocol"]["leave_one_out"] == "fixed"
+    assert true["protocol"]["leave_one_out"] == "realign"
+    for k in (0, 4):
+        train = align(np.delete(posed, k, axis=0))
+        test = apply_transform(fit_transform(posed[k], train.mean, "similarity"), posed[k])
+        model = PCA(n_factors=3).fit(train.aligned)
+        rec = model.inverse_transform(model.transform(test))
+        expected = np.linalg.norm(rec - test, axis=1).mean()
+        np.testing.assert_allclose(true["generalisation"]["avg"][k], expected, rtol=1e-9)
+    assert not np.allclose(true["generalisation"]["avg"], fixed["generalisation"]["avg"],
+                           rtol=1e-3)
+
+
+def test_specificity_samples_the_correlated_coefficients():
+    """Two local bumps that always move together: LSF finds them as one factor, and factor
+    splitting makes two factors whose coefficients are perfectly correlated. Sampling the full
+    coefficient covariance draws only shapes like the training ones; the diagonal prior draws
+    combinations never seen."""
+    base, faces = ellipsoid_surface(2)
+    data = planted_shapes(base, faces, n_shapes=16, n_factors=3, noise=0.0, random_state=2)
+    coef = data.coefficients.copy()
+    coef[:, 1] = coef[:, 0]
+    shapes = data.base + np.tensordot(coef, data.factors, axes=1)
+    model = LSF(n_factors=4, max_iter=100, connectivity=faces).fit(shapes)
+    assert model.n_split_ >= 1
+    corr = np.corrcoef(model.transform(shapes), rowvar=False)
+    assert np.max(np.abs(corr[np.triu_indices(len(corr), 1)])) > 0.99
+    draws = model.transform(model.sample(4000, random_state=1))
+    np.testing.assert_allclose(np.cov(draws, rowvar=False), model.coef_cov_,
+                               atol=0.1 * np.abs(model.coef_cov_).max())
+    full, _ = specificity(model, shapes, 200, random_state=0)
+    diag, _ = specificity(model, shapes, 200, random_state=0, covariance="diag")
+    assert full.mean() < 0.8 * diag.mean()
+    res = evaluate_model("lsf", shapes, faces, n_factors=4, params={"max_iter": 100},
+                         measures=("specificity",), n_samples=200, n_jobs=1)
+    np.testing.assert_allclose(res["specificity"]["avg"], full, rtol=1e-9)
+
+
+def test_sparse_reconstruction_with_a_fixed_noise_variance(subspace_shapes):
+    """noise_var fixes sigma^2 for every fold and method: the fold's result equals the prior-
+    regularised fit with exactly that value, and a larger value pulls towards the mean."""
+    kwargs = dict(n_factors=3, measures=("sparse_reconstruction",), n_jobs=1, random_state=3)
+    small = evaluate_model("pca", subspace_shapes, None, noise_var=1e-3, **kwargs)
+    large = evaluate_model("varimax", subspace_shapes, None, noise_var=1e3, **kwargs)
+    assert small["protocol"]["sparse_noise_var"] == 1e-3
+    k = 2
+    model = PCA(n_factors=3).fit(np.delete(subspace_shapes, k, axis=0))
+    idx = np.sort(np.random.default_rng([3, k]).choice(40, size=2, replace=False))
+    rec = sparse_fit(model, subspace_shapes[k][idx], idx, 1e-3)
+    np.testing.assert_allclose(small["sparse_reconstruction"]["avg"][k],
+                               np.linalg.norm(rec - subspace_shapes[k], axis=1).mean(), rtol=1e-9)
+    assert large["sparse_reconstruction"]["avg"].mean() > \
+        5 * small["sparse_reconstruction"]["avg"].mean()
+
+
+def test_lsf_sparse_reconstruction_on_par_with_splocs_paired():
+    """LSF vs SPLOCS on planted local bumps of different sizes, as a paired statistic instead of
+    "better in 3 of 4 draws". Each method is fitted once per draw on 12 shapes and scored on 40
+    new shapes of the same distribution (5% of the vertices known, the same fixed sparse-fit
+    sigma^2 for both): 2 draws x 40 paired per-shape errors. LSF is not worse than SPLOCS by more
+    than 10% (one-sided Wilcoxon signed-rank test of LSF - 1.1 SPLOCS < 0, p < 0.01).
+    Superiority is not claimed: ``benchmarks/bench_evaluation.py`` measures it (not significant
+    on these data)."""
+    from scipy.stats import wilcoxon
+
+    base, faces = ellipsoid_surface(2)
+    n = len(base)
+    lsf_err, splocs_err = [], []
+    for seed in (5, 6):
+        data = planted_shapes(base, faces, n_shapes=52, n_factors=4, noise=0.05,
                               radius_spread=0.5, random_state=seed)
-        res = evaluate_methods(["lsf", "splocs"], data.shapes, faces, n_factors=12, n_jobs=2,
-                               measures=("sparse_reconstruction",))
-        for method in errors:
-            errors[method].append(res[method]["sparse_reconstruction"]["avg"].mean())
-    lsf, splocs = np.array(errors["lsf"]), np.array(errors["splocs"])
-    print(f"sparse reconstruction (avg, mm): LSF {np.round(lsf, 4)}, SPLOCS {np.round(splocs, 4)}")
-    assert lsf.mean() < splocs.mean()
-    assert np.sum(lsf < splocs) >= 3
+        train, test = data.shapes[:12], data.shapes[12:]
+        rng = np.random.default_rng(seed)
+        known = [np.sort(rng.choice(n, int(np.ceil(0.05 * n)), replace=False)) for _ in test]
+        for err, est in ((lsf_err, LSF(n_factors=8, connectivity=faces)),
+                         (splocs_err, SPLOCS(n_factors=8, connectivity=faces))):
+            model = est.fit(train)
+            err.extend(np.linalg.norm(sparse_fit(model, x[i], i, 0.05 ** 2) - x, axis=1).mean()
+                       for x, i in zip(test, known))
+    lsf_err, splocs_err = np.array(lsf_err), np.array(splocs_err)
+    assert len(lsf_err) == 80
+    assert wilcoxon(lsf_err - 1.1 * splocs_err, alternative="less").pvalue < 0.01

@@ -108,7 +108,7 @@ def test_forms_follow_estimator_signatures(qtbot):
         form = ParameterForm(cls)
         qtbot.addWidget(form)
         # defaults round-trip: the form's values build the same estimator as cls()
-        assert form.values() == cls().get_params()
+        assert form.values() == {k: cls().get_params()[k] for k in cls.setting_names()}
     form = ParameterForm(LSF)
     qtbot.addWidget(form)
     assert isinstance(form.editor("split"), QCheckBox)
@@ -128,7 +128,8 @@ def test_forms_follow_estimator_signatures(qtbot):
     with pytest.raises(ValueError, match="tol"):
         form.values()
     form.reset()
-    assert form.values() == LSF().get_params()
+    assert form.values() == {k: LSF().get_params()[k] for k in LSF.setting_names()}
+    assert "connectivity" not in form.names()  # the mesh graph comes from the pipeline
     # None allowed: the spin box minimum stands for None
     pca_form = ParameterForm(PCA)
     qtbot.addWidget(pca_form)
@@ -189,15 +190,11 @@ def test_build_inspect_cancel_save(panel, qtbot, tmp_path):
     # --- build through the panel, watching the event loop stay responsive ----------------
     progress = []
     panel.progress_bar.valueChanged.connect(progress.append)
-    start = time.monotonic()
     with GapMeter() as gaps, qtbot.waitSignal(panel.model_built, timeout=180000) as built:
         qtbot.mouseClick(panel.build_button, Qt.LeftButton)
         assert not panel.build_button.isEnabled() and panel.cancel_button.isEnabled()
-    build_seconds = time.monotonic() - start
     wait_idle(qtbot, panel, 5000)
     model = built.args[0]
-    print(f"\nbuild through the panel ({N_TRAIN} demo meshes, PCA): {build_seconds:.1f} s; "
-          f"longest GUI-thread stall {1000 * gaps.max_gap:.0f} ms")
     assert gaps.max_gap < 1.0
     assert max(progress) == 1000 and len(progress) > 3
     assert model.method == "pca" and model.n_factors == N_TRAIN - 1
@@ -266,7 +263,6 @@ def test_build_inspect_cancel_save(panel, qtbot, tmp_path):
     qtbot.mouseClick(panel.cancel_button, Qt.LeftButton)
     wait_idle(qtbot, panel, 5000)
     latency = time.monotonic() - cancel_at
-    print(f"cancel latency during LSF fit: {1000 * latency:.0f} ms")
     assert latency < 2.0
     assert "cancelled" in panel.status_label.text()
     assert panel.progress_bar.format() == "cancelled"
@@ -325,8 +321,6 @@ def test_cancel_during_correspondence(panel, qtbot):
         qtbot.mouseClick(panel.cancel_button, Qt.LeftButton)
         wait_idle(qtbot, panel, 5000)
         latency = time.monotonic() - cancel_at
-    print(f"\ncancel latency during correspondence: {1000 * latency:.0f} ms; "
-          f"longest GUI-thread stall {1000 * gaps.max_gap:.0f} ms")
     assert latency < 2.0
     assert gaps.max_gap < 1.0
     assert "Correspondence cancelled" in panel.status_label.text()

@@ -8,8 +8,11 @@ import pytest
 from scipy.optimize import minimize
 
 from core.io import load_model, save_model
-from core.models import LSF, METHODS, PCA, SPLOCS, Varimax, make_model, model_from_shape_model
-from core.models.lsf import _FactorNorm, graph_gradient, prox_sparse_group, split_factors
+from core.models import (LSF, METHODS, PCA, SPLOCS, Varimax, clone, make_model,
+                         model_from_shape_model)
+from core.models.base import edge_adjacency
+from core.models.lsf import (FactorNorm, graph_gradient, project_l1_ball, prox_sparse_group,
+                             split_factors)
 from core.models.synthetic import ellipsoid_surface, planted_shapes, support_iou
 from core.progress import Cancelled
 from core import mesh as meshops
@@ -28,7 +31,7 @@ def planted(surface):
 
 @pytest.fixture(scope="module")
 def lsf_fit(planted):
-    return LSF(n_factors=12).fit(planted.shapes, planted.faces)
+    return LSF(n_factors=12, connectivity=planted.faces).fit(planted.shapes)
 
 
 # ------------------------------------------------------------------------------ PCA
@@ -67,9 +70,9 @@ def test_pca_variance_retained():
 
 @pytest.mark.parametrize("method", METHODS)
 def test_estimator_contract(method, planted):
-    model = make_model(method, n_factors=6)
+    model = make_model(method, n_factors=6, connectivity=planted.faces)
     assert model.get_params()["n_factors"] == 6
-    assert model.fit(planted.shapes[:10], planted.faces) is model
+    assert model.fit(planted.shapes[:10]) is model
     n = planted.shapes.shape[1]
     m = model.n_factors_
     assert model.mean_.shape == (n, 3) and model.factors_.shape == (m, n, 3)
@@ -96,18 +99,93 @@ def test_errors_are_clear(surface):
         make_model("lsf", lambda1=3)
     with pytest.raises(ValueError, match=r"\(K, N, 3\)"):
         PCA().fit(np.zeros((5, 10)))
-    with pytest.raises(ValueError, match="needs the mesh faces"):
-        LSF().fit(np.stack([base, base * 1.1, base * 0.9]))
-    with pytest.raises(ValueError, match="lambda_1 must be in"):
-        LSF(lambda_1=-1).fit(np.stack([base, base * 1.1, base * 0.9]), faces)
-    with pytest.raises(ValueError, match="graph must be one of"):
-        LSF(graph="knn").fit(np.stack([base, base * 1.1, base * 0.9]), faces)
+    three = np.stack([base, base * 1.1, base * 0.9])
+    with pytest.raises(ValueError, match="needs the mesh graph"):
+        LSF().fit(three)
+    with pytest.raises(ValueError, match="'lambda_1' parameter of LSF must be a float in"):
+        LSF(lambda_1=-1, connectivity=faces).fit(three)
+    with pytest.raises(ValueError, match="'graph' parameter of LSF must be a str among"):
+        LSF(graph="knn", connectivity=faces).fit(three)
+    with pytest.raises(ValueError, match="'group_norm' parameter"):
+        LSF(group_norm="l1", connectivity=faces).fit(three)
+    with pytest.raises(ValueError, match="takes only the shapes"):
+        LSF().fit(three, faces)  # the old fit(X, faces) call says where the mesh goes now
     with pytest.raises(ValueError, match="not fitted"):
         PCA().transform(base[None])
 
 
+def test_connectivity_parameter_clone_and_adjacency(planted):
+    """The mesh graph is a constructor parameter (as scikit-learn's connectivity): clone keeps
+    it, set_params changes it, and a sparse vertex adjacency gives the same LSF as triangles."""
+    est = LSF(n_factors=6, max_iter=60, connectivity=planted.faces)
+    twin = clone(est)
+    assert twin is not est and not hasattr(twin, "model_")
+    assert twin.get_params().keys() == est.get_params().keys()
+    np.testing.assert_array_equal(twin.connectivity, planted.faces)
+    assert twin.connectivity is not planted.faces
+    a = est.fit(planted.shapes)
+    n = planted.shapes.shape[1]
+    adj = edge_adjacency(meshops.edges(planted.faces), n)
+    b = clone(est).set_params(connectivity=adj).fit(planted.shapes)
+    np.testing.assert_allclose(b.factors_, a.factors_, atol=1e-10)
+    assert a.model_.faces.shape == planted.faces.shape and len(b.model_.faces) == 0
+    with pytest.raises(ValueError, match="needs mesh triangles"):
+        b.to_shape_model()
+    assert b.to_shape_model(planted.faces).n_factors == b.n_factors_
+    assert "connectivity" not in a.to_shape_model().params  # data, not a setting
+    assert "connectivity" not in LSF.setting_names()
+    assert LSF.parameter_rule("graph") == ("options", ("mesh", "euclidean"))
+    assert LSF.parameter_rule("n_factors") == ("int", 1, None, False)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_explained_variance_ratio_follows_the_factors(method, planted):
+    """explained_variance_ratio_ is coef_var * ||factor||^2 over the total variance, in the
+    factors' order (for PCA: the eigenvalue ratios), and goes into the model file's info."""
+    model = make_model(method, n_factors=6, connectivity=planted.faces).fit(planted.shapes)
+    X = planted.shapes
+    total = np.sum(X.var(axis=0, ddof=1))
+    expected = model.coef_var_ * np.sum(model.factors_ ** 2, axis=(1, 2)) / total
+    np.testing.assert_allclose(model.explained_variance_ratio_, expected, rtol=1e-12)
+    assert np.all(np.diff(model.explained_variance_ratio_) <= 1e-12)
+    info = model.to_shape_model(planted.faces).info
+    np.testing.assert_allclose(info["explained_variance_ratio"], expected, rtol=1e-12)
+    if method == "pca":
+        _, s, _ = np.linalg.svd((X - X.mean(0)).reshape(len(X), -1), full_matrices=False)
+        np.testing.assert_allclose(model.explained_variance_ratio_, (s ** 2 / np.sum(s ** 2))[:6],
+                                   rtol=1e-9)
+
+
+def test_lsf_drops_factors_that_explain_nothing(planted):
+    """Asked for twice the planted number of factors, LSF keeps only factors explaining at
+    least min_explained of the variance; with min_explained=0 the weak ones stay."""
+    kw = dict(n_factors=12, max_iter=80, connectivity=planted.faces)
+    every = LSF(min_explained=0.0, **kw).fit(planted.shapes)
+    assert every.explained_variance_ratio_.min() < 0.01
+    pruned = LSF(min_explained=0.01, **kw).fit(planted.shapes)
+    assert pruned.explained_variance_ratio_.min() >= 0.01
+    assert pruned.n_dropped_ > 0 and every.n_factors_ > pruned.n_factors_
+    # the planted regions are still all represented after the pruning
+    assert support_iou(planted.factors, pruned.factors_).min() >= 0.6
+
+
+def test_lsf_default_factor_count_is_sensible():
+    """Issue 17: 24 shapes used to give 128 factors, many explaining 0.0% of the variance.
+    With the defaults every factor explains at least 0.5%, the count stays far below that,
+    and the shares reported are the model's own (in step with the factors)."""
+    base, faces = ellipsoid_surface(2)
+    data = planted_shapes(base, faces, n_shapes=24, n_factors=5, noise=0.05, random_state=3)
+    model = LSF(connectivity=faces).fit(data.shapes)
+    assert model.n_factors_ <= 40
+    assert model.explained_variance_ratio_.min() >= 0.005
+    assert support_iou(data.factors, model.factors_).min() >= 0.6
+    saved = model.to_shape_model()
+    np.testing.assert_allclose(saved.info["explained_variance_ratio"],
+                               model.explained_variance_ratio_)
+
+
 def test_save_load_round_trip(tmp_path, planted, lsf_fit):
-    shape_model = lsf_fit.to_shape_model(planted.faces, world_transform=np.diag([2.0, 2, 2, 1]),
+    shape_model = lsf_fit.to_shape_model(world_transform=np.diag([2.0, 2, 2, 1]),
                                          source_meshes=["a", "b"])
     save_model(tmp_path / "m.npz", shape_model)
     loaded = load_model(tmp_path / "m.npz")
@@ -127,7 +205,7 @@ def test_prox_sparse_group_is_exact():
     rng = np.random.default_rng(4)
     y = rng.normal(size=(6, 3, 1))
     t1, tg, t2 = np.array([0.3]), np.array([0.4]), np.array([0.5])
-    x = prox_sparse_group(y, t1, tg, t2)[:, :, 0].ravel()
+    x = prox_sparse_group(y, t1, tg, t2, "l2")[:, :, 0].ravel()
 
     def objective(z):
         zz = z.reshape(6, 3)
@@ -143,19 +221,70 @@ def test_prox_sparse_group_is_exact():
         assert objective(x + 1e-4 * rng.normal(size=18)) >= objective(x) - 1e-12
 
 
-def test_factor_norm_prox_with_graph_term(surface):
+def test_project_l1_ball_matches_direct_projection():
+    """The sort-based projection of every triple equals a constrained least-squares solve."""
+    from scipy.optimize import minimize as _min
+
+    rng = np.random.default_rng(7)
+    V = rng.normal(size=(5, 3, 2)) * 2
+    r = np.array([0.7, 3.0])
+    P = project_l1_ball(V, r)
+    for i in range(5):
+        for m in range(2):
+            v = V[i, :, m]
+            assert np.abs(P[i, :, m]).sum() <= r[m] + 1e-12
+            if np.abs(v).sum() <= r[m]:
+                np.testing.assert_allclose(P[i, :, m], v)
+                continue
+            # direct: min ||u - v||^2 s.t. ||u||_1 <= r, as a smooth problem in (u+, u-) >= 0
+            res = _min(lambda w: np.sum((w[:3] - w[3:] - v) ** 2), np.zeros(6),
+                       jac=lambda w: np.r_[2 * (w[:3] - w[3:] - v), -2 * (w[:3] - w[3:] - v)],
+                       bounds=[(0, None)] * 6, method="SLSQP",
+                       constraints=[{"type": "ineq", "fun": lambda w: r[m] - w.sum()}],
+                       options={"ftol": 1e-14, "maxiter": 500})
+            np.testing.assert_allclose(P[i, :, m], res.x[:3] - res.x[3:], atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [4, 11, 23])
+def test_prox_sparse_group_linf_is_exact(seed):
+    """With the paper's l-infinity group norm the composition soft-threshold -> group prox
+    (residual of the l1-ball projection) -> l2 shrinkage is still the exact prox: no direct
+    minimisation from several starts finds a lower objective."""
+    rng = np.random.default_rng(seed)
+    y = rng.normal(size=(6, 3, 1))
+    t1, tg, t2 = np.array([0.2]), np.array([0.6]), np.array([0.4])
+    x = prox_sparse_group(y, t1, tg, t2, "linf")[:, :, 0].ravel()
+
+    def objective(z):
+        zz = z.reshape(6, 3)
+        return (0.5 * np.sum((z - y.ravel()) ** 2) + t1[0] * np.abs(z).sum()
+                + tg[0] * np.abs(zz).max(axis=1).sum() + t2[0] * np.linalg.norm(z))
+
+    best = min((minimize(objective, x0, method="Powell", options={"xtol": 1e-10, "ftol": 1e-14,
+                                                                  "maxfev": 200000})
+                for x0 in (np.zeros(18), y.ravel(), x + 0.01)), key=lambda r: r.fun)
+    assert objective(x) <= best.fun + 1e-9
+    for _ in range(50):
+        assert objective(x + 1e-4 * rng.normal(size=18)) >= objective(x) - 1e-12
+    # l-infinity groups zero whole triples less eagerly than l2 but cap their largest entry:
+    # the two norms give different proxes on the same input
+    assert not np.allclose(x, prox_sparse_group(y, t1, tg, t2, "l2")[:, :, 0].ravel())
+
+
+@pytest.mark.parametrize("group_norm", ["linf", "l2"])
+def test_factor_norm_prox_with_graph_term(surface, group_norm):
     """The dual iteration converges to the prox of the full factor norm (Eq. 6)."""
     base, faces = surface
-    E = graph_gradient(base, faces)
+    E = graph_gradient(base, meshops.edges(faces))
     rng = np.random.default_rng(5)
     n = len(base)
     y = rng.normal(size=(n, 3, 2)) * 0.3
     t = np.array([0.5, 2.0])
-    exact = _FactorNorm(E, 0.02, 0.02, 0.05, 0.5, n_inner=3000).prox(y, t)
-    fast = _FactorNorm(E, 0.02, 0.02, 0.05, 0.5, n_inner=3)
+    exact = FactorNorm(E, 0.02, 0.02, 0.05, 0.5, n_inner=3000, group_norm=group_norm).prox(y, t)
+    fast = FactorNorm(E, 0.02, 0.02, 0.05, 0.5, n_inner=3, group_norm=group_norm)
     for _ in range(60):  # warm-started repeated calls, as in the outer iterations
         approx = fast.prox(y, t)
-    norm = _FactorNorm(E, 0.02, 0.02, 0.05, 0.5, n_inner=1)
+    norm = FactorNorm(E, 0.02, 0.02, 0.05, 0.5, n_inner=1, group_norm=group_norm)
 
     def objective(x):
         return 0.5 * np.sum((x - y) ** 2, axis=(0, 1)) + t * norm.values(x)
@@ -163,28 +292,28 @@ def test_factor_norm_prox_with_graph_term(surface):
     assert np.all(objective(exact) <= objective(y))
     np.testing.assert_allclose(objective(approx), objective(exact), rtol=1e-6)
     # the graph term makes the factor smoother than the graph-free prox
-    plain = prox_sparse_group(y, t * 0.02, t * 0.05, t * 0.02)
+    plain = prox_sparse_group(y, t * 0.02, t * 0.05, t * 0.02, group_norm)
     assert np.all(np.linalg.norm(norm.grad(exact), axis=(0, 1))
                   < np.linalg.norm(norm.grad(plain), axis=(0, 1)))
 
 
 def test_graph_gradient_weights(surface):
     base, faces = surface
-    E = graph_gradient(base, faces)
     e = meshops.edges(faces)
+    E = graph_gradient(base, e)
     assert E.shape == (len(e), len(base))
     d = np.linalg.norm(base[e[:, 0]] - base[e[:, 1]], axis=1)
     w = np.exp(-(d / d.mean()) ** 2)
     z = np.random.default_rng(0).normal(size=len(base))
     np.testing.assert_allclose(np.sum((E @ z) ** 2), np.sum(w * (z[e[:, 0]] - z[e[:, 1]]) ** 2))
-    dense = graph_gradient(base, faces, graph="euclidean")
+    dense = graph_gradient(base, e, graph="euclidean")
     assert dense.shape[0] > E.shape[0]  # second-ring pairs within the weight threshold
 
 
 def test_factor_splitting(surface, planted):
     base, faces = surface
     two = planted.factors[0] + planted.factors[1]  # one factor, two disjoint regions
-    adj = meshops.adjacency(faces, len(base))
+    adj = edge_adjacency(meshops.edges(faces), len(base))
     out = split_factors(np.stack([two, planted.factors[2]]), adj)
     assert len(out) == 3
     iou = support_iou(planted.factors[:3], out)
@@ -203,7 +332,7 @@ def test_lsf_cancel(planted):
             raise Cancelled
 
     with pytest.raises(Cancelled):
-        LSF(n_factors=8).fit(planted.shapes, planted.faces, progress=progress)
+        LSF(n_factors=8, connectivity=planted.faces).fit(planted.shapes, progress=progress)
     assert len(calls) == 3 and "iteration" in calls[-1]
 
 
@@ -212,7 +341,6 @@ def test_lsf_cancel(planted):
 
 def test_lsf_recovers_planted_local_supports(planted, lsf_fit):
     iou = support_iou(planted.factors, lsf_fit.factors_)
-    print(f"LSF support IoU per planted factor: {np.round(iou, 3)} (mean {iou.mean():.3f})")
     assert iou.mean() >= 0.8 and iou.min() >= 0.6
     assert lsf_fit.n_iter_ >= 1
 
@@ -220,7 +348,6 @@ def test_lsf_recovers_planted_local_supports(planted, lsf_fit):
 def test_pca_has_global_support(planted):
     pca = PCA(n_factors=6).fit(planted.shapes)
     iou = support_iou(planted.factors, pca.factors_)
-    print(f"PCA support IoU per planted factor: {np.round(iou, 3)} (mean {iou.mean():.3f})")
     assert iou.mean() < 0.5
     # each principal component spreads over several planted regions; LSF factors over one
     assert regions_per_factor(planted, pca.factors_).mean() >= 2.0
@@ -241,7 +368,7 @@ def test_lsf_factors_each_cover_one_region(planted, lsf_fit):
 
 
 def test_splocs_recovers_planted_supports(planted):
-    model = SPLOCS(n_factors=6).fit(planted.shapes, planted.faces)
+    model = SPLOCS(n_factors=6, connectivity=planted.faces).fit(planted.shapes)
     iou = support_iou(planted.factors, model.factors_)
     assert iou.mean() >= 0.8
 

@@ -6,12 +6,13 @@ forms are not written by hand: :class:`ParameterForm` reads the estimator class'
 docstring (tooltips, and ``{'a', 'b'}`` choices for string options), so the panel follows
 ``core.models`` when parameters are added or renamed there.
 
-Widget per parameter, from the class's ``_parameter_constraints`` rule when it declares one
-(``("int"|"float", low, high[, allow_none])``, ``("options", choices)``, ``("bool",)``) and
+Widget per parameter, from the class's declared constraints as summarised by
+``cls.parameter_rule(name)`` (``("int"|"float", low, high[, allow_none])``, ``("options", choices)``, ``("bool",)``) and
 otherwise from the default: bool -> QCheckBox; int -> QSpinBox (its minimum shows "auto
 (None)" when None is allowed); float -> QDoubleSpinBox for ordinary magnitudes, a QLineEdit for
 tolerances like 1e-8; options -> QComboBox; anything else (None, str, tuples) -> QLineEdit read
-back as a Python literal (empty means None).
+back as a Python literal (empty means None). Data parameters (the mesh graph,
+``connectivity``) have no editor: the pipeline passes the training meshes' triangles.
 """
 
 from __future__ import annotations
@@ -119,13 +120,16 @@ class ParameterForm(QWidget):
             docs = parse_numpydoc_parameters(cls.__init__.__doc__)
         layout = QFormLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
+        settings = getattr(cls, "setting_names", None)
+        settings = set(settings()) if settings else None  # data (the mesh graph) has no editor
         for name, param in inspect.signature(cls.__init__).parameters.items():
             if name == "self" or name in skip or param.kind in (param.VAR_POSITIONAL,
-                                                                 param.VAR_KEYWORD):
+                                                                 param.VAR_KEYWORD) or \
+                    (settings is not None and name not in settings):
                 continue
             default = None if param.default is inspect.Parameter.empty else param.default
             kind, description = docs.get(name, ("", ""))
-            rule = getattr(cls, "_parameter_constraints", {}).get(name)
+            rule = cls.parameter_rule(name) if hasattr(cls, "parameter_rule") else None
             editor = self._make_editor(default, kind, rule)
             tooltip = f"<b>{name}</b>"
             if kind:

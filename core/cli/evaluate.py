@@ -5,7 +5,10 @@ INPUT: corresponded meshes (or raw meshes with ``--correspond``); they are align
 generalisation (leave-one-out refit), specificity (random model instances vs. the closest
 training shape) and sparse reconstruction (left-out shape fitted from 5% of its vertices),
 each per shape as average and maximum vertex distance in mm, plus compactness. Leave-one-out
-folds run in ``--jobs`` processes. ``--json`` writes all per-shape values, ``--plot`` the
+folds run in ``--jobs`` processes. ``--loo fixed`` (default) reuses the shapes aligned (and
+corresponded) once with all of them; ``--loo refit`` is the true leave-one-out: every fold
+re-aligns its training shapes (and, with ``--correspond``, re-corresponds them and the left-out
+mesh). ``--noise-var`` fixes the sparse fit's sigma^2 for every method. ``--json`` writes all per-shape values, ``--plot`` the
 boxplots (one panel per measure, like the paper's Figure 4). A summary table (means over
 shapes) is printed.
 """
@@ -15,7 +18,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from core.evaluation import evaluate_methods, plot_metrics, summary_table, to_json
+from core.evaluation import (Realign, Recorrespond, evaluate_methods, plot_metrics,
+                             summary_table, to_json)
 from core.io import atomic_write_json
 from core.models import METHODS, model_class
 from core.cli._options import add_preparation_options
@@ -44,7 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sparse-fraction", type=float, default=0.05,
                         help="fraction of vertices known in sparse reconstruction (default 0.05)")
     parser.add_argument("--noise-var", type=float, default=None,
-                        help="sigma^2 (mm^2) of the sparse fit (default: each model's residual)")
+                        help="sigma^2 (mm^2) of the sparse fit, the same for every method "
+                             "(default: each fold model's residual variance)")
+    parser.add_argument("--loo", choices=("fixed", "refit"), default="fixed",
+                        help="leave-one-out: fixed (shapes prepared once with all; default) or "
+                             "refit (true leave-one-out: each fold re-aligns, and with "
+                             "--correspond re-corresponds)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--jobs", type=int, default=None,
                         help="processes for leave-one-out folds (default: all cores)")
@@ -69,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     with StderrProgress("read meshes") as progress:
         meshes = load_training_meshes(args.inputs, progress=progress, isolate=True,
                                       vertex_order=not args.correspond)
+    raw = meshes
     if args.correspond:
         with StderrProgress("correspond") as progress:
             corr = correspond(meshes, n_jobs=args.jobs, progress=progress)
@@ -76,12 +86,22 @@ def run(args: argparse.Namespace) -> int:
     _, shapes, faces = corresponded_shapes(meshes)
     with StderrProgress("align") as progress:
         aligned = align(shapes, method=args.align, transform=args.transform, progress=progress)
+    folds = None
+    if args.loo == "refit" and args.correspond:
+        folds = Recorrespond([m for m, c in zip(raw, corr.meshes) if c is not None],
+                             reference=_kept_index(corr), method=args.align,
+                             transform=args.transform)
+    elif args.loo == "refit":
+        folds = Realign(shapes, faces, method=args.align, transform=args.transform)
     with StderrProgress("evaluate") as progress:
         results = evaluate_methods(methods, aligned.aligned, faces, n_factors=args.factors,
                                    params=per_method, n_jobs=args.jobs, random_state=args.seed,
                                    n_samples=args.samples, sparse_fraction=args.sparse_fraction,
-                                   noise_var=args.noise_var, progress=progress)
-    print(f"{len(shapes)} shapes, {shapes.shape[1]} vertices; means over shapes, mm")
+                                   noise_var=args.noise_var, folds=folds, progress=progress)
+    loo = {"fixed": "leave-one-out on the shapes prepared once",
+           "refit": "true leave-one-out (each fold re-aligned"
+                    + (" and re-corresponded)" if args.correspond else ")")}[args.loo]
+    print(f"{len(shapes)} shapes, {shapes.shape[1]} vertices; means over shapes, mm; {loo}")
     print(summary_table(results))
     if args.json is not None:
         atomic_write_json(args.json, to_json(results))
@@ -90,3 +110,10 @@ def run(args: argparse.Namespace) -> int:
         plot_metrics(results, args.plot, title=f"{len(shapes)} shapes")
         print(f"wrote {args.plot}")
     return 0
+
+
+def _kept_index(corr) -> int:
+    """Index of the chosen reference among the meshes that were corresponded."""
+    if corr.reference_index is None:
+        return 0
+    return sum(1 for m in corr.meshes[:corr.reference_index] if m is not None)

@@ -1,6 +1,7 @@
 """Linear shape models x = mean + Phi a learnt from shapes in correspondence.
 
-One estimator interface (:class:`core.models.base.DeformationModel`) for every method:
+One model type, :class:`core.shape_model.ShapeModel`; one estimator interface that learns it
+(:class:`core.models.base.ShapeModelEstimator`, scikit-learn's contract) for every method:
 
 - ``pca``: principal component analysis (global support);
 - ``lsf``: local-support factors by graph-based structured matrix factorisation (Bernard et
@@ -9,21 +10,22 @@ One estimator interface (:class:`core.models.base.DeformationModel`) for every m
 - ``varimax``: varimax-rotated PCA.
 
 ``make_model(method, **params)`` builds an estimator by name; ``model_from_shape_model``
-rebuilds a fitted one from a :class:`core.shape_model.ShapeModel` (e.g. a loaded model file).
+rebuilds a fitted one from a :class:`core.shape_model.ShapeModel` (e.g. a loaded model file);
+:func:`clone` gives an unfitted copy with the same parameters.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from core.models.base import DeformationModel
+from core.models.base import ShapeModelEstimator, clone
 from core.models.lsf import LSF
 from core.models.pca import PCA
 from core.models.splocs import SPLOCS
 from core.models.varimax import Varimax
 from core.shape_model import ShapeModel
 
-MODELS: dict[str, type[DeformationModel]] = {
+MODELS: dict[str, type[ShapeModelEstimator]] = {
     "pca": PCA,
     "lsf": LSF,
     "splocs": SPLOCS,
@@ -32,7 +34,7 @@ MODELS: dict[str, type[DeformationModel]] = {
 METHODS = tuple(MODELS)
 
 
-def model_class(method: str) -> type[DeformationModel]:
+def model_class(method: str) -> type[ShapeModelEstimator]:
     """The estimator class for a method name (case-insensitive)."""
     key = str(method).strip().lower()
     if key not in MODELS:
@@ -40,7 +42,7 @@ def model_class(method: str) -> type[DeformationModel]:
     return MODELS[key]
 
 
-def make_model(method: str, **params: Any) -> DeformationModel:
+def make_model(method: str, **params: Any) -> ShapeModelEstimator:
     """An unfitted estimator of ``method`` with ``params`` (unknown names raise ValueError)."""
     cls = model_class(method)
     valid = cls._param_names()
@@ -51,10 +53,10 @@ def make_model(method: str, **params: Any) -> DeformationModel:
     return cls(**params)
 
 
-def model_from_shape_model(model: ShapeModel) -> DeformationModel:
+def model_from_shape_model(model: ShapeModel) -> ShapeModelEstimator:
     """A fitted estimator holding the mean, factors and prior of ``model``."""
     return model_class(model.method).from_shape_model(model)
 
 
-__all__ = ["DeformationModel", "PCA", "LSF", "SPLOCS", "Varimax", "MODELS", "METHODS",
+__all__ = ["ShapeModelEstimator", "clone", "PCA", "LSF", "SPLOCS", "Varimax", "MODELS", "METHODS",
            "make_model", "model_class", "model_from_shape_model"]

@@ -1,31 +1,46 @@
 """The estimator contract shared by every shape-model building method.
 
-A model approximates shapes in correspondence (K, N, 3) as ``x = mean + sum_m a_m * factor_m``.
-All methods (PCA, LSF, SPLOCS, Varimax) follow the scikit-learn conventions: parameters are
-stored unchanged by ``__init__``, ``fit(X, faces=None)`` validates its input and returns
-``self``, fitted attributes end in ``_``:
+One model, one type: the model is a :class:`core.shape_model.ShapeModel` (mean, factors,
+coefficient prior, mesh; the type the model file, the fit and the GUI use). The classes here are
+its *learners* (scikit-learn estimators): ``fit`` learns a ShapeModel from shapes in
+correspondence and keeps it as ``model_``; ``mean_``, ``factors_`` and ``coef_var_`` are that
+model's arrays, and ``transform`` / ``inverse_transform`` are the model's own maths.
 
-- ``mean_`` (N, 3): mean shape;
-- ``factors_`` (M, N, 3): deformation factors (same layout as :class:`core.shape_model.ShapeModel`),
-  ordered by decreasing variance they explain (``coef_var_[m] * ||factor_m||^2``), each with a
-  deterministic sign (its largest-magnitude coordinate is positive);
-- ``coef_var_`` (M,): the (ddof = 1) variance of the least-squares coefficients of the training
-  shapes, > 0: the Gaussian prior a ~ N(0, diag(coef_var_)) used by fitting and sampling;
-- ``n_iter_`` / ``converged_`` for the iterative methods.
+Conventions (scikit-learn's estimator contract, ``sklearn.base.BaseEstimator``):
 
-Coefficients are least-squares coefficients: for non-orthogonal factors :meth:`transform` solves
-the normal equations (through the pseudo-inverse of the basis, which also copes with factors
-that are numerically dependent).
+- every parameter is a keyword of ``__init__``, stored unchanged; no work or validation there;
+  ``get_params`` / ``set_params`` read the signature and :func:`clone` rebuilds an unfitted
+  copy;
+- the mesh graph is a parameter, ``connectivity`` (as scikit-learn's
+  ``AgglomerativeClustering(connectivity=...)``): mesh triangles (F, 3) or a sparse (N, N)
+  vertex adjacency; ``fit(X, y=None)`` takes only the shapes;
+- parameter constraints are declared as data (``_parameter_constraints``, see
+  :mod:`core.models._params`) and checked at the top of ``fit``;
+- fitted attributes end in ``_``:
+
+  - ``model_`` : ShapeModel; ``mean_`` (N, 3), ``factors_`` (M, N, 3), ``coef_var_`` (M,);
+    factors ordered by decreasing variance they explain (``coef_var_[m] * ||factor_m||^2``),
+    each with a deterministic sign (its largest-magnitude coordinate is positive);
+  - ``coef_var_``: the (ddof = 1) variance of the least-squares coefficients of the training
+    shapes (the diagonal prior a ~ N(0, diag(coef_var_)) the fit uses), ``coef_cov_`` (M, M)
+    their full covariance (local factors' coefficients are correlated; :meth:`sample` and the
+    specificity measure use it);
+  - ``explained_variance_ratio_`` (M,): each factor's variance over the training shapes' total
+    variance, computed from the current factors (it cannot fall out of step with them);
+  - ``n_iter_`` / ``converged_`` for the iterative methods.
 """
 
 from __future__ import annotations
 
+import copy
 import inspect
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import numpy as np
+import scipy.sparse as sp
 
+from core.models._params import editor_rule, is_data_parameter, validate_params
 from core.progress import ProgressCallback
 from core.shape_model import ShapeModel
 
@@ -45,11 +60,8 @@ def check_shapes(X: np.ndarray, name: str = "X", min_shapes: int = 2) -> np.ndar
     return X
 
 
-def check_faces(faces: np.ndarray | None, n_vertices: int, method: str) -> np.ndarray:
-    """Validate mesh faces (F, 3) for ``n_vertices`` vertices (needed by graph-based methods)."""
-    if faces is None:
-        raise ValueError(f"method '{method}' needs the mesh faces (F, 3) to build its vertex "
-                         "graph: call fit(X, faces=...)")
+def check_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Validate mesh triangles (F, 3) indexing ``n_vertices`` vertices; int64 copy."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
         raise ValueError(f"faces must be an (F, 3) array of triangles, got shape {faces.shape}")
@@ -62,43 +74,63 @@ def check_faces(faces: np.ndarray | None, n_vertices: int, method: str) -> np.nd
     return faces
 
 
-def _check_param(name: str, value: Any, rule: tuple) -> None:
-    kind = rule[0]
-    if kind == "options":
-        if value not in rule[1]:
-            raise ValueError(f"{name} must be one of {', '.join(map(repr, rule[1]))}; got {value!r}")
-        return
-    if kind == "bool":
-        if not isinstance(value, (bool, np.bool_)):
-            raise ValueError(f"{name} must be True or False; got {value!r}")
-        return
-    low, high, allow_none = rule[1], rule[2], (len(rule) > 3 and rule[3])
-    if value is None:
-        if allow_none:
-            return
-        raise ValueError(f"{name} must be a number; got None")
-    if kind == "int" and (isinstance(value, bool) or not float(value).is_integer()):
-        raise ValueError(f"{name} must be an integer; got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number; got {value!r}") from None
-    if not np.isfinite(v) or (low is not None and v < low) or (high is not None and v > high):
-        rng = f"[{low if low is not None else '-inf'}, {high if high is not None else 'inf'}]"
-        raise ValueError(f"{name} must be in {rng}; got {value!r}")
+def check_connectivity(connectivity: Any, n_vertices: int, method: str,
+                       required: bool) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The mesh graph as (edges (E, 2) with i < j, faces (F, 3) or None).
+
+    ``connectivity`` is mesh triangles (F, 3) or an (N, N) vertex adjacency (sparse or dense;
+    nonzero entries are edges). None gives (None, None), or a ValueError if ``required``.
+    """
+    if connectivity is None:
+        if required:
+            raise ValueError(f"method '{method}' needs the mesh graph: pass the mesh triangles "
+                             "(F, 3) or an (N, N) vertex adjacency as connectivity=...")
+        return None, None
+    if sp.issparse(connectivity) or (np.ndim(connectivity) == 2
+                                     and np.shape(connectivity) == (n_vertices, n_vertices)
+                                     and n_vertices != 3):
+        adj = sp.coo_matrix(connectivity)
+        if adj.shape != (n_vertices, n_vertices):
+            raise ValueError(f"connectivity must be ({n_vertices}, {n_vertices}) for "
+                             f"{n_vertices} vertices, got {adj.shape}")
+        keep = (adj.data != 0) & (adj.row != adj.col)
+        pairs = np.sort(np.stack([adj.row[keep], adj.col[keep]], axis=1), axis=1)
+        edges = np.unique(pairs, axis=0).astype(np.int64)
+        if len(edges) == 0:
+            raise ValueError("connectivity has no edges")
+        return edges, None
+    faces = check_faces(connectivity, n_vertices)
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0), faces
 
 
-class DeformationModel:
-    """Base class: a linear shape model ``x = mean + Phi a`` learnt from shapes (K, N, 3).
+def edge_adjacency(edges: np.ndarray, n_vertices: int,
+                   weights: np.ndarray | None = None) -> sp.csr_matrix:
+    """Symmetric (N, N) adjacency of undirected ``edges`` (E, 2), entries ``weights`` (or 1)."""
+    w = np.ones(len(edges)) if weights is None else np.asarray(weights, dtype=np.float64)
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0]])
+    return sp.csr_matrix((np.concatenate([w, w]), (rows, cols)), shape=(n_vertices, n_vertices))
 
-    Subclasses set :attr:`method`, declare ``_parameter_constraints`` (name -> rule) and
-    implement ``_fit(X, faces, progress) -> (mean (N, 3), factors (M, N, 3))``; this class
-    validates input, computes the coefficient prior, orders and signs the factors.
+
+def clone(estimator: ShapeModelEstimator) -> ShapeModelEstimator:
+    """An unfitted estimator with the same parameters (deep copies), like ``sklearn.clone``."""
+    params = {k: copy.deepcopy(v) for k, v in estimator.get_params(deep=False).items()}
+    return type(estimator)(**params)
+
+
+class ShapeModelEstimator:
+    """Base class of the learners of a linear shape model ``x = mean + Phi a``.
+
+    Subclasses set :attr:`method`, declare ``_parameter_constraints`` and implement
+    ``_fit(X, progress) -> (mean (N, 3), factors (M, N, 3))``; the graph-based ones set
+    ``needs_graph`` and read ``self._edges`` (E, 2). This class validates the input, computes
+    the coefficient prior, orders and signs the factors and builds ``model_``.
     """
 
     method: ClassVar[str] = ""
-    needs_faces: ClassVar[bool] = False
-    _parameter_constraints: ClassVar[dict[str, tuple]] = {}
+    needs_graph: ClassVar[bool] = False
+    _parameter_constraints: ClassVar[dict[str, list]] = {}
 
     # ---- scikit-learn style parameter handling -----------------------------------------
     @classmethod
@@ -106,11 +138,23 @@ class DeformationModel:
         sig = inspect.signature(cls.__init__)
         return [p.name for p in sig.parameters.values() if p.name != "self"]
 
+    @classmethod
+    def setting_names(cls) -> list[str]:
+        """The parameters that are settings (everything except data such as the mesh graph)."""
+        return [n for n in cls._param_names()
+                if not is_data_parameter(cls._parameter_constraints.get(n))]
+
+    @classmethod
+    def parameter_rule(cls, name: str) -> tuple | None:
+        """A summary of parameter ``name``'s constraints for an editor widget
+        (see :func:`core.models._params.editor_rule`)."""
+        return editor_rule(cls._parameter_constraints.get(name))
+
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor parameters, by name."""
         return {name: getattr(self, name) for name in self._param_names()}
 
-    def set_params(self, **params: Any) -> DeformationModel:
+    def set_params(self, **params: Any) -> ShapeModelEstimator:
         """Set constructor parameters; unknown names raise ValueError."""
         valid = self._param_names()
         for name, value in params.items():
@@ -121,24 +165,30 @@ class DeformationModel:
         return self
 
     def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
-        return f"{type(self).__name__}({args})"
+        args = []
+        for k, v in self.get_params().items():
+            if isinstance(v, np.ndarray) or sp.issparse(v):
+                v = f"<{type(v).__name__} {v.shape}>"
+                args.append(f"{k}={v}")
+            else:
+                args.append(f"{k}={v!r}")
+        return f"{type(self).__name__}({', '.join(args)})"
 
     def _validate_params(self) -> None:
-        for name, rule in self._parameter_constraints.items():
-            _check_param(name, getattr(self, name), rule)
+        validate_params(self._parameter_constraints, self.get_params(), type(self).__name__)
 
     # ---- fitting ------------------------------------------------------------------------
-    def fit(self, X: np.ndarray, faces: np.ndarray | None = None, *,
-            progress: ProgressCallback | None = None) -> DeformationModel:
+    def fit(self, X: np.ndarray, y: None = None, *,
+            progress: ProgressCallback | None = None) -> ShapeModelEstimator:
         """Learn the model from shapes in correspondence, aligned.
 
         Parameters
         ----------
         X : (K, N, 3) float array
             Training shapes (vertex k of every shape corresponds).
-        faces : (F, 3) int array, optional
-            Mesh triangles (required by the graph-based methods LSF and SPLOCS).
+        y : None
+            Ignored (scikit-learn convention). The mesh graph is the ``connectivity``
+            parameter, not an argument of ``fit``.
         progress : callable(fraction, message), optional
             Called at least once per outer iteration; may raise ``core.progress.Cancelled``.
 
@@ -146,122 +196,155 @@ class DeformationModel:
         -------
         self
         """
+        if y is not None:
+            raise ValueError(f"{type(self).__name__}.fit takes only the shapes: pass the mesh "
+                             "as connectivity=... when creating the estimator")
         self._validate_params()
         X = check_shapes(X)
-        if faces is not None or self.needs_faces:
-            faces = check_faces(faces, X.shape[1], self.method)
-        mean, factors = self._fit(X, faces, progress)
+        self._edges, self._faces = check_connectivity(
+            getattr(self, "connectivity", None), X.shape[1], self.method, self.needs_graph)
+        mean, factors = self._fit(X, progress)
         self._set_model(mean, factors, X)
         return self
 
-    def _fit(self, X: np.ndarray, faces: np.ndarray | None,
-             progress: ProgressCallback | None) -> tuple[np.ndarray, np.ndarray]:
+    def _fit(self, X: np.ndarray, progress: ProgressCallback | None
+             ) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
     def _set_model(self, mean: np.ndarray, factors: np.ndarray, X: np.ndarray) -> None:
-        """Store mean/factors, drop zero factors, compute the prior, sort and sign factors."""
+        """Drop zero factors, compute the prior, sort and sign factors, build ``model_``."""
         n = mean.shape[0]
         factors = np.asarray(factors, dtype=np.float64).reshape(-1, n, 3)
         norms = np.linalg.norm(factors.reshape(len(factors), -1), axis=1)
-        keep = norms > 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
-        factors = factors[keep]
+        factors = factors[norms > 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)]
         if len(factors) == 0:
             raise ValueError(f"{type(self).__name__} found no deformation factor (all factors "
                              "are zero); lower the regularisation or check the shapes vary")
-        self.mean_ = np.asarray(mean, dtype=np.float64)
-        self.factors_ = factors
-        self._cache_basis()
-        coef = self.transform(X)
-        var = coef.var(axis=0, ddof=1) if len(X) > 1 else np.ones(len(factors))
-        explained = var * np.linalg.norm(factors.reshape(len(factors), -1), axis=1) ** 2
+        draft = self._shape_model(mean, factors, np.ones(len(factors)))
+        coef = draft.project(X)
+        var = coef.var(axis=0, ddof=1)
+        explained = var * np.sum(factors ** 2, axis=(1, 2))
         order = np.argsort(-explained, kind="stable")
-        factors = factors[order]
-        var = var[order]
+        flat = factors[order].reshape(len(order), -1)
         # Deterministic sign: the largest-magnitude coordinate of each factor is positive.
-        flat = factors.reshape(len(factors), -1)
         signs = np.sign(flat[np.arange(len(flat)), np.argmax(np.abs(flat), axis=1)])
         signs[signs == 0] = 1.0
-        self.factors_ = factors * signs[:, None, None]
-        floor = 1e-12 * max(float(var.max(initial=0.0)), 1e-300)
-        self.coef_var_ = np.maximum(var, max(floor, 1e-300))
-        self._cache_basis()
+        coef = coef[:, order] * signs
+        var = var[order]
+        floor = max(1e-12 * float(var.max(initial=0.0)), 1e-300)
+        self.total_variance_ = float(np.sum(X.var(axis=0, ddof=1)))
+        self.coef_cov_ = np.atleast_2d(np.cov(coef, rowvar=False, ddof=1))
+        self.model_ = self._shape_model(mean, factors[order] * signs[:, None, None],
+                                        np.maximum(var, floor))
 
-    def _cache_basis(self) -> None:
-        basis = self.factors_.reshape(len(self.factors_), -1).T  # (3N, M)
-        # Normal equations: pinv(Phi) = (Phi^T Phi)^+ Phi^T, the (M, M) Gram matrix inverted
-        # by eigendecomposition with a relative cut-off for (numerically) dependent factors.
-        gram = basis.T @ basis
-        w, v = np.linalg.eigh(gram)
-        cutoff = 1e-12 * max(float(w[-1]), 1e-300)
-        inv_w = np.where(w > cutoff, 1.0 / np.where(w > cutoff, w, 1.0), 0.0)
-        self._pinv = (v * inv_w) @ v.T @ basis.T
+    def _shape_model(self, mean, factors, coef_var) -> ShapeModel:
+        return ShapeModel(mean=mean, factors=factors, coef_var=coef_var,
+                          faces=self._faces if self._faces is not None else np.zeros((0, 3)),
+                          method=self.method)
 
-    # ---- using a fitted model ----------------------------------------------------------
+    # ---- the fitted model ----------------------------------------------------------------
     def _check_fitted(self) -> None:
-        if not hasattr(self, "factors_"):
+        if not hasattr(self, "model_"):
             raise ValueError(f"this {type(self).__name__} is not fitted yet: call fit(X) first")
+
+    @property
+    def mean_(self) -> np.ndarray:
+        """(N, 3) mean shape."""
+        self._check_fitted()
+        return self.model_.mean
+
+    @property
+    def factors_(self) -> np.ndarray:
+        """(M, N, 3) deformation factors."""
+        self._check_fitted()
+        return self.model_.factors
+
+    @property
+    def coef_var_(self) -> np.ndarray:
+        """(M,) prior variance of each coefficient."""
+        self._check_fitted()
+        return self.model_.coef_var
 
     @property
     def n_factors_(self) -> int:
         self._check_fitted()
-        return int(self.factors_.shape[0])
+        return self.model_.n_factors
 
     @property
     def basis_(self) -> np.ndarray:
         """Factors as the (3N, M) matrix Phi (vec(x) = vec(mean) + Phi a)."""
         self._check_fitted()
-        return self.factors_.reshape(len(self.factors_), -1).T
+        return self.model_.basis
+
+    @property
+    def explained_variance_ratio_(self) -> np.ndarray:
+        """(M,) variance along each factor (``coef_var_ * ||factor||^2``) over the training
+        shapes' total variance (for PCA: the eigenvalue ratios)."""
+        self._check_fitted()
+        explained = self.coef_var_ * np.sum(self.factors_ ** 2, axis=(1, 2))
+        return explained / max(getattr(self, "total_variance_", explained.sum()), 1e-300)
 
     def transform(self, X: np.ndarray) -> np.ndarray:
         """Least-squares coefficients (K, M) of shapes X (K, N, 3) (or one shape (N, 3) -> (M,))."""
         self._check_fitted()
-        X = np.asarray(X, dtype=np.float64)
-        single = X.ndim == 2
-        X = X[None] if single else X
-        if X.shape[1:] != self.mean_.shape:
-            raise ValueError(f"shapes must be (K, {self.mean_.shape[0]}, 3), got {X.shape}")
-        d = (X - self.mean_).reshape(len(X), -1)
-        coef = d @ self._pinv.T
-        return coef[0] if single else coef
+        return self.model_.project(X)
 
     def inverse_transform(self, A: np.ndarray) -> np.ndarray:
         """Shapes (K, N, 3) for coefficients A (K, M) (or one vector (M,) -> (N, 3))."""
         self._check_fitted()
         A = np.asarray(A, dtype=np.float64)
-        single = A.ndim == 1
-        A = A[None] if single else A
-        if A.shape[1] != self.n_factors_:
-            raise ValueError(f"expected {self.n_factors_} coefficients per shape, got {A.shape[1]}")
-        X = self.mean_ + np.tensordot(A, self.factors_, axes=(1, 0))
-        return X[0] if single else X
+        if A.ndim == 1:
+            return self.model_.instance(A)
+        return self.model_.instances(A)
 
-    def sample(self, n: int = 1, random_state: int | np.random.Generator | None = None) -> np.ndarray:
-        """Draw ``n`` shapes (n, N, 3) with coefficients from N(0, diag(coef_var_))."""
+    def sample(self, n: int = 1, random_state: int | np.random.Generator | None = None,
+               covariance: str = "full") -> np.ndarray:
+        """Draw ``n`` shapes (n, N, 3) with coefficients from the fitted distribution.
+
+        ``covariance="full"``: N(0, coef_cov_), the training coefficients' covariance (the
+        model's real coefficient distribution); ``"diag"``: N(0, diag(coef_var_)), the prior
+        the fit uses and the model file keeps.
+        """
         self._check_fitted()
         rng = np.random.default_rng(random_state)
-        coef = rng.standard_normal((int(n), self.n_factors_)) * np.sqrt(self.coef_var_)
-        return self.inverse_transform(coef)
+        z = rng.standard_normal((int(n), self.n_factors_))
+        if covariance == "diag" or not hasattr(self, "coef_cov_"):
+            return self.inverse_transform(z * np.sqrt(self.coef_var_))
+        if covariance != "full":
+            raise ValueError(f"covariance must be 'full' or 'diag'; got {covariance!r}")
+        w, v = np.linalg.eigh(self.coef_cov_)
+        root = v * np.sqrt(np.maximum(w, 0.0))  # coef_cov_ = root root^T (PSD, maybe singular)
+        return self.inverse_transform(z @ root.T)
 
-    def to_shape_model(self, faces: np.ndarray, world_transform: np.ndarray | None = None,
+    def to_shape_model(self, faces: np.ndarray | None = None,
+                       world_transform: np.ndarray | None = None,
                        source_meshes: Sequence[str] = (), info: dict | None = None) -> ShapeModel:
-        """The fitted model as a :class:`ShapeModel` (saved with ``core.io.save_model``)."""
+        """The fitted model with its mesh, placement and metadata (saved with
+        ``core.io.save_model``). ``faces`` defaults to the triangles given as connectivity."""
         self._check_fitted()
-        params = {k: _jsonable(v) for k, v in self.get_params().items()}
+        faces = self.model_.faces if faces is None else np.asarray(faces)
+        if len(faces) == 0:
+            raise ValueError("the model needs mesh triangles: pass faces=... (it was fitted "
+                             "without connectivity triangles)")
+        params = {k: _jsonable(v) for k, v in self.get_params().items()
+                  if k in self.setting_names()}
+        meta = {"explained_variance_ratio": [float(r) for r in self.explained_variance_ratio_],
+                "total_variance": self.total_variance_} if hasattr(self, "total_variance_") else {}
+        meta.update(info or {})
         return ShapeModel(mean=self.mean_.copy(), factors=self.factors_.copy(),
-                          coef_var=self.coef_var_.copy(), faces=np.asarray(faces),
+                          coef_var=self.coef_var_.copy(), faces=faces,
                           world_transform=np.eye(4) if world_transform is None else world_transform,
                           method=self.method, params=params, source_meshes=list(source_meshes),
-                          info=dict(info or {}))
+                          info=meta)
 
     @classmethod
-    def from_shape_model(cls, model: ShapeModel) -> DeformationModel:
-        """Rebuild a fitted estimator from a :class:`ShapeModel` (e.g. one loaded from file)."""
-        params = {k: v for k, v in model.params.items() if k in cls._param_names()}
+    def from_shape_model(cls, model: ShapeModel) -> ShapeModelEstimator:
+        """A fitted estimator holding ``model`` (e.g. one loaded from file)."""
+        params = {k: v for k, v in model.params.items() if k in cls.setting_names()}
         est = cls(**params)
-        est.mean_ = model.mean.copy()
-        est.factors_ = model.factors.copy()
-        est.coef_var_ = model.coef_var.copy()
-        est._cache_basis()
+        est.model_ = model
+        if "total_variance" in model.info:
+            est.total_variance_ = float(model.info["total_variance"])
         return est
 
 
@@ -273,3 +356,7 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     return value
+
+
+__all__ = ["ShapeModelEstimator", "clone", "check_shapes", "check_faces", "check_connectivity",
+           "edge_adjacency"]

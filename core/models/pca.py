@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.models.base import DeformationModel
+from core.models._params import Integral, Interval, Real
+from core.models.base import ShapeModelEstimator
 from core.progress import ProgressCallback, report
 
 
@@ -40,7 +41,7 @@ def n_modes_for_variance(variances: np.ndarray, fraction: float) -> int:
     return int(min(np.searchsorted(cum, fraction - 1e-12) + 1, len(variances)))
 
 
-class PCA(DeformationModel):
+class PCA(ShapeModelEstimator):
     """PCA point distribution model.
 
     Parameters
@@ -51,24 +52,30 @@ class PCA(DeformationModel):
     variance_retained : float in (0, 1] or None, default None
         Keep the fewest modes explaining this fraction of the variance (used when
         ``n_factors`` is None).
+    connectivity : (F, 3) int array or (N, N) sparse matrix, default None
+        The mesh, kept with the model (PCA itself does not use the graph).
 
     Attributes
     ----------
     mean_ : (N, 3), factors_ : (M, N, 3) orthonormal, coef_var_ : (M,) eigenvalues,
-    explained_variance_ratio_ : (M,) fraction of the total variance per mode.
+    explained_variance_ratio_ : (M,) fraction of the total variance per mode (eigenvalue over
+    the sum of all eigenvalues).
     """
 
     method = "pca"
     _parameter_constraints = {
-        "n_factors": ("int", 1, None, True),
-        "variance_retained": ("float", 1e-6, 1.0, True),
+        "n_factors": [Interval(Integral, 1, None), None],
+        "variance_retained": [Interval(Real, 0, 1, closed="right"), None],
+        "connectivity": ["array-like", "sparse matrix", None],
     }
 
-    def __init__(self, n_factors: int | None = None, *, variance_retained: float | None = None):
+    def __init__(self, n_factors: int | None = None, *, variance_retained: float | None = None,
+                 connectivity=None):
         self.n_factors = n_factors
         self.variance_retained = variance_retained
+        self.connectivity = connectivity
 
-    def _fit(self, X, faces, progress: ProgressCallback | None):
+    def _fit(self, X, progress: ProgressCallback | None):
         report(progress, 0.0, "PCA")
         k, n, _ = X.shape
         mean = X.mean(axis=0)
@@ -79,8 +86,6 @@ class PCA(DeformationModel):
             m = n_modes_for_variance(variances, float(self.variance_retained))
         else:
             m = len(components)
-        total = float(variances.sum())
-        self.explained_variance_ratio_ = variances[:m] / total if total > 0 else np.zeros(m)
         self.n_iter_ = 1
         self.converged_ = True
         report(progress, 1.0, "PCA")

@@ -29,18 +29,11 @@ and d_min, d_max are given as fractions of the mean shape's bounding-box diagona
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from core import mesh as meshops
-from core.models.base import DeformationModel
+from core.models._params import Integral, Interval, Real
+from core.models.base import ShapeModelEstimator, edge_adjacency
 from core.progress import ProgressCallback, report
-
-
-def _edge_length_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
-    e = meshops.edges(faces)
-    length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
-    return meshops.adjacency(faces, len(vertices), weights=np.maximum(length, 1e-12))
 
 
 def _group_shrink(Y: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -51,13 +44,71 @@ def _group_shrink(Y: np.ndarray, t: np.ndarray) -> np.ndarray:
     return Y * scale[:, :, None]
 
 
-class SPLOCS(DeformationModel):
+def greedy_init(data: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Components (M, N, 3) and weights (K, M) started at the vertices of largest residual
+    (Neumann et al., section 4.2)."""
+    k, n, _ = data.shape
+    C = np.zeros((m, n, 3))
+    W = np.zeros((k, m))
+    R = data.copy()
+    for j in range(m):
+        idx = int(np.argmax(np.einsum("kni,kni->n", R, R)))
+        w = np.linalg.norm(R[:, idx, :], axis=1)
+        signs = np.sign(R[:, idx, :] @ (R[:, idx, :].T @ w))  # consistent direction
+        w = w * np.where(signs == 0, 1.0, signs)
+        if not np.any(w):
+            break
+        w = w / np.abs(w).max()
+        c = np.tensordot(w, R, axes=(0, 0)) / (w @ w)
+        C[j], W[:, j] = c, w
+        R -= w[:, None, None] * c[None]
+    return C, W
+
+
+def update_weights(flat: np.ndarray, W: np.ndarray, Cf: np.ndarray) -> None:
+    """Weights by coordinate descent, each column normalised to max |w| = 1 (the scale moves
+    into the component); updates W (K, M) and Cf (M, 3N) in place."""
+    Rf = flat - W @ Cf
+    for j in range(W.shape[1]):  # M columns, each a vectorised least-squares update
+        cj = Cf[j]
+        cc = cj @ cj
+        if cc <= 0:
+            W[:, j] = 0.0
+            continue
+        Rj = Rf + np.outer(W[:, j], cj)
+        w = Rj @ cj / cc
+        peak = np.abs(w).max()
+        if peak > 0:
+            w = w / peak
+            Cf[j] = cj * peak
+        W[:, j] = w
+        Rf = Rj - np.outer(w, Cf[j])
+
+
+def admm_components(flat: np.ndarray, W: np.ndarray, lam: np.ndarray, Z: np.ndarray,
+                    U: np.ndarray, rho: float, n_admm: int) -> tuple[np.ndarray, np.ndarray]:
+    """Components Z (M, N, 3) minimising ||X - W C||^2 + sum Lambda_mi ||C_m,i|| by ADMM on the
+    splitting C = Z, from Z and the scaled dual U (kept across outer iterations); returns both."""
+    m = W.shape[1]
+    chol = np.linalg.cholesky(W.T @ W + rho * np.eye(m))
+    wtx = W.T @ flat
+    for _ in range(n_admm):
+        rhs = wtx + rho * (Z - U).reshape(m, -1)
+        C = np.linalg.solve(chol.T, np.linalg.solve(chol, rhs)).reshape(Z.shape)
+        Z = _group_shrink(C + U, lam / rho)
+        U = U + C - Z
+    return Z, U
+
+
+class SPLOCS(ShapeModelEstimator):
     """Sparse localised deformation components (Neumann et al., 2013).
 
     Parameters
     ----------
     n_factors : int, default 32
         Number of components M.
+    connectivity : (F, 3) int array or (N, N) sparse matrix, default None
+        The mesh graph (required): geodesic distances run along its edges.
     sparsity : float, default 2.0
         lambda, weight of the support-weighted l1/l2 penalty (paper default).
     d_min, d_max : float, default 0.1, 0.7
@@ -73,22 +124,24 @@ class SPLOCS(DeformationModel):
     """
 
     method = "splocs"
-    needs_faces = True
+    needs_graph = True
     _parameter_constraints = {
-        "n_factors": ("int", 1, None),
-        "sparsity": ("float", 0.0, None),
-        "d_min": ("float", 0.0, None),
-        "d_max": ("float", 1e-9, None),
-        "max_iter": ("int", 1, None),
-        "n_admm": ("int", 1, None),
-        "rho": ("float", 1e-12, None),
-        "tol": ("float", 0.0, None),
+        "n_factors": [Interval(Integral, 1, None)],
+        "connectivity": ["array-like", "sparse matrix", None],
+        "sparsity": [Interval(Real, 0, None)],
+        "d_min": [Interval(Real, 0, None)],
+        "d_max": [Interval(Real, 0, None, closed="neither")],
+        "max_iter": [Interval(Integral, 1, None)],
+        "n_admm": [Interval(Integral, 1, None)],
+        "rho": [Interval(Real, 0, None, closed="neither")],
+        "tol": [Interval(Real, 0, None)],
     }
 
-    def __init__(self, n_factors: int = 32, *, sparsity: float = 2.0, d_min: float = 0.1,
-                 d_max: float = 0.7, max_iter: int = 20, n_admm: int = 10, rho: float = 10.0,
-                 tol: float = 1e-6):
+    def __init__(self, n_factors: int = 32, *, connectivity=None, sparsity: float = 2.0,
+                 d_min: float = 0.1, d_max: float = 0.7, max_iter: int = 20, n_admm: int = 10,
+                 rho: float = 10.0, tol: float = 1e-6):
         self.n_factors = n_factors
+        self.connectivity = connectivity
         self.sparsity = sparsity
         self.d_min = d_min
         self.d_max = d_max
@@ -97,87 +150,46 @@ class SPLOCS(DeformationModel):
         self.rho = rho
         self.tol = tol
 
-    def _fit(self, X, faces, progress: ProgressCallback | None):
+    def _support_maps(self, C: np.ndarray, graph, d_min: float, d_max: float) -> np.ndarray:
+        """Lambda (M, N) from geodesic distances to each component's centre (Eq. 3)."""
+        mags = np.linalg.norm(C, axis=2)
+        live = mags.max(axis=1) > 0
+        lam = np.full(mags.shape, float(self.sparsity))
+        if np.any(live):
+            centres = np.argmax(mags[live], axis=1)
+            d = dijkstra(graph, directed=False, indices=centres)
+            d = np.where(np.isfinite(d), d, d_max)
+            lam[live] = self.sparsity * (np.clip(d, d_min, d_max) - d_min) / (d_max - d_min)
+        return lam
+
+    def _fit(self, X, progress: ProgressCallback | None):
         if self.d_max <= self.d_min:
             raise ValueError(f"d_max must be larger than d_min; got d_min={self.d_min}, "
                              f"d_max={self.d_max}")
         k, n, _ = X.shape
-        m = int(self.n_factors)
         mean = X.mean(axis=0)
-        centred = X - mean
-        scale = float(centred.std())
+        scale = float((X - mean).std())
         if scale <= 0:
             raise ValueError("the training shapes are identical: nothing to factorise")
-        data = centred / scale  # (K, N, 3)
+        data = (X - mean) / scale  # (K, N, 3)
         flat = data.reshape(k, -1)
-        graph = _edge_length_graph(mean, faces)
+        e = self._edges
+        length = np.linalg.norm(mean[e[:, 0]] - mean[e[:, 1]], axis=1)
+        graph = edge_adjacency(e, n, np.maximum(length, 1e-12))
         diag = float(np.linalg.norm(np.ptp(mean, axis=0)))
         d_min, d_max = self.d_min * diag, self.d_max * diag
-
-        def support_map(centre: int) -> np.ndarray:
-            d = dijkstra(graph, directed=False, indices=int(centre))
-            d = np.where(np.isfinite(d), d, d_max)
-            return self.sparsity * (np.clip(d, d_min, d_max) - d_min) / (d_max - d_min)
-
-        # Greedy initialisation at the vertices of largest residual (section 4.2).
-        C = np.zeros((m, n, 3))
-        W = np.zeros((k, m))
-        R = data.copy()
-        for j in range(m):
-            idx = int(np.argmax(np.einsum("kni,kni->n", R, R)))
-            w = np.linalg.norm(R[:, idx, :], axis=1)
-            signs = np.sign(R[:, idx, :] @ (R[:, idx, :].T @ w))  # consistent direction
-            w = w * np.where(signs == 0, 1.0, signs)
-            if not np.any(w):
-                break
-            w = w / np.abs(w).max()
-            c = np.tensordot(w, R, axes=(0, 0)) / (w @ w)
-            C[j], W[:, j] = c, w
-            R -= w[:, None, None] * c[None]
+        C, W = greedy_init(data, int(self.n_factors))
         report(progress, 0.02, "SPLOCS initialised")
-
-        rho = float(self.rho)
         U = np.zeros_like(C)
-        Z = C.copy()
-        prev = np.inf
-        converged = False
-        it = 0
+        prev, converged, it = np.inf, False, 0
         for it in range(1, int(self.max_iter) + 1):
-            Cf = C.reshape(m, -1)
-            # (i) Weights: coordinate descent, each column normalised to max |w| = 1.
-            Rf = flat - W @ Cf
-            for j in range(m):
-                cj = Cf[j]
-                cc = cj @ cj
-                if cc <= 0:
-                    W[:, j] = 0.0
-                    continue
-                Rj = Rf + np.outer(W[:, j], cj)
-                w = Rj @ cj / cc
-                peak = np.abs(w).max()
-                if peak > 0:
-                    # Move the scale into the component (constraint max|w| = 1).
-                    w = w / peak
-                    Cf[j] = cj * peak
-                W[:, j] = w
-                Rf = Rj - np.outer(w, Cf[j])
-            C = Cf.reshape(m, n, 3)
-            Z = C.copy()
-            # (ii) Support maps from the current centres.
-            mags = np.linalg.norm(C, axis=2)
-            lam = np.stack([support_map(np.argmax(mags[j])) if mags[j].max() > 0
-                            else np.full(n, self.sparsity) for j in range(m)])
-            # (iii) Components by ADMM.
-            gram = W.T @ W + rho * np.eye(m)
-            chol = np.linalg.cholesky(gram)
-            wtx = W.T @ flat
-            for _ in range(int(self.n_admm)):
-                rhs = wtx + rho * (Z - U).reshape(m, -1)
-                C = np.linalg.solve(chol.T, np.linalg.solve(chol, rhs)).reshape(m, n, 3)
-                Z = _group_shrink(C + U, lam / rho)
-                U = U + C - Z
-            C = Z
-            err = float(np.sum((flat - W @ C.reshape(m, -1)) ** 2))
+            Cf = C.reshape(len(C), -1)
+            update_weights(flat, W, Cf)
+            C = Cf.reshape(C.shape)
+            lam = self._support_maps(C, graph, d_min, d_max)
+            C, U = admm_components(flat, W, lam, C.copy(), U, float(self.rho),
+                                   int(self.n_admm))
+            err = float(np.sum((flat - W @ C.reshape(len(C), -1)) ** 2))
             report(progress, it / self.max_iter, f"SPLOCS iteration {it}/{self.max_iter}")
             if abs(prev - err) <= self.tol * max(err, 1e-300):
                 converged = True

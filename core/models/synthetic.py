@@ -128,3 +128,36 @@ def support_iou(planted: np.ndarray, recovered: np.ndarray, threshold: float = 0
     inter = p @ r.T
     union = p.sum(1)[:, None] + r.sum(1)[None] - inter
     return (inter / np.maximum(union, 1)).max(axis=1)
+
+
+def mixed_shapes(base: np.ndarray, faces: np.ndarray, *, n_shapes: int = 30, n_local: int = 4,
+                 n_global: int = 2, overlap: float = 1.2, amplitude: float = 3.0,
+                 noise: float = 0.05, random_state: int = 0) -> PlantedShapes:
+    """Training shapes from overlapping local bumps plus global modes (harder than disjoint
+    bumps: no factor's support is cleanly separable from the others).
+
+    The ``n_local`` bumps have radius ``overlap`` x the smallest distance between two centres
+    (> 0.5: neighbouring supports overlap); the ``n_global`` modes move every vertex along
+    its normal by a smooth function of its position (the first a linear ramp along the longest
+    axis, then products of the centred coordinates), scaled to peak ``amplitude``. Supports are
+    the vertices moving more than 10% of each factor's maximum. Coefficients ~ N(0, 1).
+    """
+    rng = np.random.default_rng(random_state)
+    centres = farthest_points(base, n_local, rng)
+    cd = np.linalg.norm(base[centres][:, None] - base[centres][None], axis=-1)
+    min_sep = cd[~np.eye(n_local, dtype=bool)].min() if n_local > 1 else np.ptp(base, 0).max()
+    d = np.linalg.norm(base[None] - base[centres][:, None], axis=-1)  # (M_local, N)
+    r = overlap * min_sep
+    bumps = np.where(d < r, (1 - (d / r) ** 2) ** 2, 0.0)
+    c = (base - base.mean(0)) / np.ptp(base, axis=0).max()
+    axes = np.argsort(-np.ptp(base, axis=0))
+    fields = [c[:, axes[0]], c[:, axes[0]] * c[:, axes[1]], c[:, axes[1]] * c[:, axes[2]],
+              c[:, axes[0]] ** 2 - c[:, axes[2]] ** 2]
+    glob = np.array([f / np.abs(f).max() for f in fields[:n_global]]).reshape(-1, len(base))
+    normals = meshops.vertex_normals(base, faces)
+    factors = amplitude * np.concatenate([bumps, glob])[:, :, None] * normals[None]
+    coef = rng.standard_normal((n_shapes, len(factors)))
+    shapes = base + np.tensordot(coef, factors, axes=1)
+    shapes = shapes + noise * rng.standard_normal(shapes.shape)
+    return PlantedShapes(shapes=shapes, faces=faces, factors=factors, coefficients=coef,
+                         supports=_supports(factors, 0.1), base=base)

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.models.base import DeformationModel
+from core.models._params import Integral, Interval, Real
+from core.models.base import ShapeModelEstimator
 from core.models.pca import pca_basis
 from core.progress import ProgressCallback, report
 
@@ -44,7 +45,7 @@ def varimax_rotation(loadings: np.ndarray, *, max_iter: int = 500, tol: float = 
     return rotation, max_iter, False
 
 
-class Varimax(DeformationModel):
+class Varimax(ShapeModelEstimator):
     """PCA with varimax-rotated factors.
 
     Parameters
@@ -54,21 +55,26 @@ class Varimax(DeformationModel):
     max_iter : int, default 500
     tol : float, default 1e-8
         Relative increase of the varimax criterion below which the rotation stops.
+    connectivity : (F, 3) int array or (N, N) sparse matrix, default None
+        The mesh, kept with the model (not used by the rotation).
     """
 
     method = "varimax"
     _parameter_constraints = {
-        "n_factors": ("int", 1, None, True),
-        "max_iter": ("int", 1, None),
-        "tol": ("float", 0.0, None),
+        "n_factors": [Interval(Integral, 1, None), None],
+        "max_iter": [Interval(Integral, 1, None)],
+        "tol": [Interval(Real, 0, None)],
+        "connectivity": ["array-like", "sparse matrix", None],
     }
 
-    def __init__(self, n_factors: int | None = None, *, max_iter: int = 500, tol: float = 1e-8):
+    def __init__(self, n_factors: int | None = None, *, max_iter: int = 500, tol: float = 1e-8,
+                 connectivity=None):
         self.n_factors = n_factors
         self.max_iter = max_iter
         self.tol = tol
+        self.connectivity = connectivity
 
-    def _fit(self, X, faces, progress: ProgressCallback | None):
+    def _fit(self, X, progress: ProgressCallback | None):
         k, n, _ = X.shape
         mean = X.mean(axis=0)
         components, variances = pca_basis((X - mean).reshape(k, -1))
