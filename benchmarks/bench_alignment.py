@@ -27,14 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from core.alignment import (apply_transform, homogeneous, reference_transforms,  # noqa: E402
                             synchronize_transforms)
-
-
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q *= np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
+from core.geometry import random_rotation  # noqa: E402
 
 
 def random_transform(rng: np.random.Generator, transform: str) -> np.ndarray:

@@ -165,14 +165,12 @@ def synthetic_shapes(n_shapes: int, subdivisions: int = 3, seed: int = 0,
 
 def pca_model(shapes: np.ndarray, faces: np.ndarray, n_factors: int | None = None,
               variance_floor: float = 1e-6) -> ShapeModel:
-    """Plain PCA model of corresponded shapes (K, N, 3): unit factors, coef_var = eigenvalues."""
-    k, n, _ = shapes.shape
-    mean = shapes.mean(axis=0)
-    centred = (shapes - mean).reshape(k, -1)
-    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
-    var = sv**2 / max(k - 1, 1)
-    keep = int(np.sum(var > variance_floor * max(var[0], 1e-300)))
-    if n_factors is not None:
-        keep = min(keep, n_factors)
-    return ShapeModel(mean=mean, factors=vt[:keep].reshape(keep, n, 3), coef_var=var[:keep],
+    """Plain PCA model of corresponded shapes (K, N, 3): ``core.models.PCA`` (unit factors,
+    coef_var = eigenvalues), modes with variance below ``variance_floor`` x the largest dropped."""
+    from core.models import PCA
+
+    est = PCA(n_factors=n_factors, connectivity=faces).fit(shapes)
+    var = est.coef_var_
+    keep = max(1, int(np.sum(var > variance_floor * max(float(var[0]), 1e-300))))
+    return ShapeModel(mean=est.mean_, factors=est.factors_[:keep], coef_var=var[:keep],
                       faces=faces, method="pca")

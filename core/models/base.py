@@ -40,6 +40,7 @@ from typing import Any, ClassVar
 import numpy as np
 import scipy.sparse as sp
 
+from core.mesh import edges as mesh_edges
 from core.models._params import editor_rule, is_data_parameter, validate_params
 from core.progress import ProgressCallback
 from core.shape_model import ShapeModel
@@ -100,8 +101,7 @@ def check_connectivity(connectivity: Any, n_vertices: int, method: str,
             raise ValueError("connectivity has no edges")
         return edges, None
     faces = check_faces(connectivity, n_vertices)
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    return np.unique(e, axis=0), faces
+    return mesh_edges(faces), faces
 
 
 def edge_adjacency(edges: np.ndarray, n_vertices: int,

@@ -37,8 +37,7 @@ def varimax_rotation(loadings: np.ndarray, *, max_iter: int = 500, tol: float = 
         u, s, wt = np.linalg.svd(loadings.T @ target)
         rotation = u @ wt
         new = float(s.sum())
-        if it % 10 == 0:
-            report(progress, it / max_iter, f"varimax iteration {it}")
+        report(progress, it / max_iter, f"varimax iteration {it}")  # each: a cancel point
         if new - criterion <= tol * max(new, 1e-300):
             return rotation, it, True
         criterion = new
