@@ -57,6 +57,7 @@ class VolumeView(QWidget):
         self._dirty: set[str] = set()
         self._dirty_surfaces: set[int] = set()
         self._new_models: set[int] = set()     # structures whose mesh must be rebuilt
+        self._notes: dict[str, str] = {}       # corner notes shown (orientation, plausibility)
         self._camera_set = False
         # named extra meshes (trajectory, targets, ellipsoids): name -> (mesh or None, style)
         self._overlays: dict[str, tuple[pv.PolyData | None, dict]] = {}
@@ -84,8 +85,8 @@ class VolumeView(QWidget):
 
     def _on_image(self) -> None:
         known = self.state.orientation_known
-        self.plotter.add_text("" if known else "Orientation unknown: left/right may be swapped",
-                              position="upper_left", font_size=9, color="red", name="orientation")
+        self._set_note("orientation", "" if known else "Orientation unknown: left/right may be "
+                       "swapped", "upper_left")
         self._mark("planes", "camera")
 
     def _on_planes(self) -> None:
@@ -100,8 +101,17 @@ class VolumeView(QWidget):
 
     def _on_fit_info(self) -> None:
         warnings = self.state.fit_info.warnings
-        self.plotter.add_text("Implausible fit: " + "; ".join(warnings) if warnings else "",
-                              position="lower_right", font_size=8, color="red", name="plausibility")
+        self._set_note("plausibility", "Implausible fit: " + "; ".join(warnings) if warnings else "",
+                       "lower_right")
+
+    def _set_note(self, name: str, text: str, position: str) -> None:
+        """A red note in a corner; only touched when it changes (no render here: the timer
+        renders, so a refit's repaint of the slices is not delayed by the 3D view)."""
+        if self._notes.get(name, "") == text:
+            return
+        self._notes[name] = text
+        self.plotter.add_text(text, position=position, font_size=8, color="red", name=name,
+                              render=False)
         self._mark()
 
     def _on_structure(self, structure: Structure, what: str) -> None:
