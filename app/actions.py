@@ -16,7 +16,8 @@ SHORTCUTS = [
     ("Delete", "Remove the point under the cursor (else the last one on this slice)"),
     ("Page Up / Page Down, wheel", "Next / previous slice in the active view"),
     ("N / D / W", "Tool: navigate / draw contour / window-level"),
-    ("P", "Place the model at the crosshair"), ("R", "Reset the views"),
+    ("P", "Place the model at the crosshair"), ("Ctrl+P", "Place models automatically"),
+    ("R", "Reset the views"),
     ("F9", "Show / hide the side panel"),
     ("Left click (navigate)", "Move the crosshair"),
     ("Left click or drag (draw)", "Add contour points on the slice"),
@@ -83,6 +84,9 @@ def create_actions(w) -> None:
     w.act_clear_points = a("Clear &all points", state.clear_points)
     w.act_place = a("&Place model here", w.place_here, "P",
                        "Move the model so that its centre is at the crosshair")
+    w.act_auto_place = a("Place models &automatically", w.place_automatically, "Ctrl+P",
+                         "Register the image to the models' template (affine, mutual "
+                         "information) and place every structure through it")
     w.act_reset_pose = a("Reset model pose", state.reset_placement, None,
                         "Back to the model's stored position and mean shape")
     w.act_next_slice = a("Next slice", lambda: state.step_slice(w.active_view, 1),
@@ -116,7 +120,7 @@ def create_menus(w) -> None:
                   w.act_import_points, w.act_export, w.act_export_labels,
                   w.act_export_mesh, w.act_export_points, None, w.act_quit),
         "&Edit": (w.act_undo, w.act_redo, None, w.act_delete, w.act_clear_slice,
-                  w.act_clear_points, None, w.act_place, w.act_reset_pose),
+                  w.act_clear_points, None, w.act_place, w.act_auto_place, w.act_reset_pose),
         "&View": (*w.tool_actions.values(), None, w.act_next_slice,
                   w.act_prev_slice, w.act_reset_views, w.act_side_panel),
     }

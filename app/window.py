@@ -30,6 +30,7 @@ from app import demo, formats
 from app.actions import SHORTCUTS, create_actions, create_menus, create_toolbar
 from app.controllers import ExportController, SessionController
 from app.dialogs import ExportActions, SessionActions
+from app.placement import AutoPlacement
 from app.panels.factors import FactorsPanel
 from app.panels.fit import FitPanel
 from app.panels.planning import PlanningPanel
@@ -76,6 +77,9 @@ class MainWindow(QMainWindow):
         self.sessions = SessionController(self.state)
         self.exports = ExportController(self.state)
         self.export_actions = ExportActions(self)
+        self.auto_place = AutoPlacement(self.state, self)
+        self.auto_place.finished.connect(self._on_auto_placed)
+        self.auto_place.failed.connect(lambda m: self.show_message(m, 10000))
         self.session_actions = SessionActions(self)
         self.session_path: Path | None = None
         self.active_view = "axial"
@@ -397,6 +401,15 @@ class MainWindow(QMainWindow):
         if len(self.state.points):
             self.schedule_refit()
 
+    def place_automatically(self, template=None, **options) -> bool:
+        """Register the image to the template in a worker and place every structure."""
+        return self.auto_place.start(template, show_dialog=not self._quiet_errors(), **options)
+
+    def _on_auto_placed(self, message: str) -> None:
+        self.show_message(message, 10000)
+        if len(self.state.points):
+            self.schedule_refit()
+
     def reset_views(self) -> None:
         self.workspace.reset_views()
 
@@ -448,7 +461,8 @@ class MainWindow(QMainWindow):
         has_model = self.state.model is not None
         self.act_undo.setEnabled(self.state.can_undo())
         self.act_redo.setEnabled(self.state.can_redo())
-        for act in (self.act_place, self.act_reset_pose, self.act_export_labels, self.act_export_mesh):
+        for act in (self.act_place, self.act_auto_place, self.act_reset_pose, self.act_export_labels,
+                    self.act_export_mesh):
             act.setEnabled(has_model)
         has_points = len(self.state.points) > 0
         for act in (self.act_delete, self.act_clear_slice, self.act_clear_points, self.act_export_points):
@@ -516,6 +530,8 @@ class MainWindow(QMainWindow):
         self._autosave_timer.stop()
         self.refit.cancel()
         self.refit.wait(5000)
+        self.auto_place.cancel()
+        self.auto_place.wait(10000)
         if self.recovery_enabled:
             self.sessions.clear_recovery()
         if self.builder is not None:

@@ -41,7 +41,8 @@ class ToolsPanel(QWidget):
         wl.addWidget(self.presets, 1)
         layout.addLayout(wl)
         grid = QGridLayout()
-        buttons = [("Place here", window.act_place), ("Reset pose", window.act_reset_pose),
+        buttons = [("Place here", window.act_place), ("Place automatically", window.act_auto_place),
+                   ("Reset pose", window.act_reset_pose), ("Reset views", window.act_reset_views),
                    ("Clear slice", window.act_clear_slice), ("Clear all", window.act_clear_points),
                    ("Undo", window.act_undo), ("Redo", window.act_redo)]
         for i, (text, action) in enumerate(buttons):
