@@ -4,7 +4,7 @@ The registration (``core.registration``: affine, Mattes mutual information, mult
 runs in a :class:`app.workers.Worker` behind a progress dialog with *Cancel*; the GUI stays
 responsive and a cancelled run changes nothing. Its result maps the patient image's world
 onto the template's; every structure whose model lives in that template space is then placed
-through it (``core.registration.place_on_image``), as one undoable step per structure, and the
+through it (``core.placement.placement_through``), as one undoable step per structure, and the
 active one is refitted if it has points. *Place here* stays for manual placement.
 """
 
@@ -84,7 +84,7 @@ class AutoPlacement(QObject):
             self.dialog = None
 
     def _on_done(self, result) -> None:
-        from core.registration import place_on_image
+        from core.placement import placement_through
 
         self._close()
         placed = []
@@ -92,7 +92,7 @@ class AutoPlacement(QObject):
             if s.model is None or s.locked:
                 continue
             s.checkpoint()
-            pose = place_on_image(result.transform, s.model.world_transform)
+            pose = placement_through(s.model, result.transform)
             s.placement = pose.copy()
             s.last_fit = None
             s.set_surface(np.zeros(s.model.n_factors), pose)
@@ -111,8 +111,6 @@ class AutoPlacement(QObject):
 
 
 def _register(image, template_path: Path, progress=None, **options):
-    from core.io import load_volume
-    from core.registration import register_volumes
+    from core.placement import register_to_template
 
-    template = load_volume(template_path)
-    return register_volumes(image, template, "affine", progress=progress, **options)
+    return register_to_template(image, template_path, progress=progress, **options)

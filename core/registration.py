@@ -395,17 +395,6 @@ def resample(data: np.ndarray, affine: np.ndarray, transform: np.ndarray,
     return sitk_to_array(out)
 
 
-def place_on_image(transform: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """A model pose in the template's world, moved onto the registered image: ``inv(T) @ pose``.
-
-    ``transform`` is a :class:`RegistrationResult`'s matrix with the image as the moving and
-    the template as the fixed image (image world -> template world); ``pose`` (4, 4) maps the
-    model frame to template world (e.g. its ``world_transform``). Returns model frame -> image
-    world.
-    """
-    return np.linalg.solve(np.asarray(transform, dtype=np.float64), np.asarray(pose, dtype=np.float64))
-
-
 def default_template_path() -> Path:
     """The bundled MNI ICBM152 2009a T1 template (the demo models' template space)."""
     return Path(__file__).resolve().parent.parent / "resources" / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
@@ -417,6 +406,5 @@ def threads_default() -> int:
 
 
 __all__ = ["TRANSFORMS", "DEFAULT_LEVELS_MM", "RegistrationResult", "register", "register_sitk",
-           "place_on_image",
            "register_volumes", "resample", "volume_to_sitk", "sitk_affine", "sitk_to_array",
            "itk_to_ras", "ras_to_itk", "default_template_path", "Cancelled"]
