@@ -210,3 +210,31 @@ def test_demo_model_as_foreign_statismo_file_fits_to_the_same_surface(tmp_path):
     # float32 storage in the file: agreement to ~1e-4 mm on a 50 mm structure
     assert np.abs(ours.vertices - theirs.vertices).max() < 1e-3
     assert theirs.residual_mm == pytest.approx(ours.residual_mm, abs=1e-4)
+
+
+def test_fit_model_space_reads_an_h5_written_in_ras(tmp_path, capsys):
+    """A model file in RAS (not statismo's LPS): --model-space ras places it right."""
+    import json
+
+    from core.cli import main
+    from core.io import save_points
+    from core.simulated_user import simulate_user, synthetic_shapes
+
+    mean, basis, variance, faces = _pca_parts(seed=6)
+    write_like_statismo(tmp_path / "ras.h5", mean, basis, variance, faces)  # RAS, not LPS
+    shapes, _ = synthetic_shapes(1, subdivisions=2, seed=12)
+    user = simulate_user(shapes[0] + np.array([-23.0, 11.0, 4.0]), faces, 5,
+                         rng=np.random.default_rng(3))
+    save_points(tmp_path / "p.csv", user.points, user.normals)
+    residuals = {}
+    for space in ("ras", "lps"):
+        rc = main(["fit", "--model", str(tmp_path / "ras.h5"), "--model-space", space,
+                   "--points", str(tmp_path / "p.csv"), "--out", str(tmp_path / f"{space}.vtk"),
+                   "--json", str(tmp_path / f"{space}.json")])
+        if rc == 0:
+            residuals[space] = json.loads((tmp_path / f"{space}.json").read_text())["residual_mm"]
+        else:
+            residuals[space] = float("inf")  # read mirrored: the points lie far from the model
+    capsys.readouterr()
+    assert residuals["ras"] < 0.5
+    assert residuals["lps"] > 2 * residuals["ras"]

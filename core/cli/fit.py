@@ -27,6 +27,9 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by ``fit`` and ``segment``."""
     parser.add_argument("--model", required=True,
                         help="shape model (.npz, or a statismo/Scalismo .h5)")
+    parser.add_argument("--model-space", choices=("lps", "ras"), default=None,
+                        help=".h5 models: world coordinates of the file (default: what it "
+                             "records, else LPS as statismo/ITK)")
     parser.add_argument("--points", required=True,
                         help="contour points in world RAS mm (.csv x,y,z[,nx,ny,nz] or .mrk.json)")
     parser.add_argument("--method", choices=METHODS, default="gmm-aniso",
@@ -91,7 +94,12 @@ def fit_from_args(args: argparse.Namespace, placement_of=None):
 
     ``placement_of(model)``, if given, returns the placement to use (``segment --auto-place``).
     """
-    model = load_model(args.model)
+    if getattr(args, "model_space", None) and str(args.model).lower().endswith((".h5", ".hdf5")):
+        from core.io import read_statismo
+
+        model = read_statismo(args.model, space=args.model_space.upper())
+    else:
+        model = load_model(args.model)
     points = load_points(args.points)
     normals = None if args.no_normals else points.normals
     if placement_of is not None:
