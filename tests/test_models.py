@@ -169,6 +169,22 @@ def test_lsf_drops_factors_that_explain_nothing(planted):
     assert support_iou(planted.factors, pruned.factors_).min() >= 0.6
 
 
+def test_old_lsf_files_keep_their_group_norm():
+    """The demo model file predates group_norm: it was built with the l1/l2 norm and without
+    dropping factors, and its estimator says so (today's defaults would misdescribe it)."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "resources" / "demo" / "model.npz"
+    model = load_model(path)
+    if model.method != "lsf" or "group_norm" in model.params:
+        pytest.skip("the demo model is not a pre-group_norm LSF file")
+    est = model_from_shape_model(model)
+    assert est.group_norm == "l2" and est.min_explained == 0.0
+    assert est.n_factors_ == model.n_factors
+    np.testing.assert_allclose(est.inverse_transform(est.transform(model.mean)), model.mean,
+                               atol=1e-9)
+
+
 def test_lsf_default_factor_count_is_sensible():
     """Issue 17: 24 shapes used to give 128 factors, many explaining 0.0% of the variance.
     With the defaults every factor explains at least 0.5%, the count stays far below that,

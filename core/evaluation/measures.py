@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.models.base import ShapeModelEstimator
+from core.progress import ProgressCallback, report
 
 
 def vertex_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -70,17 +71,19 @@ def compactness(model: ShapeModelEstimator, shapes: np.ndarray) -> np.ndarray:
 
 
 def specificity(model: ShapeModelEstimator, shapes: np.ndarray, n_samples: int,
-                random_state: int | None, chunk: int = 16, covariance: str = "full"
-                ) -> tuple[np.ndarray, np.ndarray]:
+                random_state: int | None, chunk: int = 16, covariance: str = "full",
+                progress: ProgressCallback | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Avg and max error (n_samples,) of random model instances to their closest training shape.
 
     The instances' coefficients are drawn from N(0, coef_cov_) (``covariance="full"``, the
     training coefficients' real distribution) or N(0, diag(coef_var_)) (``"diag"``).
+    ``progress`` is called once per chunk (a cancel point: 1000 samples take seconds).
     """
     samples = model.sample(n_samples, random_state, covariance=covariance)
     avg = np.empty(n_samples)
     mx = np.empty(n_samples)
     for start in range(0, n_samples, chunk):  # chunks bound the (c, K, N) distance array
+        report(progress, start / max(n_samples, 1), "specificity")
         s = samples[start:start + chunk]
         d = np.linalg.norm(s[:, None] - shapes[None], axis=-1)  # (c, K, N)
         mean_d = d.mean(axis=2)

@@ -232,7 +232,9 @@ def _full_model_measures(out: dict, method: str, shapes, faces, params, measures
         a, m = reconstruction_errors(model, shapes)
         out["reconstruction"] = {"avg": a, "max": m}
     if "specificity" in measures:
-        a, m = specificity(model, shapes, int(n_samples), random_state)
+        # Reported at the end of this share: the fit filled it; these calls are cancel points.
+        a, m = specificity(model, shapes, int(n_samples), random_state,
+                           progress=lambda fraction, msg: report(progress, 1.0, msg))
         out["specificity"] = {"avg": a, "max": m}
     if "compactness" in measures:
         out["compactness"] = compactness(model, shapes)

@@ -131,6 +131,9 @@ class ShapeModelEstimator:
     method: ClassVar[str] = ""
     needs_graph: ClassVar[bool] = False
     _parameter_constraints: ClassVar[dict[str, list]] = {}
+    # Values of parameters added later, for model files saved before they existed (their
+    # models were built with the old behaviour, not with today's default).
+    _legacy_params: ClassVar[dict[str, Any]] = {}
 
     # ---- scikit-learn style parameter handling -----------------------------------------
     @classmethod
@@ -341,6 +344,8 @@ class ShapeModelEstimator:
     def from_shape_model(cls, model: ShapeModel) -> ShapeModelEstimator:
         """A fitted estimator holding ``model`` (e.g. one loaded from file)."""
         params = {k: v for k, v in model.params.items() if k in cls.setting_names()}
+        if model.params:
+            params = {**cls._legacy_params, **params}
         est = cls(**params)
         est.model_ = model
         if "total_variance" in model.info:

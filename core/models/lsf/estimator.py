@@ -118,6 +118,7 @@ class LSF(ShapeModelEstimator):
 
     method = "lsf"
     needs_graph = True
+    _legacy_params = {"group_norm": "l2", "min_explained": 0.0}  # files from before 2026-12
     _parameter_constraints = {
         "n_factors": [Interval(Integral, 1, None)],
         "connectivity": ["array-like", "sparse matrix", None],
