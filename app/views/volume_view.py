@@ -195,7 +195,7 @@ class VolumeView(QWidget):
             if actor is None:
                 self._plane_actors[name] = self.plotter.add_mesh(
                     mesh, texture=texture, lighting=False, opacity=PLANE_OPACITY, name=f"plane-{name}",
-                    reset_camera=False)
+                    reset_camera=False, render=False)
             else:
                 actor.texture = texture
 
@@ -228,12 +228,12 @@ class VolumeView(QWidget):
         for name, (mesh, style) in list(self._overlays.items()):
             actor = self._overlay_actors.pop(name, None)
             if actor is not None:
-                self.plotter.remove_actor(actor)
+                self.plotter.remove_actor(actor, render=False)
             if mesh is None:
                 del self._overlays[name]
                 continue
             self._overlay_actors[name] = self.plotter.add_mesh(
-                mesh, name=f"overlay-{name}", reset_camera=False, **style)
+                mesh, name=f"overlay-{name}", reset_camera=False, render=False, **style)
 
     def _update_surfaces(self) -> None:
         """Add, restyle, move or remove each structure's surface actor."""
@@ -243,7 +243,7 @@ class VolumeView(QWidget):
             self._factor = None
         present = {s.id for s in self.state.structures}
         for sid in [sid for sid in self._surfaces if sid not in present]:
-            self.plotter.remove_actor(self._surfaces.pop(sid)[0])
+            self.plotter.remove_actor(self._surfaces.pop(sid)[0], render=False)
         dirty, self._dirty_surfaces = self._dirty_surfaces, set()
         rebuild, self._new_models = self._new_models, set()
         for s in self.state.structures:
@@ -251,7 +251,7 @@ class VolumeView(QWidget):
             entry = self._surfaces.get(s.id)
             if vertices is None or not s.visible:
                 if entry is not None:
-                    self.plotter.remove_actor(self._surfaces.pop(s.id)[0])
+                    self.plotter.remove_actor(self._surfaces.pop(s.id)[0], render=False)
                 continue
             scalars = self._scalars if (s is active and self._factor is None) else None
             style = (s.color, s is active, self._factor if s is active else None,
@@ -264,7 +264,7 @@ class VolumeView(QWidget):
             self._surfaces[s.id] = self._add_surface(s, vertices, style)
         if self._factor is None and self._scalars is None:
             for name in list(self.plotter.scalar_bars.keys()):
-                self.plotter.remove_scalar_bar(name)
+                self.plotter.remove_scalar_bar(name, render=False)
         for actor in self._plane_actors.values():
             actor.prop.opacity = PLANE_OPACITY if self._factor is None else 0.2
 
@@ -277,7 +277,7 @@ class VolumeView(QWidget):
             mesh["values"] = values
             actor = self.plotter.add_mesh(
                 mesh, scalars="values", cmap="viridis", clim=[0.0, max(float(values.max()), 1e-6)],
-                opacity=1.0, smooth_shading=True, name=name, reset_camera=False,
+                opacity=1.0, smooth_shading=True, name=name, reset_camera=False, render=False,
                 scalar_bar_args={"title": title, "vertical": True, "position_x": 0.84,
                                  "position_y": 0.1, "height": 0.6, "width": 0.07,
                                  "color": "white", "fmt": "%.2f"})
@@ -286,13 +286,13 @@ class VolumeView(QWidget):
             actor = self.plotter.add_mesh(
                 mesh, color=tuple(c / 255 for c in color), smooth_shading=True, name=name,
                 opacity=SURFACE_OPACITY if is_active else INACTIVE_OPACITY,
-                reset_camera=False, specular=0.3)
+                reset_camera=False, render=False, specular=0.3)
             return actor, mesh, style
         mesh[FACTOR_SCALARS] = s.factor_displacement(factor)
         actor = self.plotter.add_mesh(
             mesh, scalars=FACTOR_SCALARS, cmap="plasma",
             clim=[0.0, max(float(mesh[FACTOR_SCALARS].max()), 1e-6)],
-            opacity=1.0, smooth_shading=True, name=name, reset_camera=False,
+            opacity=1.0, smooth_shading=True, name=name, reset_camera=False, render=False,
             scalar_bar_args={"title": f"F{factor + 1} mm/SD", "vertical": True,
                              "position_x": 0.84, "position_y": 0.1, "height": 0.6,
                              "width": 0.07, "color": "white", "fmt": "%.1f"})
@@ -305,7 +305,7 @@ class VolumeView(QWidget):
         pts = self.state.points
         if len(pts) == 0 or not self.state.active.visible:
             if self._points_actor is not None:
-                self.plotter.remove_actor(self._points_actor)
+                self.plotter.remove_actor(self._points_actor, render=False)
                 self._points_actor, self._points_mesh = None, None
             return
         if self._points_actor is not None and self._points_mesh is not None:
@@ -314,7 +314,7 @@ class VolumeView(QWidget):
         self._points_mesh = points_polydata(pts.xyz)
         self._points_actor = self.plotter.add_mesh(
             self._points_mesh, color=POINT_COLOR, point_size=9,
-            render_points_as_spheres=True, name="points", reset_camera=False)
+            render_points_as_spheres=True, name="points", reset_camera=False, render=False)
 
     def reset_camera(self) -> None:
         """Look at the active structure (or the image) from anterior-left-superior."""
