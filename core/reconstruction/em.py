@@ -139,8 +139,8 @@ class GMMFitter:
         cap = n if cap is None else min(cap, n)
         return int(min(max(min(self.n_neighbors, n), wanted), cap))
 
-    def _initial_state(self, start: FitState | None, place: Similarity) -> FitState:
-        """Cold start at the placement with CPD's variance; warm start from ``start``."""
+    def _initial_state(self, start: FitState | None, place: Similarity):
+        """(state, world vertices): a cold start at the placement, or ``start``."""
         snap, pts = self.snap_, self.points_
         if start is None:
             coef, pose = np.zeros(snap.n_factors), place
@@ -165,7 +165,7 @@ class GMMFitter:
             near = np.asarray(cKDTree(x).query(pts, k=min(self.n_neighbors, len(x)))[0])
             near = near.reshape(len(pts), -1)
             sigma2 = max(float((near**2).mean()), float((near[:, 0] ** 2).max())) / 3.0
-        return FitState(coef, pose, max(sigma2, self.sigma2_min), eta)
+        return FitState(coef, pose, max(sigma2, self.sigma2_min), eta), x
 
     def _eta_floor(self, x: np.ndarray) -> float:
         """Coverage rule for the adaptive eta: gap to the nearest point over the RMS radius."""
@@ -294,7 +294,9 @@ class GMMFitter:
         """(state, evaluation, pairs) of the step, halved until the objective is at most the
         previous one (``ev``); None when six halvings do not get there."""
         k_wanted = self._neighbours_for(new.sigma2)
-        x_new = new.pose.apply(self.snap_.shape(new.coef))
+        last = self._last_geometry
+        x_new = (last[3][0] if last[0] is pairs and last[1] == new.sigma2 and last[2] == new.eta
+                 else new.pose.apply(self.snap_.shape(new.coef)))
         moved = float(np.sqrt(((x_new[pairs.verts] - pairs.x_ref) ** 2).sum(axis=1).max()))
         new_pairs = pairs
         if (self.covariance.hard or moved > 0.25 * self.snap_.edge_length
@@ -321,9 +323,8 @@ class GMMFitter:
         if init is None and self.warm_start and hasattr(self, "state_"):
             init = self.state_
         place = Similarity.identity() if placement is None else placement
-        state = self._initial_state(init, place)
-        pairs = _Pairs(snap, state.pose.apply(snap.shape(state.coef)), points,
-                       self._neighbours_for(state.sigma2))
+        state, x = self._initial_state(init, place)
+        pairs = _Pairs(snap, x, points, self._neighbours_for(state.sigma2))
         ev = self._e_step(state, pairs)
         shape_active = (not self.pose_first or init is not None or self.pose == "none"
                         or snap.n_factors == 0)

@@ -222,11 +222,6 @@ def _result(fitter: GMMFitter, snap: ModelSnapshot, model: ShapeModel, method: s
             place: Similarity, start_time: float) -> FitResult:
     state, x = fitter.state_, fitter.vertices_
     residual = surface_distance(fitter.points_, x, snap.faces, k=3, table=snap.table)
-    covariance = None
-    if fitter.precision_ is not None:
-        # base-frame coefficients = model-frame ones (the factors were only rotated/scaled
-        # by world_transform, the coefficients are shared)
-        covariance = np.linalg.inv(fitter.precision_)
     return FitResult(
         coef=state.coef, pose=state.pose.matrix() @ snap.t0, vertices=x,
         objective=list(fitter.objective_), n_iter=fitter.n_iter_, converged=fitter.converged_,
@@ -234,5 +229,5 @@ def _result(fitter: GMMFitter, snap: ModelSnapshot, model: ShapeModel, method: s
         sigma2=float(state.sigma2), anisotropy=float(state.eta), method=method, pose_mode=pose,
         n_points=len(fitter.points_), elapsed_s=time.perf_counter() - start_time,
         placement=place.matrix() @ snap.t0, model_size_mm=snap.size,
-        coef_sd=np.sqrt(snap.coef_var), coef_covariance=covariance,
+        coef_sd=np.sqrt(snap.coef_var), coef_precision=fitter.precision_,
         centre_offset_mm=state.pose.apply(snap.centre) - place.apply(snap.centre))

@@ -37,8 +37,11 @@ class Similarity:
         """From a 4x4 similarity (nearest rotation by SVD)."""
         lin = np.asarray(matrix, dtype=np.float64)[:3, :3]
         scale = float(abs(np.linalg.det(lin)) ** (1.0 / 3.0))
-        u, _, vt = np.linalg.svd(lin / scale)
-        return cls(scale, u @ vt, np.array(matrix, dtype=np.float64)[:3, 3].copy())
+        rot = lin / scale
+        if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-12 or np.linalg.det(rot) < 0:
+            u, _, vt = np.linalg.svd(rot)  # not a similarity: the nearest rotation
+            rot = u @ vt
+        return cls(scale, rot, np.array(matrix, dtype=np.float64)[:3, 3].copy())
 
     def matrix(self) -> np.ndarray:
         out = np.eye(4)

@@ -52,10 +52,11 @@ class FitResult:
         the fit's defaults are relative to.
     coef_sd : (M,) float ndarray or None
         sqrt of the prior variances (so ``coef / coef_sd`` are the coefficients in SD).
-    coef_covariance : (M, M) float ndarray or None
-        Posterior covariance of the coefficients at the last M-step (Laplace approximation
-        with the responsibilities and the pose fixed: s2 (sum_j w_j Phi_j^T W_j Phi_j +
-        lambda s2 diag(1/var))^-1 in the model frame); None when no shape step ran.
+    coef_precision : (M, M) float ndarray or None
+        Posterior precision of the coefficients at the last M-step (Laplace approximation
+        with the responsibilities and the pose fixed: (sum_j w_j Phi_j^T W_j Phi_j +
+        lambda s2 diag(1/var)) / s2, model frame); None when no shape step ran.
+        ``coef_covariance`` is its inverse.
     """
 
     coef: np.ndarray
@@ -75,8 +76,15 @@ class FitResult:
     placement: np.ndarray | None = None
     model_size_mm: float = float("nan")
     coef_sd: np.ndarray | None = None
-    coef_covariance: np.ndarray | None = None
+    coef_precision: np.ndarray | None = None
     centre_offset_mm: np.ndarray | None = None  # fitted centre minus placed centre (world)
+
+    @property
+    def coef_covariance(self) -> np.ndarray | None:
+        """(M, M) posterior covariance of the coefficients (inverse of ``coef_precision``)."""
+        if self.coef_precision is None:
+            return None
+        return np.linalg.inv(self.coef_precision)
 
     @property
     def scale(self) -> float:
