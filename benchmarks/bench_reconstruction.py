@@ -321,7 +321,7 @@ def latency_model(shapes, faces, n_factors=50, seed=0):
     return model, train[0]
 
 
-def latency(shapes, faces, reps: int, with_rustcpd: bool):
+def latency(shapes, faces, reps: int, with_rustcpd: bool, only: list[str] | None = None):
     model, truth = latency_model(shapes, faces)
     rng = np.random.default_rng(7)
     user = simulate_user(truth, faces, 8, spacing=1.0, rng=rng)
@@ -333,7 +333,7 @@ def latency(shapes, faces, reps: int, with_rustcpd: bool):
           "tolerance=1e-3, warm refits with initial_state=previous.state)")
     print(f"{'method':>10} | {'cold p50':>9} | {'cold p99':>9} | {'warm p50':>9} | {'warm p99':>9} | iters cold/warm")
     methods = list(OURS) + (["rustcpd"] if with_rustcpd else [])
-    for method in methods:
+    for method in [m for m in methods if only is None or m in only]:
         cold, warm, it_c, it_w = [], [], [], []
         prev = None
         for rep in range(reps):
@@ -385,6 +385,8 @@ def main(argv=None) -> int:
     parser.add_argument("--skip", default="",
                         help="comma list of sections to skip: known,mixed,axial,latency")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 cases, 3 counts, 5 reps")
+    parser.add_argument("--latency-methods", default=None,
+                        help="comma list of methods for the latency section (default all)")
     args = parser.parse_args(argv)
     counts = [int(c) for c in args.contours.split(",")]
     if args.quick:
@@ -416,7 +418,8 @@ def main(argv=None) -> int:
                        "Accuracy with pose, parallel axial contours, and ITK morphological contour "
                        f"interpolation (held-out shapes {span:.3f} mm from the model span, mean)")
     if "latency" not in skip:
-        latency(shapes, faces, args.reps, not args.no_rustcpd)
+        latency(shapes, faces, args.reps, not args.no_rustcpd,
+                args.latency_methods.split(",") if args.latency_methods else None)
     return 0
 
 
