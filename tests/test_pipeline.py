@@ -138,6 +138,26 @@ def test_cli_evaluate(mesh_dir, tmp_path, capsys):
     assert rc == 2 and "unknown model method 'ica'" in capsys.readouterr().err
 
 
+def test_cli_evaluate_true_leave_one_out(mesh_dir, tmp_path, posed, capsys):
+    """--loo refit re-aligns every fold (the JSON and the table say so) and gives the values of
+    core.evaluation with Realign folds; --noise-var is recorded and used."""
+    from core.evaluation import Realign, evaluate_model
+    from core.pipeline import align
+
+    rc = cli_main(["evaluate", str(mesh_dir), "--methods", "pca", "--factors", "3", "--loo",
+                   "refit", "--noise-var", "0.01", "--jobs", "1", "--samples", "20",
+                   "--json", str(tmp_path / "t.json")])
+    assert rc == 0 and "true leave-one-out (each fold re-aligned)" in capsys.readouterr().out
+    res = json.loads((tmp_path / "t.json").read_text())["methods"]["pca"]
+    assert res["protocol"] == {"leave_one_out": "realign", "sparse_noise_var": 0.01,
+                               "specificity_covariance": "full"}
+    shapes, faces, _ = posed
+    direct = evaluate_model("pca", align(shapes).aligned, faces, n_factors=3, n_jobs=1,
+                            measures=("generalisation",), folds=Realign(shapes, faces))
+    np.testing.assert_allclose(res["generalisation"]["avg"], direct["generalisation"]["avg"],
+                               rtol=1e-6)
+
+
 @pytest.mark.slow
 def test_build_model_with_correspondence(tmp_path):
     """Raw meshes (each with its own vertex order) -> correspond -> align -> model."""
