@@ -54,6 +54,7 @@ class PlanningState:
         self.events = EmitterGroup(landmarks=(), trajectory=("structure",), history=(),
                                    edited=("what",))
         self._undo: list[_Snapshot] = []
+        self._default_targets: dict = {}    # (structure, model, surface version) -> world
         self._redo: list[_Snapshot] = []
         self.workspace.events.structure_changed.connect(self._on_structure)
         self.workspace.events.structures.connect(self._on_structures)
@@ -125,9 +126,16 @@ class PlanningState:
         model = structure.model
         if model is None:
             return None
-        local = model.instance(structure.coef)
-        target = model_target(model.mean, model.faces, local, structure_info(model).target)
-        return target @ structure.pose[:3, :3].T + structure.pose[:3, 3]
+        # cached per surface: views ask on every paint (the centroid costs ~ms per call)
+        key = (structure.id, structure.model_version, structure._surface_version)
+        cache = self._default_targets
+        if key not in cache:
+            local = model.instance(structure.coef)
+            target = model_target(model.mean, model.faces, local, structure_info(model).target)
+            if len(cache) > 64:
+                cache.clear()
+            cache[key] = target @ structure.pose[:3, :3].T + structure.pose[:3, 3]
+        return cache[key]
 
     def entry_of(self, structure: Structure) -> np.ndarray | None:
         return self.entries.get(structure.id)

@@ -63,6 +63,7 @@ class SliceView(QWidget):
         self._qimage: QImage | None = None
         self._segments: dict[int, np.ndarray | None] = {}   # structure id -> (S, 2, 2) (U, V)
         self._drag: dict | None = None
+        self._labels: tuple | None = None      # (key, label_layout) of the last paint
         # extra painters (trajectories, measurements...): callables (painter, view), called
         # after the contours, in screen space (use view.world_to_screen)
         self.overlays: list = []
@@ -279,8 +280,13 @@ class SliceView(QWidget):
         painter.drawText(rect, flags, text)
 
     def label_layout(self) -> dict[str, tuple[QRectF, str, QColor, QFont]]:
-        """Where each overlay text goes (see :func:`label_layout`)."""
-        return label_layout(self)
+        """Where each overlay text goes (see :func:`label_layout`); cached until the view's
+        size, slice, window/level or the image's orientation status change."""
+        key = (self.width(), self.height(), round(self.depth, 6), self.state.window,
+               self.state.level, self.state.orientation_known, id(self.state.sampler))
+        if self._labels is None or self._labels[0] != key:
+            self._labels = (key, label_layout(self))
+        return self._labels[1]
 
     def _paint_labels(self, painter: QPainter) -> None:
         center = Qt.AlignmentFlag.AlignCenter
