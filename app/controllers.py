@@ -211,6 +211,13 @@ class SessionController:
             raise
         if session is None:
             return None
+        if session.model_path is not None and session.model_path.exists():
+            try:  # a model rebuilt since: refuse the recovery whole, not half-way
+                sessions.check_session_model(session, load_model(session.model_path),
+                                             sessions.recovery_path())
+            except (ValueError, OSError):
+                sessions.clear_recovery()
+                raise
         n_points = len(np.asarray(session.points).reshape(-1, 3))
         return session, (f"SSM Studio did not close normally last time. Restore the unsaved "
                          f"session ({n_points} contour point(s))?")

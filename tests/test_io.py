@@ -1487,3 +1487,25 @@ def test_markups_json_is_recognised_as_points_not_session(tmp_path):
     save_session(tmp_path / "s.json", Session(points=[[1.0, 2, 3]]))
     assert is_markups_file(tmp_path / "p.json")
     assert not is_markups_file(tmp_path / "s.json")
+
+
+def test_correspond_writes_stl_inputs_as_vtk_and_says_so(tmp_path, capsys):
+    from core.cli import main
+
+    mesh = sphere_mesh()
+    rng = np.random.default_rng(2)
+    inputs = []
+    for i, suffix in enumerate((".vtk", ".ply", ".stl")):
+        io.save_mesh(tmp_path / f"in{i}{suffix}",
+                     TriMesh(mesh.vertices + rng.normal(scale=0.1, size=mesh.vertices.shape),
+                             mesh.faces))
+        inputs.append(str(tmp_path / f"in{i}{suffix}"))
+    assert main(["correspond", *inputs, "--out", str(tmp_path / "out"), "--n-references", "1",
+                 "--jobs", "1", "--max-iterations", "5"]) == 0
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'out' / 'in2.vtk'}: written as .vtk" in err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == \
+        ["correspondence.json", "in0.vtk", "in1.ply", "in2.vtk"]
+    report = json.loads((tmp_path / "out" / "correspondence.json").read_text())
+    assert {s["output"] for s in report["shapes"]} == \
+        {str(tmp_path / "out" / n) for n in ("in0.vtk", "in1.ply", "in2.vtk")}

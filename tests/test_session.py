@@ -449,3 +449,17 @@ def test_running_writer_holds_its_lock(state_dir):
         child.kill()
         child.wait()
     assert sessions.previous_run_crashed()  # killed: the lock went with it
+
+
+def test_recovered_session_that_does_not_fit_its_model_is_refused(state_dir, tmp_path):
+    from app.controllers import SessionController
+    from core.io import save_model
+
+    save_model(tmp_path / "m.npz", _model(3))
+    _crashing_run(state_dir, f"""
+s.write_recovery(s.Session(model={str(tmp_path / 'm.npz')!r}, points=[[1.0, 2.0, 3.0]],
+                           coef=[0.5] * 4))
+print(os.getpid())""")
+    with pytest.raises(DataFileError, match="holds 4 shape coefficients but the model has 3"):
+        SessionController.pending_recovery()
+    assert not sessions.previous_run_crashed()  # discarded, not offered again

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 from core.pipeline import ALIGN_METHODS, TRANSFORMS
 
@@ -15,3 +17,13 @@ def add_preparation_options(parser: argparse.ArgumentParser) -> None:
                         help="alignment: sync (default), gpa or none")
     parser.add_argument("--transform", choices=TRANSFORMS, default="similarity",
                         help="alignment transform class (default similarity)")
+
+
+def say_changed_formats(command: str, written: dict[str, str]) -> None:
+    """One note per output whose format differs from its input's (STL cannot keep vertex
+    order, .vtu/.gii.gz have no writer): written as .vtk instead."""
+    for source, output in written.items():
+        if Path(source).name.split(".", 1)[-1].lower() != Path(output).name.split(".", 1)[-1]:
+            print(f"ssm-studio {command}: note: {output}: written as .vtk, the format of "
+                  f"{Path(source).name} cannot keep the vertex order of corresponded shapes "
+                  "or cannot be written", file=sys.stderr)

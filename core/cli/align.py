@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from core.alignment import METHODS, TRANSFORMS, align_shapes
+from core.cli._options import say_changed_formats
 from core.correspondence import mesh_problem
 from core.io import TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
@@ -92,4 +93,5 @@ def run(args: argparse.Namespace) -> int:
           f"mean RMS distance to the mean {float(np.mean(result.rmsd_)):.3f} mm")
     for name, problem in failures.items():
         print(f"ssm-studio align: {name}: {problem}", file=sys.stderr)
+    say_changed_formats("align", {e["name"]: e["output"] for e in entries})
     return 1 if failures else 0

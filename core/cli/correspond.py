@@ -21,6 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from core.cli._options import say_changed_formats
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
 from core.io import DataFileError, TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
@@ -121,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
           f"{'n/a' if mean is None else f'{mean:.3f} mm'}, {result.timings['total']:.1f} s")
     for name, problem in report["failures"].items():
         print(f"ssm-studio correspond: {name}: {problem}", file=sys.stderr)
+    say_changed_formats("correspond", written)
     if n_ok == 0:
         raise ValueError("no mesh could be corresponded (see " + str(args.out / REPORT_NAME) + ")")
     return 1 if report["failures"] else 0

@@ -44,25 +44,17 @@ def triangles_of(poly) -> np.ndarray:
     ``vtkTriangleFilter``. Point ids are unchanged.
     """
     import vtk
-    from vtk.util.numpy_support import vtk_to_numpy
 
     if poly.GetNumberOfPolys() == 0 and poly.GetNumberOfStrips() == 0:
         return np.zeros((0, 3), np.int64)
-
-    def polygons(p) -> tuple[np.ndarray, np.ndarray]:
-        cells = p.GetPolys()
-        offsets = vtk_to_numpy(cells.GetOffsetsArray()).astype(np.int64)
-        connectivity = vtk_to_numpy(cells.GetConnectivityArray()).astype(np.int64)
-        return offsets, connectivity
-
-    offsets, connectivity = polygons(poly)
+    offsets, connectivity = _cell_arrays(poly.GetPolys())
     if poly.GetNumberOfStrips() > 0 or np.any(np.diff(offsets) != 3):
         triangulate = vtk.vtkTriangleFilter()
         triangulate.PassVertsOff()
         triangulate.PassLinesOff()
         triangulate.SetInputData(poly)
         triangulate.Update()
-        offsets, connectivity = polygons(triangulate.GetOutput())
+        offsets, connectivity = _cell_arrays(triangulate.GetOutput().GetPolys())
     sizes = np.diff(offsets)
     starts = offsets[:-1][sizes == 3]
     return connectivity[starts[:, None] + np.arange(3)]
