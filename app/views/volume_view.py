@@ -61,7 +61,7 @@ class VolumeView(QWidget):
         self._camera_set = False
         # named extra meshes (trajectory, targets, ellipsoids): name -> (mesh or None, style)
         self._overlays: dict[str, tuple[pv.PolyData | None, dict]] = {}
-        self._overlay_actors: dict[str, object] = {}
+        self._overlay_actors: dict[str, tuple] = {}   # name -> (actor, its mesh, style)
         self._scalars: tuple[np.ndarray, str] | None = None   # colour map on the active surface
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
@@ -225,15 +225,26 @@ class VolumeView(QWidget):
         self._mark("overlays")
 
     def _update_overlays(self) -> None:
+        """Add, move or remove the named extra meshes; a mesh of the same style and size is
+        copied into the existing actor's mesh (no new actor per update)."""
         for name, (mesh, style) in list(self._overlays.items()):
-            actor = self._overlay_actors.pop(name, None)
-            if actor is not None:
-                self.plotter.remove_actor(actor, render=False)
+            shown = self._overlay_actors.get(name)
             if mesh is None:
+                if shown is not None:
+                    self.plotter.remove_actor(shown[0], render=False)
+                    del self._overlay_actors[name]
                 del self._overlays[name]
                 continue
-            self._overlay_actors[name] = self.plotter.add_mesh(
-                mesh, name=f"overlay-{name}", reset_camera=False, render=False, **style)
+            if shown is not None and shown[2] == style and shown[1].n_points == mesh.n_points \
+                    and shown[1].n_cells == mesh.n_cells:
+                shown[1].copy_from(mesh)
+                continue
+            if shown is not None:
+                self.plotter.remove_actor(shown[0], render=False)
+            copy = mesh.copy()
+            actor = self.plotter.add_mesh(copy, name=f"overlay-{name}", reset_camera=False,
+                                          render=False, **style)
+            self._overlay_actors[name] = (actor, copy, dict(style))
 
     def _update_surfaces(self) -> None:
         """Add, restyle, move or remove each structure's surface actor."""
