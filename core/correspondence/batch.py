@@ -1,0 +1,554 @@
+"""Correspondence of a whole training set: grooming, reference choice, pairwise runs, refinement.
+
+The batch layer of Bernard et al., SPIE MI 2016 (the package docstring has the method): it
+grooms every input (:mod:`core.grooming`), picks a representative reference, corresponds
+every shape to it in a process pool, flags shapes that lie far from all others, and
+refines groupwise: every shape is corresponded again to the evolving mean shape (as
+population-based methods do; Heimann & Meinzer, Medical Image Analysis 2009), which removes
+most of the reference's bias.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core import mesh as meshops
+from core.correspondence.pair import DEFAULT_CPD_PARAMS, _normalise, _task, mesh_problem
+from core.geometry import umeyama
+from core.grooming import DEFAULT_GROOMING, GroomingError, groom_mesh
+from core.progress import ProgressCallback, report
+from core.types import TriMesh
+
+
+@dataclass
+class CorrespondenceResult:
+    """Corresponded training meshes.
+
+    Attributes
+    ----------
+    meshes : list of TriMesh or None
+        One per input, None where it failed. All others share ``faces`` and vertex i is
+        homologous across them.
+    reference_index : int or None
+        Index of the chosen reference among the inputs (None for an external reference).
+    reference_name : str
+    faces : (F, 3) int
+        The reference's faces (after grooming).
+    residuals_mm : list of float or None
+        Symmetric mean surface distance (mm) between each output and its (groomed) input.
+    failures : dict
+        Mesh name -> reason, for every input that failed.
+    timings : dict
+        Seconds: ``total``, ``per_shape_mean``, ``per_shape_max``, ``cpu_total`` (sum over all
+        registrations), ``assignment_total``, ``grooming`` and ``n_registrations``.
+    candidate_scores : dict
+        Reference candidate name -> selection score (lower is better), for ``reference="auto"``.
+    shape_timings : list of float or None
+        Seconds spent on each input with the chosen reference (all passes).
+    params : dict
+        The CPD/fairing parameters used.
+    grooming : dict
+        Mesh name -> what grooming did (:class:`core.grooming.GroomReport` as a dict).
+    reference_reason : str
+        Why this reference was chosen (and which candidates were excluded).
+    refinement : list of float
+        Mean change of the corresponded vertices (mm) at each groupwise refinement pass.
+    """
+
+    meshes: list
+    reference_index: int | None
+    reference_name: str
+    faces: np.ndarray
+    residuals_mm: list
+    failures: dict
+    timings: dict
+    candidate_scores: dict = field(default_factory=dict)
+    shape_timings: list = field(default_factory=list)
+    params: dict = field(default_factory=dict)
+    grooming: dict = field(default_factory=dict)
+    reference_reason: str = ""
+    refinement: list = field(default_factory=list)
+
+    def to_report(self, names: list[str] | None = None) -> dict:
+        """JSON-ready summary (per shape: residual, grooming, error; reference and why)."""
+        names = names or [m.name if m is not None else f"shape_{i}" for i, m in enumerate(self.meshes)]
+        ok = [r for r in self.residuals_mm if r is not None]
+        return {
+            "reference": self.reference_name,
+            "reference_index": self.reference_index,
+            "reference_reason": self.reference_reason,
+            "n_vertices": int(self.faces.max()) + 1 if len(self.faces) else 0,
+            "n_faces": int(len(self.faces)),
+            "shapes": [{"name": n, "ok": self.meshes[i] is not None,
+                        "residual_mm": self.residuals_mm[i],
+                        "seconds": self.shape_timings[i] if i < len(self.shape_timings) else None,
+                        "grooming": self.grooming.get(n),
+                        "error": self.failures.get(n)}
+                       for i, n in enumerate(names)],
+            "mean_residual_mm": float(np.mean(ok)) if ok else None,
+            "candidate_scores": self.candidate_scores,
+            "refinement_change_mm": self.refinement,
+            "failures": self.failures,
+            "timings": self.timings,
+            "params": self.params,
+        }
+
+
+def _mesh_name(mesh: TriMesh, index: int) -> str:
+    return mesh.name or f"mesh {index}"
+
+
+def _check_params(cpd_params: dict, selection: str) -> dict:
+    unknown = set(cpd_params) - set(DEFAULT_CPD_PARAMS)
+    if unknown:
+        raise ValueError(f"unknown correspondence parameter(s): {', '.join(sorted(unknown))}; "
+                         f"known: {', '.join(DEFAULT_CPD_PARAMS)}")
+    if selection not in ("compactness", "residual"):
+        raise ValueError(f"selection must be 'compactness' or 'residual', got {selection!r}")
+    params = dict(DEFAULT_CPD_PARAMS)
+    params.update(cpd_params)
+    if not 0.0 <= params["w"] < 1.0:
+        raise ValueError(f"outlier weight w must be in [0, 1), got {params['w']}")
+    for name in ("beta", "lam", "tolerance"):
+        if not params[name] > 0:
+            raise ValueError(f"{name} must be positive, got {params[name]}")
+    return params
+
+
+def default_vertex_count(meshes: list[TriMesh]) -> int:
+    """The common density when ``vertices`` is not given: the median input vertex count,
+    clipped to [1000, 4000], so that it does not depend on which subject is the reference."""
+    counts = [len(m.vertices) for m in meshes]
+    return int(np.clip(np.median(counts), 1000, 4000)) if counts else 2000
+
+
+def _prepare(meshes: list[TriMesh], names: list[str], groom: bool | dict, vertices: int | None,
+             progress: ProgressCallback | None = None) -> tuple[list, dict, dict]:
+    """Groomed (or checked) inputs, per-shape failures and grooming reports."""
+    prepared: list[TriMesh | None] = [None] * len(meshes)
+    failures: dict[str, str] = {}
+    reports: dict[str, dict] = {}
+    options = dict(groom) if isinstance(groom, dict) else {}
+    options.setdefault("vertices", int(vertices) if vertices else default_vertex_count(meshes))
+    for i, m in enumerate(meshes):
+        report(progress, 0.0, f"grooming {i + 1}/{len(meshes)}")
+        if groom is False:
+            problem = mesh_problem(m)
+            if problem:
+                failures[names[i]] = problem
+            else:
+                prepared[i] = m
+            continue
+        try:
+            groomed, rep = groom_mesh(m, options)
+        except GroomingError as exc:
+            failures[names[i]] = f"grooming: {exc}"
+            continue
+        groomed.name = names[i]
+        prepared[i] = groomed
+        reports[names[i]] = rep.to_dict()
+    return prepared, failures, reports
+
+
+def _descriptor(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Pose- and scale-invariant shape summary: principal extents and the isoperimetric ratio."""
+    xn, _, scale = _normalise(np.asarray(vertices, dtype=np.float64))
+    extents = np.sqrt(np.sort(np.linalg.eigvalsh(np.cov(xn.T))))
+    area = 0.5 * np.linalg.norm(np.cross(xn[faces[:, 1]] - xn[faces[:, 0]],
+                                         xn[faces[:, 2]] - xn[faces[:, 0]]), axis=1).sum()
+    vol = abs(meshops.volume(xn, faces))
+    return np.append(extents, area / max(vol, 1e-12) ** (2.0 / 3.0) / 10.0)
+
+
+def pick_reference_candidates(raw: list[TriMesh], prepared: list, usable: list[int], n: int,
+                              grooming: dict, names: list[str]) -> tuple[list[int], str]:
+    """The n most typical usable shapes (closest to the median descriptor), and why.
+
+    Excluded first: coarse inputs (fewer than half the median input vertex count, which
+    would set a coarse model resolution without remeshing), inputs that needed repair
+    (dropped pieces or filled holes) and unrepresentative ones (descriptor more than 3
+    robust standard deviations from the median).
+    """
+    counts = np.array([len(raw[i].vertices) for i in usable], dtype=float)
+    desc = np.array([_descriptor(prepared[i].vertices, prepared[i].faces) for i in usable])
+    dist = np.linalg.norm(desc - np.median(desc, axis=0), axis=1)
+    mad = 1.4826 * np.median(np.abs(dist - np.median(dist))) + 1e-12
+    excluded = {}
+    for j, i in enumerate(usable):
+        rep = grooming.get(names[i], {})
+        if counts[j] < 0.5 * np.median(counts):
+            excluded[i] = f"coarse ({int(counts[j])} vertices)"
+        elif rep.get("dropped_pieces") or rep.get("filled_holes"):
+            excluded[i] = "needed repair"
+        elif (dist[j] - np.median(dist)) / mad > 3.0:
+            excluded[i] = "unrepresentative shape"
+    pool = [j for j, i in enumerate(usable) if i not in excluded] or list(range(len(usable)))
+    order = sorted(pool, key=lambda j: (dist[j], j))[:max(1, n)]
+    chosen = [usable[j] for j in order]
+    why = (f"closest to the median shape (principal extents, area/volume) among "
+           f"{len(pool)} of {len(usable)} usable inputs")
+    if excluded:
+        why += "; excluded: " + ", ".join(f"{names[i]} ({r})" for i, r in excluded.items())
+    return chosen, why
+
+
+def _compactness(shapes: np.ndarray) -> float:
+    """Mean per-vertex variance after similarity GPA, over the squared mean size (lower = compact)."""
+    from core.alignment import generalized_procrustes
+
+    if len(shapes) < 2:
+        return 0.0
+    res = generalized_procrustes(shapes, "similarity", max_iter=20, tol=1e-5)
+    size2 = float(((res.mean - res.mean.mean(axis=0)) ** 2).sum(axis=1).mean())
+    return float(((res.aligned - res.mean) ** 2).sum(axis=2).mean() / max(size2, 1e-300))
+
+
+def _run_tasks(tasks: list[tuple], n_jobs: int, progress: ProgressCallback | None,
+               start: float, stop: float) -> dict:
+    """Run correspondence tasks in-process or in a process pool; cancellable via progress.
+
+    A task is the argument tuple of :func:`core.correspondence.pair._task`; its ``parallel``
+    flag (index 6) is set here: rustcpd's own threads only when running in this process.
+    """
+    results = {}
+    total = len(tasks)
+    if total == 0:
+        return results
+    if n_jobs <= 1 or total == 1:
+        for done, t in enumerate(tasks):
+            report(progress, start + (stop - start) * done / total, f"corresponding {done + 1}/{total}")
+            key, out, err = _task(t[:6] + (True,) + t[7:])
+            results[key] = (out, err)
+        report(progress, stop, "correspondence done")
+        return results
+    ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
+    pool = ctx.Pool(processes=min(n_jobs, total))
+    done_queue: queue.SimpleQueue = queue.SimpleQueue()
+    try:
+        for t in tasks:
+            pool.apply_async(_task, (t[:6] + (False,) + t[7:],), callback=done_queue.put,
+                             error_callback=lambda exc, key=t[0]: done_queue.put((key, None, repr(exc))))
+        pool.close()
+        while len(results) < total:
+            report(progress, start + (stop - start) * len(results) / total,
+                   f"corresponding {len(results)}/{total}")
+            try:
+                key, out, err = done_queue.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            results[key] = (out, err)
+        report(progress, stop, "correspondence done")
+        pool.join()
+    except BaseException:
+        pool.terminate()  # Cancelled (or anything else): stop the workers now
+        pool.join()
+        raise
+    return results
+
+
+def _tasks(reference: TriMesh, ref_key, targets: dict[int, TriMesh], params: dict,
+           posed: dict | None = None) -> list[tuple]:
+    ref_v, ref_f = np.asarray(reference.vertices, float), np.asarray(reference.faces)
+    return [((ref_key, i), ref_v, ref_f, np.asarray(m.vertices, float), np.asarray(m.faces),
+             params, False) + ((posed[i],) if posed is not None else ())
+            for i, m in targets.items()]
+
+
+def _resolve_reference(reference, prepared: list, names: list[str], failures: dict, usable,
+                       raw, n_references: int, grooming: dict) -> tuple[list, TriMesh | None, str]:
+    """(candidate indices or [None], external reference mesh or None, reason)."""
+    if isinstance(reference, (str, os.PathLike)) and str(reference) != "auto":
+        ref_path = str(reference)
+        if ref_path in names:  # one of the inputs, by its name
+            reference = names.index(ref_path)
+        else:
+            from core.io import load_mesh
+
+            reference = load_mesh(ref_path)  # DataFileError names the file
+            reference.name = ref_path
+    if isinstance(reference, TriMesh):
+        problem = mesh_problem(reference, need_closed=True)
+        ref_name = reference.name or "reference"
+        if problem:
+            raise ValueError(f"{ref_name}: {problem}")
+        return [None], reference, "given (external reference mesh)"
+    if isinstance(reference, (int, np.integer)) and not isinstance(reference, bool):
+        idx = int(reference)
+        if not 0 <= idx < len(prepared):
+            raise ValueError(f"reference index {idx} out of range for {len(prepared)} meshes")
+        if prepared[idx] is None:
+            raise ValueError(f"{names[idx]}: {failures.get(names[idx])}")
+        problem = mesh_problem(prepared[idx], need_closed=True)
+        if problem:
+            raise ValueError(f"{names[idx]}: {problem}")
+        return [idx], None, "given (by index or name)"
+    if reference != "auto":
+        raise ValueError(f"reference must be 'auto', an index or a TriMesh, got {reference!r}")
+    closed = [i for i in usable if meshops.is_closed(np.asarray(prepared[i].faces))]
+    if not closed:
+        raise ValueError("no input mesh can serve as reference (none is a valid closed surface: "
+                         + "; ".join(f"{k}: {v}" for k, v in failures.items()) + ")"
+                         if failures else "no input mesh is a closed surface")
+    candidates, why = pick_reference_candidates(raw, prepared, closed, n_references, grooming, names)
+    return candidates, None, why
+
+
+def _select(candidates: list, external, prepared: list, names: list[str], usable: list[int],
+            params: dict, n_jobs: int, progress, selection: str, selection_shapes: int
+            ) -> tuple[object, dict, dict, list[int], float]:
+    """Correspond the selection subset to every candidate; keep the best (compactness or
+    residual). Returns (chosen, scores, results so far, shapes still to do, progress)."""
+    if len(candidates) > 1 and len(usable) > max(int(selection_shapes), len(candidates)):
+        others = [i for i in usable if i not in candidates]
+        n_more = max(int(selection_shapes) - len(candidates), 1)
+        spread = np.linspace(0, len(others) - 1, min(n_more, len(others))).round().astype(int)
+        subset = sorted(set(candidates) | {others[j] for j in spread})
+    else:
+        subset = list(usable)
+    tasks = []
+    for c in candidates:
+        ref = external if c is None else prepared[c]
+        tasks += _tasks(ref, c, {i: prepared[i] for i in subset if i != c}, params)
+    rest = [i for i in usable if i not in subset]
+    split = 0.6 * len(tasks) / max(len(tasks) + len(rest), 1)
+    results = _run_tasks(tasks, n_jobs, progress, 0.0, split)
+    scores, best = {}, None
+    for c in candidates:
+        outs = [results[(c, i)][0] for i in subset if c is None or i != c]
+        shapes = [o["vertices"] for o in outs if o is not None]
+        if c is not None:
+            shapes.append(np.asarray(prepared[c].vertices, float))
+        resid = [o["residual_mm"] for o in outs if o is not None]
+        if selection == "compactness" and len(candidates) > 1:
+            score = _compactness(np.stack(shapes)) if len(shapes) >= 2 else np.inf
+        else:
+            score = float(np.mean(resid)) if resid else 0.0
+        scores[(external.name or "reference") if c is None else names[c]] = score
+        key = (-len(shapes), score)
+        if best is None or key < best[0]:
+            best = (key, c)
+    chosen = best[1]
+    done = {i: results[(chosen, i)] for i in subset if chosen is None or i != chosen}
+    scores["_n_registrations"] = len(tasks)
+    return chosen, scores, done, rest, split
+
+
+def _flag_outliers(vertices: dict[int, np.ndarray], names: list[str], protect) -> dict[int, str]:
+    """Shapes far from every other one after similarity alignment (a different structure
+    by mistake), and mirrored ones (a reflection fits them much better than a rotation)."""
+    from core.alignment import generalized_procrustes
+
+    keys = sorted(vertices)
+    if len(keys) < 4:
+        return {}
+    shapes = np.stack([vertices[k] for k in keys])
+    gpa = generalized_procrustes(shapes, "similarity", max_iter=20, tol=1e-5)
+    size = float(np.sqrt(((gpa.mean - gpa.mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    dist = np.sqrt(((gpa.aligned - gpa.mean) ** 2).sum(axis=2).mean(axis=1)) / size
+    med = float(np.median(dist))
+    mad = 1.4826 * float(np.median(np.abs(dist - med))) + 1e-3 * med + 1e-12
+    flagged = {}
+    for j, k in enumerate(keys):
+        if k == protect:
+            continue
+        s, r, t = umeyama(shapes[j], gpa.mean, reflection=True)
+        mirrored = np.sqrt((((s * shapes[j] @ r.T + t) - gpa.mean) ** 2).sum(axis=1).mean()) / size
+        if np.linalg.det(r) < 0 and mirrored < 0.7 * dist[j]:
+            flagged[k] = (f"mirrored: a reflection matches the other shapes far better "
+                          f"({mirrored:.2f} vs {dist[j]:.2f} of the mean size; a left/right mix-up?)")
+        elif (dist[j] - med) / mad > 5.0 and dist[j] > 2.0 * med:
+            flagged[k] = (f"far from every other training shape ({dist[j]:.2f} of the mean size "
+                          f"from the mean, typical {med:.2f}; a different structure?)")
+    return flagged
+
+
+def _retry_from_mean(vertices: dict[int, np.ndarray], keys: list[int], faces: np.ndarray,
+                     prepared: list, params: dict, n_jobs: int, timings: dict) -> None:
+    """Correspond ``keys`` again, from scratch (rigid starts included), to the mean of the
+    other shapes: a reference that is closer to them than the chosen one was."""
+    from core.alignment import generalized_procrustes
+
+    others = [k for k in sorted(vertices) if k not in keys]
+    if len(others) < 2:
+        return
+    gpa = generalized_procrustes(np.stack([vertices[k] for k in others]), "similarity",
+                                 max_iter=20, tol=1e-6)
+    results = _run_tasks(_tasks(TriMesh(gpa.mean, faces, "mean"), "retry",
+                                {k: prepared[k] for k in keys}, params), n_jobs, None, 0.6, 0.6)
+    for k in keys:
+        out, _ = results[("retry", k)]
+        if out is not None:
+            vertices[k] = out["vertices"]
+            _add_timings(timings, k, out)
+
+
+def _refine(vertices: dict[int, np.ndarray], faces: np.ndarray, prepared: list, params: dict,
+            n_jobs: int, progress, passes: int, timings: dict) -> list[float]:
+    """Groupwise refinement: correspond every shape again to the current mean shape.
+
+    The mean of the similarity-aligned corresponded shapes is posed on each shape by the
+    weighted Umeyama fit over the current correspondences (no rigid CPD needed), then
+    corresponded to it as in the pairwise step (nonrigid CPD, assignment, fairing).
+    """
+    from core.alignment import generalized_procrustes
+
+    changes = []
+    for it in range(int(passes)):
+        keys = sorted(vertices)
+        if len(keys) < 3:
+            break
+        gpa = generalized_procrustes(np.stack([vertices[k] for k in keys]), "similarity",
+                                     max_iter=20, tol=1e-6)
+        mean = TriMesh(gpa.mean, faces, "mean")
+        posed = {}
+        for k in keys:
+            s, r, t = umeyama(gpa.mean, vertices[k])
+            posed[k] = s * gpa.mean @ r.T + t
+        tasks = _tasks(mean, "mean", {k: prepared[k] for k in keys}, params, posed)
+        start = 0.6 + 0.35 * it / passes
+        results = _run_tasks(tasks, n_jobs, progress, start, start + 0.35 / passes)
+        moved = []
+        for k in keys:
+            out, err = results[("mean", k)]
+            if out is None:
+                continue  # keep the previous correspondence of this shape
+            moved.append(float(np.linalg.norm(out["vertices"] - vertices[k], axis=1).mean()))
+            vertices[k] = out["vertices"]
+            _add_timings(timings, k, out)
+        changes.append(float(np.mean(moved)) if moved else 0.0)
+    return changes
+
+
+def _add_timings(timings: dict, key: int, out: dict) -> None:
+    per = timings.setdefault("_per_shape", {})
+    per[key] = per.get(key, 0.0) + float(out["timings"]["total"])
+    timings["assignment_total"] = timings.get("assignment_total", 0.0) + out["timings"]["assignment"]
+    timings["cpu_total"] = timings.get("cpu_total", 0.0) + out["timings"]["total"]
+    timings["n_registrations"] = timings.get("n_registrations", 0) + 1
+
+
+def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMesh = "auto", *,
+                             n_references: int = 1, n_jobs: int | None = None,
+                             progress: ProgressCallback | None = None, selection: str = "compactness",
+                             selection_shapes: int = 8, groom: bool | dict = True,
+                             vertices: int | None = None, refine: int = 1,
+                             **cpd_params) -> CorrespondenceResult:
+    """Express every training mesh with the vertices and faces of one reference mesh.
+
+    Parameters
+    ----------
+    meshes : list of TriMesh
+        Training meshes (any vertex count, order and pose). ``mesh.name`` names them in errors.
+    reference : "auto", int, path or TriMesh
+        ``"auto"``: the most typical usable input (:func:`pick_reference_candidates`), or with
+        ``n_references`` > 1 the best of that many by ``selection``; int: that input; a path:
+        the input of that name, else the mesh file; TriMesh: an external reference mesh
+        (kept as it is, not groomed). A reference must be one closed connected surface.
+    n_references : int
+        Candidates tried with ``"auto"`` (1: no trial registrations; the groupwise
+        refinement removes most of the reference's influence).
+    n_jobs : int, optional
+        Worker processes (default: CPU count). 1 runs in this process.
+    progress : callable, optional
+        ``progress(fraction, message)``; may raise :class:`core.progress.Cancelled`, which
+        terminates the worker pool and propagates.
+    selection : {"compactness", "residual"}
+        How several ``"auto"`` candidates are ranked.
+    selection_shapes : int
+        Candidates are compared on this many shapes.
+    groom : bool or dict
+        Grooming before correspondence (:mod:`core.grooming`; a dict overrides its options,
+        e.g. ``{"remesh": False}``); False only checks the inputs.
+    vertices : int, optional
+        Common vertex count of the groomed inputs (default :func:`default_vertex_count`).
+    refine : int
+        Groupwise refinement passes (0: plain reference-based correspondence).
+    **cpd_params
+        Overrides of :data:`DEFAULT_CPD_PARAMS`.
+    """
+    params = _check_params(cpd_params, selection)
+    if len(meshes) == 0:
+        raise ValueError("no meshes to correspond")
+    t_start = time.perf_counter()
+    names = [_mesh_name(m, i) for i, m in enumerate(meshes)]
+    report(progress, 0.0, "grooming")
+    prepared, failures, grooming = _prepare(meshes, names, groom, vertices, progress)
+    t_groom = time.perf_counter() - t_start
+    usable = [i for i, m in enumerate(prepared) if m is not None]
+    candidates, external, why = _resolve_reference(reference, prepared, names, failures, usable,
+                                                   meshes, n_references, grooming)
+    n_jobs = (os.cpu_count() or 1) if n_jobs is None else int(n_jobs)
+    chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
+                                                   params, n_jobs, progress, selection,
+                                                   selection_shapes)
+    n_trial = scores.pop("_n_registrations") - len(results)  # trial runs of the losers
+    ref = external if chosen is None else prepared[chosen]
+    results.update({k[1]: v for k, v in _run_tasks(
+        _tasks(ref, chosen, {i: prepared[i] for i in rest}, params), n_jobs, progress,
+        split, 0.6).items()})
+    ref_faces = np.asarray(ref.faces).copy()
+    timings: dict = {"grooming": t_groom, "n_registrations": n_trial}
+    corresponded = _collect(results, chosen, ref, usable, names, failures, timings)
+    flagged = _flag_outliers(corresponded, names, chosen)
+    if flagged:  # a wrong pose looks like a wrong shape: once more from the others' mean
+        _retry_from_mean(corresponded, list(flagged), ref_faces, prepared, params, n_jobs, timings)
+        flagged = {k: r for k, r in _flag_outliers(corresponded, names, chosen).items()
+                   if k in flagged}
+    for k, reason in flagged.items():
+        failures[names[k]] = reason
+        corresponded.pop(k)
+    changes = _refine(corresponded, ref_faces, prepared, params, n_jobs, progress, refine, timings)
+    return _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures,
+                   timings, scores, params, grooming, why, changes, t_start, n_jobs, progress)
+
+
+def _collect(results: dict, chosen, ref: TriMesh, usable: list[int], names: list[str],
+             failures: dict, timings: dict) -> dict[int, np.ndarray]:
+    """Corresponded vertices per input index (the reference itself included)."""
+    out: dict[int, np.ndarray] = {}
+    for i in usable:
+        if chosen is not None and i == chosen:
+            out[i] = np.asarray(ref.vertices, float).copy()
+            continue
+        res, err = results[i]
+        if err is not None:
+            failures[names[i]] = f"correspondence failed: {err}"
+            continue
+        out[i] = res["vertices"]
+        _add_timings(timings, i, res)
+    return out
+
+
+def _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures, timings,
+            scores, params, grooming, why, changes, t_start, n_jobs, progress
+            ) -> CorrespondenceResult:
+    from core.geometry import symmetric_surface_distance
+
+    out_meshes: list[TriMesh | None] = [None] * len(meshes)
+    residuals: list[float | None] = [None] * len(meshes)
+    per = timings.pop("_per_shape", {})
+    shape_times = [per.get(i) for i in range(len(meshes))]
+    for i, v in corresponded.items():
+        out_meshes[i] = TriMesh(v, ref_faces, names[i])
+        residuals[i] = 0.0 if (i == chosen and not changes) else symmetric_surface_distance(
+            v, ref_faces, prepared[i].vertices, prepared[i].faces)
+    times = [t for t in per.values()]
+    timings.update(total=time.perf_counter() - t_start,
+                   per_shape_mean=float(np.mean(times)) if times else 0.0,
+                   per_shape_max=float(np.max(times)) if times else 0.0, n_jobs=int(n_jobs))
+    timings.setdefault("cpu_total", 0.0)
+    timings.setdefault("assignment_total", 0.0)
+    timings.setdefault("n_registrations", 0)
+    report(progress, 1.0, "done")
+    return CorrespondenceResult(
+        meshes=out_meshes, reference_index=chosen,
+        reference_name=ref.name or ("reference" if chosen is None else names[chosen]),
+        faces=ref_faces, residuals_mm=residuals, failures=failures, timings=timings,
+        candidate_scores=scores, shape_timings=shape_times, params=params, grooming=grooming,
+        reference_reason=why, refinement=changes)

@@ -1,0 +1,105 @@
+"""Grooming before correspondence (core.grooming) and the batch's per-shape handling of bad inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core import correspondence as corr
+from core import grooming, mesh as meshops
+from core.correspondence.synthetic import known_homology_shapes
+from core.geometry import closest_points_on_surface
+from core.models.synthetic import ellipsoid_surface
+from core.types import TriMesh
+
+
+def _messy():
+    """An ellipsoid (642 vertices) with a stray island, a hole, flipped faces and STL-style
+    duplicated vertices."""
+    v, f = ellipsoid_surface(3)
+    island_v, island_f = ellipsoid_surface(1, (1.5, 1.5, 1.5))
+    faces = np.vstack([f[1:], island_f + len(v)])  # f[0] removed: a 3-edge hole
+    faces[10:60] = faces[10:60, ::-1]
+    verts = np.vstack([v, island_v + [40.0, 0, 0]])
+    # Unweld: every face gets its own copy of its corners (as STL stores them).
+    return TriMesh(verts[faces].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3), "messy.stl"), (v, f)
+
+
+def test_grooming_repairs_a_messy_mesh_and_says_what_it_did():
+    mesh, (v, f) = _messy()
+    out, report = grooming.groom_mesh(mesh, {"vertices": 400})
+    assert report.welded_vertices > 0
+    assert report.dropped_pieces == 1 and 0 < report.dropped_area_share < 0.05
+    assert report.filled_holes == 1
+    assert report.flipped_faces == 50
+    assert report.remeshed and 360 <= report.output_vertices <= 440
+    assert meshops.is_closed(out.faces) and meshops.is_consistently_oriented(out.faces)
+    assert meshops.n_components(out.faces, out.n_vertices) == 1
+    # Same surface: volume within 3% of the repaired ellipsoid's (the 400-vertex remesh's
+    # chords cut the 642-vertex input's curvature), vertices on it.
+    assert meshops.volume(out.vertices, out.faces) == pytest.approx(meshops.volume(v, f), rel=0.03)
+    _, dist = closest_points_on_surface(out.vertices, v, f)
+    assert dist.mean() < 0.02
+    # Even density: edge lengths vary little.
+    e = meshops.edges(out.faces)
+    length = np.linalg.norm(out.vertices[e[:, 0]] - out.vertices[e[:, 1]], axis=1)
+    assert length.std() < 0.35 * length.mean()
+
+
+def test_each_grooming_step_can_be_switched_off():
+    mesh, _ = _messy()
+    with pytest.raises(grooming.GroomingError, match="not a closed surface"):
+        grooming.groom_mesh(mesh, {"fill_holes": False, "remesh": False})
+    out, report = grooming.groom_mesh(mesh, {"remesh": False, "fix_orientation": True})
+    assert not report.remeshed and out.n_vertices == 643  # 642 + the hole's centre
+
+
+def test_grooming_refuses_what_it_cannot_fix_with_the_reason():
+    v, f = ellipsoid_surface(2)
+    two = TriMesh(np.vstack([v, v + 50.0]), np.vstack([f, f + len(v)]), "two.vtk")
+    with pytest.raises(grooming.GroomingError, match="largest connected piece has only 50%"):
+        grooming.groom_mesh(two)
+    flat = TriMesh(v * [1.0, 1.0, 0.0], f, "flat.vtk")
+    with pytest.raises(grooming.GroomingError, match="no volume|not a closed surface"):
+        grooming.groom_mesh(flat, {"remesh": False})
+    nonmanifold = TriMesh(v, np.vstack([f, np.array([[0, 1, 100]])]), "nm.vtk")  # a fin on one edge
+    with pytest.raises(grooming.GroomingError, match="closed surface"):
+        grooming.groom_mesh(nonmanifold, {"remesh": False, "fill_holes": False})
+
+
+def test_tiny_coarse_mesh_is_remeshed_and_corresponds():
+    """A 14-vertex mesh of a tiny structure next to normal ones: remeshed to the common count,
+    it corresponds, and it is not chosen as the reference."""
+    pop = known_homology_shapes("bean", 4, seed=3, n_points=(380, 420))
+    tiny = known_homology_shapes("bean", 1, seed=4, n_points=(14, 15)).meshes[0]
+    tiny.name = "tiny"
+    meshes = pop.meshes + [tiny]
+    result = corr.establish_correspondence(meshes, "auto", n_jobs=1, vertices=400, refine=0)
+    assert not result.failures, result.failures
+    assert result.reference_name != "tiny" and "tiny (coarse" in result.reference_reason
+    assert result.grooming["tiny"]["remeshed"] and result.grooming["tiny"]["input_vertices"] == 14
+    n = len(result.meshes[0].vertices)
+    assert 360 <= n <= 440 and all(m.n_vertices == n for m in result.meshes)
+    report = result.to_report()
+    assert report["reference_reason"] and report["shapes"][4]["grooming"]["input_vertices"] == 14
+
+
+def test_bad_inputs_are_caught_per_shape_and_the_rest_completes():
+    pop = known_homology_shapes("bean", 6, seed=5, n_points=(380, 420))
+    good = pop.meshes
+    v, f = good[1].vertices.copy(), good[1].faces
+    nan = TriMesh(np.where(np.arange(len(v))[:, None] == 7, np.nan, v), f, "nan")
+    other = known_homology_shapes("ring", 1, seed=6, n_points=(380, 420)).meshes[0]
+    other.name = "ring"
+    centre = good[3].vertices[good[3].faces].mean(axis=1)
+    keep = centre @ (good[3].vertices[0] - good[3].vertices.mean(axis=0)) < np.quantile(
+        centre @ (good[3].vertices[0] - good[3].vertices.mean(axis=0)), 0.85)
+    opened = TriMesh(good[3].vertices, good[3].faces[keep], "open")  # a cap cut off
+    inputs = good + [nan, other, opened]
+    result = corr.establish_correspondence(inputs, "auto", n_jobs=1, vertices=400, refine=0)
+    fail = result.failures
+    assert set(fail) == {"nan", "ring", "open"}, fail
+    assert "NaN" in fail["nan"]
+    assert "far from every other training shape" in fail["ring"]
+    assert "boundary edges" in fail["open"]
+    assert all(m is not None for m in result.meshes[:6])
