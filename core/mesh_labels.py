@@ -217,3 +217,20 @@ def label_map_surface(path: str | os.PathLike, label: str | int, *, n_vertices: 
     safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
     return label_surface(volume, value, n_vertices=n_vertices, name=f"{stem}_{safe}",
                          source=str(path), info=info, label_name=name)
+
+
+def label_map_surfaces(paths: list, label: str | int, *, n_vertices: int | None = 2000,
+                       progress=None) -> list[tuple[str, TriMesh | None, str | None]]:
+    """:func:`label_map_surface` for several files: (path, mesh or None, error or None) each,
+    so that one bad file does not stop the others (the builder's *Add label maps...*)."""
+    from core.progress import report
+
+    out = []
+    for i, path in enumerate(paths):
+        report(progress, i / max(len(paths), 1), f"meshing {Path(path).name}")
+        try:
+            out.append((str(path), label_map_surface(path, label, n_vertices=n_vertices), None))
+        except (ValueError, OSError) as exc:
+            out.append((str(path), None, " ".join(str(exc).split())))
+    report(progress, 1.0, "meshed")
+    return out

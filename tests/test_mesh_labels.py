@@ -97,3 +97,15 @@ def test_cli_mesh_labels_writes_surfaces_and_reports_failures(tmp_path):
     assert ok["ok"] and ok["vertices"] == load_mesh(ok["output"]).n_vertices
     assert not empty_entry["ok"] and "label" in empty_entry["error"] and "b.nii.gz" in empty_entry["error"]
     assert not missing["ok"] and "missing.nii.gz" in missing["error"]
+
+
+def test_builder_engine_adds_label_maps_as_entries(tmp_path):
+    from app.panels.builder_engine import load_label_entries
+    from core.io import save_volume
+
+    good, _, _ = _ellipsoid_map(2.0, False)
+    save_volume(tmp_path / "a.nii.gz", good.data, good.affine)
+    entries = load_label_entries([tmp_path / "a.nii.gz", tmp_path / "nope.nii.gz"], "Left-Caudate")
+    assert entries[0].mesh is not None and entries[0].name == "a_Left-Caudate"
+    assert entries[0].included and not entries[0].problems
+    assert entries[1].mesh is None and "nope.nii.gz" in entries[1].problems[0]

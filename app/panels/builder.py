@@ -129,6 +129,9 @@ class BuilderPanel(QWidget):
                                             "folders onto this panel.")
         self.add_files_button = QPushButton("Add files…")
         self.add_files_button.setToolTip("Add mesh files.")
+        self.add_labels_button = QPushButton("Add label maps…")
+        self.add_labels_button.setToolTip("Add one label of label maps (by number or name) as "
+                                          "closed training surfaces (core.mesh_labels).")
         self.remove_button = QPushButton("Remove")
         self.remove_button.setToolTip("Remove the selected meshes from the list.")
         self.clear_button = QPushButton("Clear")
@@ -150,8 +153,8 @@ class BuilderPanel(QWidget):
         self.mesh_summary = QLabel("No meshes. Add a folder of training meshes.")
         self.mesh_summary.setWordWrap(True)
         buttons = QHBoxLayout()
-        for b in (self.add_folder_button, self.add_files_button, self.remove_button,
-                  self.clear_button):
+        for b in (self.add_folder_button, self.add_files_button, self.add_labels_button,
+                  self.remove_button, self.clear_button):
             buttons.addWidget(b)
         meshes_box = QGroupBox("1. Training meshes")
         box_layout = QVBoxLayout(meshes_box)
@@ -340,6 +343,7 @@ class BuilderPanel(QWidget):
         # --- connections --------------------------------------------------------------------
         self.add_folder_button.clicked.connect(self._ask_folder)
         self.add_files_button.clicked.connect(self._ask_files)
+        self.add_labels_button.clicked.connect(self._ask_label_maps)
         self.remove_button.clicked.connect(self.remove_selected)
         self.clear_button.clicked.connect(self.clear_meshes)
         self.mesh_list.itemChanged.connect(self._on_item_changed)
@@ -417,6 +421,18 @@ class BuilderPanel(QWidget):
         files, _ = QFileDialog.getOpenFileNames(self, "Training meshes", "", pattern)
         if files:
             self.add_paths(files)
+
+    def _ask_label_maps(self) -> None:
+        from PySide6.QtWidgets import QInputDialog
+
+        files, _ = QFileDialog.getOpenFileNames(
+            self, "Label maps", "", "Label maps (*.nii *.nii.gz *.nrrd *.nhdr *.mha *.mhd *.mgz)")
+        if not files:
+            return
+        label, ok = QInputDialog.getText(self, "Label", "Label number or name "
+                                         "(e.g. 11 or Left-Caudate, or a Slicer segment name):")
+        if ok and label.strip():
+            self._start_worker("load", engine.load_label_entries, files, label.strip())
 
     def dragEnterEvent(self, event) -> None:  # noqa: N802 - Qt API
         if event.mimeData().hasUrls() and not self.is_busy:
@@ -862,8 +878,8 @@ class BuilderPanel(QWidget):
         busy = self.is_busy
         have_meshes = len(self.usable_entries()) >= 3
         have_model = self.state.model is not None
-        for w in (self.add_folder_button, self.add_files_button, self.remove_button,
-                  self.clear_button, self.mesh_list, self.open_button):
+        for w in (self.add_folder_button, self.add_files_button, self.add_labels_button,
+                  self.remove_button, self.clear_button, self.mesh_list, self.open_button):
             w.setEnabled(not busy)
         self.build_button.setEnabled(not busy and have_meshes)
         self.cancel_button.setEnabled(busy)

@@ -61,6 +61,20 @@ def load_entries(files: list[str | os.PathLike], progress: ProgressCallback | No
     return entries
 
 
+def load_label_entries(files: list[str | os.PathLike], label: str,
+                       progress: ProgressCallback | None = None) -> list[MeshEntry]:
+    """One label of each label map as a training mesh (core.mesh_labels); errors per file."""
+    from core.mesh_labels import label_map_surfaces
+
+    entries = []
+    for path, mesh, error in label_map_surfaces(files, label, progress=progress):
+        if mesh is None:
+            entries.append(MeshEntry(path, Path(path).name, None, [error], included=False))
+        else:
+            entries.append(MeshEntry(path, mesh.name, mesh, surface_problems(mesh.vertices, mesh.faces)))
+    return entries
+
+
 # ------------------------------------------------------------------------------------------
 # Model classes (for the parameter forms)
 # ------------------------------------------------------------------------------------------

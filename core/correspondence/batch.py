@@ -345,7 +345,7 @@ def _flag_outliers(vertices: dict[int, np.ndarray], names: list[str], protect) -
     from core.alignment import generalized_procrustes
 
     keys = sorted(vertices)
-    if len(keys) < 4:
+    if len(keys) < 6:  # too few for a robust spread of the distances
         return {}
     shapes = np.stack([vertices[k] for k in keys])
     gpa = generalized_procrustes(shapes, "similarity", max_iter=20, tol=1e-5)
