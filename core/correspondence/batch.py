@@ -137,7 +137,7 @@ def _prepare(meshes: list[TriMesh], names: list[str], groom: bool | dict, vertic
     options = dict(groom) if isinstance(groom, dict) else {}
     options.setdefault("vertices", int(vertices) if vertices else default_vertex_count(meshes))
     for i, m in enumerate(meshes):
-        report(progress, 0.0, f"grooming {i + 1}/{len(meshes)}")
+        report(progress, 0.1 * i / max(len(meshes), 1), f"grooming {i + 1}/{len(meshes)}")
         if groom is False:
             problem = mesh_problem(m)
             if problem:
@@ -316,8 +316,8 @@ def _select(candidates: list, external, prepared: list, names: list[str], usable
         ref = external if c is None else prepared[c]
         tasks += _tasks(ref, c, {i: prepared[i] for i in subset if i != c}, params)
     rest = [i for i in usable if i not in subset]
-    split = 0.6 * len(tasks) / max(len(tasks) + len(rest), 1)
-    results = _run_tasks(tasks, n_jobs, progress, 0.0, split)
+    split = 0.1 + 0.5 * len(tasks) / max(len(tasks) + len(rest), 1)
+    results = _run_tasks(tasks, n_jobs, progress, 0.1, split)
     scores, best = {}, None
     for c in candidates:
         outs = [results[(c, i)][0] for i in subset if c is None or i != c]
