@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "most typical input; more: the most compact model of that many)")
     parser.add_argument("--vertices", type=int, default=None,
                         help="common vertex count every input (reference included) is remeshed "
-                             "to (default: the median input count, clipped to 1000-4000)")
+                             "to (default: the median input count)")
     parser.add_argument("--refine", type=int, default=1,
                         help="groupwise refinement passes: correspond again to the mean shape "
                              "(default 1; 0: plain reference-based)")

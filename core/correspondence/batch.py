@@ -122,10 +122,11 @@ def _check_params(cpd_params: dict, selection: str) -> dict:
 
 
 def default_vertex_count(meshes: list[TriMesh]) -> int:
-    """The common density when ``vertices`` is not given: the median input vertex count,
-    clipped to [1000, 4000], so that it does not depend on which subject is the reference."""
+    """The common density when ``vertices`` is not given: the median input vertex count, so
+    that it does not depend on which subject is the reference (inputs already within 10% of
+    it with an even spacing are left as they are)."""
     counts = [len(m.vertices) for m in meshes]
-    return int(np.clip(np.median(counts), 1000, 4000)) if counts else 2000
+    return max(int(np.median(counts)), 20) if counts else 2000
 
 
 def _prepare(meshes: list[TriMesh], names: list[str], groom: bool | dict, vertices: int | None,
