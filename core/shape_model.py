@@ -166,3 +166,40 @@ class ShapeModel:
     def world_instance(self, coef: np.ndarray | None = None) -> np.ndarray:
         """Shape for ``coef`` placed in world coordinates, (N, 3)."""
         return self.to_world(self.instance(coef))
+
+    # ---- read-outs shared by the views (kept here so that app/ does no maths) ---------------
+    def factor_magnitudes(self, sd: float = 1.0) -> np.ndarray:
+        """(M, N) length of each vertex's displacement at ``sd`` standard deviations of each
+        factor's coefficient, ``|sd| * sqrt(coef_var_m) * ||factors[m, i]||`` (mm)."""
+        return abs(float(sd)) * np.linalg.norm(self.factors, axis=2) * \
+            np.sqrt(self.coef_var)[:, None]
+
+    def explained_variance(self) -> np.ndarray:
+        """(M,) shape variance along each factor, ``coef_var_m * ||factor_m||^2`` (mm^2)."""
+        return self.coef_var * np.sum(self.factors ** 2, axis=(1, 2))
+
+    def explained_variance_share(self) -> np.ndarray:
+        """(M,) each factor's share of the training shapes' variance about the mean.
+
+        The fraction stored at build time (``info["explained_variance_ratio"]``: variance of the
+        training shapes along each factor over their total variance, which sums to less than 1
+        when the factors do not span the shapes) when the file has it; otherwise each factor's
+        share of the model's own variance, :meth:`explained_variance` normalised to sum 1.
+        """
+        stored = self.info.get("explained_variance_ratio")
+        if stored is not None and len(stored) == self.n_factors:
+            return np.asarray(stored, dtype=np.float64)
+        explained = self.explained_variance()
+        total = float(explained.sum())
+        return explained / total if total > 0 else np.zeros_like(explained)
+
+    def sample(self, n: int = 1, random_state: int | np.random.Generator | None = None
+               ) -> np.ndarray:
+        """``n`` random shapes (n, N, 3) in the model frame, coefficients ~ N(0, diag(coef_var))."""
+        rng = np.random.default_rng(random_state)
+        coef = rng.standard_normal((int(n), self.n_factors)) * np.sqrt(self.coef_var)
+        return self.mean[None] + np.tensordot(coef, self.factors, axes=1)
+
+    def distance_to_mean(self, shapes: np.ndarray) -> np.ndarray:
+        """Per-vertex distance (K, N) of shapes (K, N, 3) (or (N,) for one (N, 3)) to the mean."""
+        return np.linalg.norm(np.asarray(shapes, dtype=np.float64) - self.mean, axis=-1)

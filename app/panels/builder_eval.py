@@ -1,4 +1,5 @@
-"""Evaluation view of the model builder: a table of measures and their boxplots, per method.
+"""The model builder's evaluation: the "6. Evaluate and save" box, and the evaluation view (a
+table of measures and their boxplots, per method).
 
 The measures (reconstruction, generalisation, specificity, sparse reconstruction; Bernard et
 al., CVPR 2016, section 3.1) are computed by ``core.evaluation`` in a worker; this widget
@@ -8,20 +9,101 @@ shows the summary table (mean ± SD over shapes, mm) and embeds the boxplot figu
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from PySide6.QtWidgets import (
+    QCheckBox,
+    QFileDialog,
+    QGroupBox,
+    QHBoxLayout,
     QHeaderView,
     QLabel,
+    QPushButton,
     QSplitter,
     QTableWidget,
     QTableWidgetItem,
     QVBoxLayout,
     QWidget,
 )
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, Signal
 
 from app.panels import builder_engine as engine
+
+
+class EvaluateBox(QGroupBox):
+    """"6. Evaluate and save": methods to compare, Evaluate, Save, Open, Use for segmentation.
+
+    Signals
+    -------
+    message(str, bool)
+        A status line and whether it reports an error.
+    """
+
+    message = Signal(str, bool)
+
+    def __init__(self, methods: Sequence[str], parent: QWidget | None = None):
+        super().__init__("6. Evaluate and save", parent)
+        self.checks: dict[str, QCheckBox] = {}
+        layout = QVBoxLayout(self)
+        row = QHBoxLayout()
+        for name in methods:
+            check = QCheckBox(name)
+            check.setToolTip(f"Evaluate {name} with the parameters of its form above.")
+            self.checks[name] = check
+            row.addWidget(check)
+        row.addStretch(1)
+        layout.addLayout(row)
+        self.evaluate_button = QPushButton("Evaluate")
+        self.evaluate_button.setObjectName("evaluate")
+        self.evaluate_button.setToolTip("Reconstruction, generalisation (leave one out), "
+                                        "specificity and sparse reconstruction of the ticked "
+                                        "methods on the aligned training shapes.")
+        self.save_button = QPushButton("Save model…")
+        self.save_button.setObjectName("save")
+        self.open_button = QPushButton("Open model…")
+        self.open_button.setToolTip("Inspect a saved model file (factors, samples).")
+        self.use_button = QPushButton("Use for segmentation")
+        self.use_button.setObjectName("use_for_segmentation")
+        self.use_button.setToolTip("Save the model if needed and load it into the "
+                                   "segmentation workspace.")
+        row = QHBoxLayout()
+        row.addWidget(self.evaluate_button)
+        row.addWidget(self.save_button)
+        row.addWidget(self.open_button)
+        layout.addLayout(row)
+        layout.addWidget(self.use_button)
+
+    def ticked(self) -> list[str]:
+        return [name for name, check in self.checks.items() if check.isChecked()]
+
+    def ask_save_path(self, start: str) -> str | None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save shape model", start,
+                                              "Shape model (*.npz)")
+        if not path:
+            return None
+        return path if path.endswith(".npz") else path + ".npz"
+
+    def ask_save(self, state) -> str | None:
+        """Ask where to save ``state``'s model (a ``BuilderState``) and save it there;
+        returns the path written, or None if cancelled or failed (reported)."""
+        if state.model is None:
+            return None
+        path = self.ask_save_path(state.saved_path or f"{state.model.method}_model.npz")
+        if not path:
+            return None
+        try:
+            path = state.save_model(path)
+        except (ValueError, OSError) as exc:
+            self.message.emit(f"Could not save: {exc}", True)
+            return None
+        self.message.emit(f"Saved {path}", False)
+        return path
+
+    def ask_open_path(self) -> str | None:
+        path, _ = QFileDialog.getOpenFileName(self, "Open shape model", "",
+                                              "Shape model (*.npz)")
+        return path or None
 
 
 class EvaluationView(QWidget):

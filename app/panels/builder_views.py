@@ -15,21 +15,28 @@ here in mm at one standard deviation of its coefficient, ``sqrt(coef_var_m) * ||
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
-from PySide6.QtCore import Qt, Signal
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import (
+    QButtonGroup,
+    QComboBox,
     QHBoxLayout,
     QLabel,
     QListWidget,
     QListWidgetItem,
     QPushButton,
+    QRadioButton,
     QSlider,
     QSpinBox,
     QSplitter,
+    QTabWidget,
     QVBoxLayout,
     QWidget,
 )
+
+from app.panels.builder_eval import EvaluationView
 
 # distinct colours for overlaid training meshes (tab10)
 _COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
@@ -225,10 +232,8 @@ class FactorView(QWidget):
         layout.addLayout(slider_row)
         layout.addWidget(self.info_label)
 
-        self._mean: np.ndarray | None = None
-        self._faces: np.ndarray | None = None
-        self._factors: np.ndarray | None = None
-        self._sd: np.ndarray | None = None
+        self._model = None  # core.shape_model.ShapeModel
+        self.explained: np.ndarray | None = None  # (M,) share of variance per factor
         self._poly = None
         self.actor = None  # the drawn mean/deformed shape
         self.factor_list.currentRowChanged.connect(self._on_factor_selected)
@@ -238,52 +243,41 @@ class FactorView(QWidget):
 
     # -- model ---------------------------------------------------------------------------
 
-    def set_model(self, mean: np.ndarray | None, factors: np.ndarray | None = None,
-                  coef_var: np.ndarray | None = None, faces: np.ndarray | None = None,
-                  title: str = "") -> None:
-        """Show a model (mean (N,3), factors (M,N,3), coef_var (M,), faces); None clears."""
+    def set_model(self, model, title: str = "") -> None:
+        """Show ``model`` (a ``core.shape_model.ShapeModel``); None clears."""
         self.factor_list.blockSignals(True)
         self.factor_list.clear()
         self.factor_list.blockSignals(False)
-        if mean is None:
-            self._mean = self._factors = self._sd = self._faces = None
-            self._poly = None
+        self._model = model
+        self._poly = None
+        if model is None:
             if self.view.created:
                 self.view.plotter.clear()
                 self.view.render()
             self.info_label.setText("No model yet: build one on the left.")
             self.setEnabled(False)
             return
-        self._mean = np.asarray(mean, dtype=np.float64)
-        self._factors = np.asarray(factors, dtype=np.float64)
-        self._sd = np.sqrt(np.asarray(coef_var, dtype=np.float64))
-        self._faces = np.asarray(faces)
-        magnitudes = self.magnitudes()
-        # variance explained by each factor: coef_var_m * ||factor_m||^2
-        explained = np.asarray(coef_var) * np.sum(self._factors ** 2, axis=(1, 2))
-        total = float(explained.sum()) or 1.0
-        for m in range(len(self._factors)):
-            support = magnitudes[m] > 0.05 * magnitudes[m].max() if magnitudes[m].max() > 0 \
-                else np.zeros(len(self._mean), bool)
-            item = QListWidgetItem(f"{m + 1}: {100 * explained[m] / total:4.1f}% var, "
+        magnitudes = model.factor_magnitudes()
+        share = model.explained_variance_share()
+        of_what = ("of the training shapes' variance"
+                   if "explained_variance_ratio" in model.info else "of the model's variance")
+        for m in range(model.n_factors):
+            top = float(magnitudes[m].max())
+            support = magnitudes[m] > 0.05 * top if top > 0 else np.zeros(model.n_vertices, bool)
+            item = QListWidgetItem(f"{m + 1}: {100 * share[m]:4.1f}% var, "
                                    f"support {100 * support.mean():3.0f}%")
-            item.setToolTip(f"Factor {m + 1}: explains {100 * explained[m] / total:.1f}% of the "
-                            f"model's variance; coefficient variance {coef_var[m]:.4g}; "
-                            f"largest displacement at 1 SD {magnitudes[m].max():.2f} mm; "
-                            f"{support.sum()} of {len(support)} vertices move more than 5% "
-                            f"of that.")
+            item.setToolTip(f"Factor {m + 1}: explains {100 * share[m]:.1f}% {of_what}; "
+                            f"coefficient variance {model.coef_var[m]:.4g}; largest "
+                            f"displacement at 1 SD {top:.2f} mm; {support.sum()} of "
+                            f"{len(support)} vertices move more than 5% of that.")
             self.factor_list.addItem(item)
+        self.explained = share
         self.info_label.setText(title)
         self.setEnabled(True)
-        self._poly = None
-        if len(self._factors):
+        if model.n_factors:
             self.factor_list.setCurrentRow(0)  # draws
         else:
             self._draw(None)
-
-    def magnitudes(self) -> np.ndarray:
-        """(M, N) displacement of each vertex at 1 SD of each factor, mm."""
-        return np.linalg.norm(self._factors, axis=2) * self._sd[:, None]
 
     @property
     def current_factor(self) -> int:
@@ -298,13 +292,15 @@ class FactorView(QWidget):
         return None if self._poly is None else np.array(self._poly.points)
 
     def deformed(self, factor: int, sd: float) -> np.ndarray:
-        """mean + sd * sqrt(coef_var_m) * factor_m, (N, 3)."""
-        return self._mean + sd * self._sd[factor] * self._factors[factor]
+        """The model's shape at ``sd`` standard deviations of ``factor``, (N, 3)."""
+        coef = np.zeros(self._model.n_factors)
+        coef[factor] = sd * np.sqrt(self._model.coef_var[factor])
+        return self._model.instance(coef)
 
     # -- drawing -------------------------------------------------------------------------
 
     def _on_factor_selected(self, row: int) -> None:
-        if self._mean is None:
+        if self._model is None:
             return
         self.slider.blockSignals(True)
         self.slider.setValue(0)
@@ -316,12 +312,13 @@ class FactorView(QWidget):
     def _draw(self, factor: int | None) -> None:
         plotter = self.view.plotter
         plotter.clear()
-        self._poly = polydata(self._mean, self._faces)
+        model = self._model
+        self._poly = polydata(model.mean, model.faces)
         if factor is None:
             self.actor = plotter.add_mesh(self._poly, color="lightgray", smooth_shading=True,
                                           render=False)
         else:
-            magnitude = self.magnitudes()[factor]
+            magnitude = model.factor_magnitudes()[factor]
             self._poly.point_data["mm at 1 SD"] = magnitude
             self.actor = plotter.add_mesh(self._poly, scalars="mm at 1 SD", cmap=self.CMAP,
                              clim=(0.0, max(float(magnitude.max()), 1e-9)), smooth_shading=True,
@@ -330,18 +327,18 @@ class FactorView(QWidget):
                                               "position_y": 0.06, "height": 0.78,
                                               "width": 0.07, "title_font_size": 14,
                                               "label_font_size": 12}, render=False)
-            plotter.add_mesh(polydata(self._mean, self._faces), style="wireframe",
+            plotter.add_mesh(polydata(model.mean, model.faces), style="wireframe",
                              color="gray", opacity=0.08, render=False)
         plotter.reset_camera(render=False)
         if factor is not None:
-            self._face_vertex(int(np.argmax(self.magnitudes()[factor])))
+            self._face_vertex(int(np.argmax(magnitude)))
         plotter.render()
 
     def _face_vertex(self, vertex: int) -> None:
         """Look at ``vertex`` from outside so the factor's region is in view."""
         from app.convert import face_camera_to
 
-        face_camera_to(self.view.plotter, self._mean, self._faces, vertex)
+        face_camera_to(self.view.plotter, self._model.mean, self._model.faces, vertex)
         self.view.plotter.reset_camera(render=False)  # fit the shape, keeping the direction
         self.view.plotter.camera.zoom(0.85)  # leave room for the scalar bar
 
@@ -382,32 +379,147 @@ class SamplesView(QWidget):
         layout.setContentsMargins(2, 2, 2, 2)
         layout.addLayout(row)
         layout.addWidget(self.view, 1)
-        self._model = None
-        self._rng = np.random.default_rng()
+        self.model = None
+        self._seed: int | None = None
+        self._draws = 0
         self.samples: np.ndarray | None = None
         self.draw_button.clicked.connect(self.draw)
         self.setEnabled(False)
 
     def set_model(self, model, seed: int | None = None) -> None:
         """``model`` a ShapeModel (or None to clear)."""
-        self._model = model
+        self.model = model
         self.samples = None
-        self._rng = np.random.default_rng(seed)
+        self._seed, self._draws = seed, 0
         self.setEnabled(model is not None)
         if self.view.created:
             self.view.show_meshes([])
 
     def draw(self) -> None:
-        model = self._model
+        model = self.model
         if model is None:
             return
         n = self.count.value()
-        coef = self._rng.standard_normal((n, model.n_factors)) * np.sqrt(model.coef_var)
-        self.samples = model.mean[None] + np.tensordot(coef, model.factors, axes=1)
-        distances = [np.linalg.norm(s - model.mean, axis=1) for s in self.samples]
+        # seeded panels draw a reproducible sequence of sample sets
+        state = None if self._seed is None else [self._seed, self._draws]
+        self._draws += 1
+        self.samples = model.sample(n, random_state=state)
+        distances = list(model.distance_to_mean(self.samples))
         top = max(float(np.max(distances)), 1e-9)
         self.view.show_meshes([(f"sample {i + 1}", s, model.faces)
                                for i, s in enumerate(self.samples)], layout="grid",
                               scalars=distances, scalar_title="distance to mean (mm)",
                               clim=(0.0, top), cmap="viridis")
         self.info_label.setText(f"{n} samples, coefficients ~ N(0, coef_var)")
+
+
+MeshTriples = list[tuple[str, np.ndarray, np.ndarray]]
+SHOW_WHICH = ("as loaded", "corresponded", "aligned")
+
+
+class BuilderViews(QTabWidget):
+    """The builder's right side: training meshes, factors, samples and evaluation tabs.
+
+    Parameters
+    ----------
+    meshes_for : callable(str) -> list of (name, vertices, faces)
+        The training shapes to draw for one of :data:`SHOW_WHICH` (empty when that version
+        does not exist yet).
+
+    Each 3D view is built the first time its tab is shown (an OpenGL view costs ~0.1-1 s with
+    software rendering), and a model given while its tab is hidden is drawn when it is opened.
+    """
+
+    def __init__(self, meshes_for: Callable[[str], MeshTriples], parent: QWidget | None = None):
+        super().__init__(parent)
+        self._meshes_for = meshes_for
+        self._meshes_drawn: tuple | None = None
+        self._pending_model: tuple | None = None  # (model, title) for the hidden factor view
+        self._closed = False
+        self.meshes_view = MeshesView()
+        self.show_overlay = QRadioButton("Overlaid")
+        self.show_grid = QRadioButton("Grid")
+        self.show_overlay.setChecked(True)
+        self._layout_group = QButtonGroup(self)
+        self._layout_group.addButton(self.show_overlay)
+        self._layout_group.addButton(self.show_grid)
+        self.show_which = QComboBox()
+        self.show_which.setObjectName("show_which")
+        self.show_which.addItems(SHOW_WHICH)
+        self.show_which.setToolTip("Which version of the training shapes to show.")
+        self.meshes_tab = QWidget()
+        tab_layout = QVBoxLayout(self.meshes_tab)
+        tab_layout.setContentsMargins(2, 2, 2, 2)
+        row = QHBoxLayout()
+        row.addWidget(self.show_overlay)
+        row.addWidget(self.show_grid)
+        row.addWidget(QLabel("Shapes"))
+        row.addWidget(self.show_which)
+        row.addStretch(1)
+        tab_layout.addLayout(row)
+        tab_layout.addWidget(self.meshes_view, 1)
+        self.factor_view = FactorView()
+        self.samples_view = SamplesView()
+        self.evaluation_view = EvaluationView()
+        self.addTab(self.meshes_tab, "Training meshes")
+        self.addTab(self.factor_view, "Factors")
+        self.addTab(self.samples_view, "Samples")
+        self.addTab(self.evaluation_view, "Evaluation")
+        self.show_overlay.toggled.connect(self.refresh_meshes)
+        self.show_which.currentIndexChanged.connect(self.refresh_meshes)
+        self.currentChanged.connect(self._on_tab_changed)
+
+    def show_model(self, model, title: str = "", now: bool = False) -> None:
+        """Show a ShapeModel (None clears) in the factor and sample views; the factor view
+        draws at once when it is visible (or ``now``), otherwise when its tab is opened."""
+        self._pending_model = None
+        if model is None:
+            self.factor_view.set_model(None)
+        elif now or self.factor_view.isVisible() or self.factor_view.view.created:
+            self.factor_view.set_model(model, title)
+        else:
+            self._pending_model = (model, title)
+        self.samples_view.set_model(model, seed=0)
+
+    def refresh_meshes(self, *_: object) -> None:
+        """Redraw the training meshes if what would be drawn changed."""
+        if self._closed or self.meshes_view.creating:
+            return
+        if not self.meshes_view.isVisible() and not self.meshes_view.created:
+            return
+        which = self.show_which.currentText()
+        layout = "overlay" if self.show_overlay.isChecked() else "grid"
+        meshes = self._meshes_for(which)
+        if not meshes and not self.meshes_view.created:
+            return  # no 3D view needed yet
+        signature = (which, layout, tuple(id(m[1]) for m in meshes))
+        if signature == self._meshes_drawn:
+            return  # nothing new to draw (rendering costs ~0.1-1 s with software OpenGL)
+        self._meshes_drawn = signature
+        self.meshes_view.show_meshes(meshes, layout=layout)
+
+    def _on_tab_changed(self, index: int) -> None:
+        widget = self.widget(index)
+        if widget is self.factor_view and self._pending_model is not None:
+            model, title = self._pending_model
+            self._pending_model = None
+            self.factor_view.set_model(model, title)
+        elif widget is self.samples_view and self.samples_view.samples is None and \
+                self.samples_view.model is not None:
+            self.samples_view.draw()
+        elif widget is self.meshes_tab:
+            self.refresh_meshes()
+
+    def showEvent(self, event) -> None:  # noqa: N802 - Qt API
+        super().showEvent(event)
+        # Deferred: the first OpenGL view re-creates the native window, which sends show events
+        # again while that view is being built.
+        if self.currentWidget() is self.meshes_tab and not self.meshes_view.created:
+            QTimer.singleShot(0, self, self.refresh_meshes)
+
+    def close_views(self) -> None:
+        """Close the 3D views and the figure (idempotent)."""
+        self._closed = True
+        for view in (self.meshes_view, self.factor_view.view, self.samples_view.view):
+            view.close_view()
+        self.evaluation_view.close_figure()
