@@ -19,6 +19,7 @@ from PySide6.QtWidgets import (
     QHBoxLayout,
     QLabel,
     QPushButton,
+    QSizePolicy,
     QSpinBox,
     QStackedWidget,
     QVBoxLayout,
@@ -50,7 +51,7 @@ class PipelineForm(QWidget):
         layout.addWidget(self._alignment_box())
         layout.addWidget(self._model_box())
 
-        self.model_method.currentIndexChanged.connect(self.model_forms.setCurrentIndex)
+        self.model_method.currentIndexChanged.connect(self._show_form)
         self.defaults_button.clicked.connect(lambda: self.current_form().reset())
         self.reference_combo.currentTextChanged.connect(
             lambda text: self.n_references.setEnabled(text == "auto"))
@@ -125,7 +126,18 @@ class PipelineForm(QWidget):
         row.addWidget(self.defaults_button)
         layout.addLayout(row)
         layout.addWidget(self.model_forms)
+        self._show_form(0)
         return box
+
+    def _show_form(self, index: int) -> None:
+        """Show one method's form, sized to it: a stack is as tall as its tallest page by
+        default, which left a blank gap under the short forms (issue 17, defect 8)."""
+        for i in range(self.model_forms.count()):
+            page = self.model_forms.widget(i)
+            policy = QSizePolicy.Preferred if i == index else QSizePolicy.Ignored
+            page.setSizePolicy(policy, policy)
+        self.model_forms.setCurrentIndex(index)
+        self.model_forms.updateGeometry()
 
     # -- reading -------------------------------------------------------------------------
 

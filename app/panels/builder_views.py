@@ -111,6 +111,16 @@ class LazyPlotter(QWidget):
                 self._creating = False
         return self._plotter
 
+    def clear(self) -> None:
+        """Remove every actor and scalar bar, keeping the lights.
+
+        ``Plotter.clear`` also removes the renderer's lights, after which meshes render as
+        flat, unlit silhouettes (issue 17, defect 3); the default light kit is put back.
+        """
+        plotter = self.plotter
+        plotter.clear()
+        plotter.enable_lightkit()
+
     def render(self) -> None:
         if self._plotter is not None and not self._closed:
             self._plotter.render()
@@ -134,7 +144,7 @@ class MeshesView(LazyPlotter):
         ``scalars`` (one (N,) array per mesh) colours the meshes with ``cmap`` instead.
         """
         plotter = self.plotter
-        plotter.clear()
+        self.clear()
         if not meshes:
             plotter.render()
             return
@@ -252,7 +262,7 @@ class FactorView(QWidget):
         self._poly = None
         if model is None:
             if self.view.created:
-                self.view.plotter.clear()
+                self.view.clear()
                 self.view.render()
             self.info_label.setText("No model yet: build one on the left.")
             self.setEnabled(False)
@@ -311,7 +321,7 @@ class FactorView(QWidget):
 
     def _draw(self, factor: int | None) -> None:
         plotter = self.view.plotter
-        plotter.clear()
+        self.view.clear()
         model = self._model
         self._poly = polydata(model.mean, model.faces)
         if factor is None:
