@@ -478,7 +478,8 @@ class MainWindow(QMainWindow):
 
     # -- builder tab ----------------------------------------------------------------------------
     def _show_segment_controls(self, visible: bool) -> None:
-        """The side panel and the drawing tools belong to the Segment tab only."""
+        """The side panel, the toolbar and the drawing tools belong to the Segment tab only."""
+        self.toolbar.setVisible(visible)  # the Build tab has its own buttons (issue 17, 8)
         shown = visible and self.act_side_panel.isChecked()     # F9 hides the side docks
         self.side_dock.setVisible(shown)
         self.plan_dock.setVisible(shown)

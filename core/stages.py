@@ -35,13 +35,16 @@ import numpy as np
 from core.io import TriMesh
 from core.progress import ProgressCallback, report, sub_progress
 
-__all__ = ["STAGES", "NO_CORRESPONDENCE", "BuildSettings", "CachedStage", "StageCache",
+__all__ = ["STAGES", "NO_CORRESPONDENCE", "DEFAULT_N_REFERENCES", "BuildSettings", "CachedStage", "StageCache",
            "StagedBuild", "run_correspondence", "run_alignment", "run_model", "run_evaluation",
            "explained_variance_ratio", "corresponded_meshes", "aligned_meshes"]
 
 STAGES = ("correspondence", "alignment", "model")
 # The reference choice for training meshes that already share one topology.
 NO_CORRESPONDENCE = "none (already corresponded)"
+# core.correspondence.establish_correspondence's default n_references, without importing it
+# (the engine pulls in scipy.optimize: ~1.8 s; tests/test_stages.py keeps them equal).
+DEFAULT_N_REFERENCES = 3
 
 
 def _frozen(params: Mapping[str, Any]) -> tuple:
@@ -77,7 +80,7 @@ class BuildSettings:
     meshes: Sequence[TriMesh]
     tokens: Sequence[Hashable] | None = None
     reference: str | int = "auto"
-    n_references: int = 3
+    n_references: int = DEFAULT_N_REFERENCES
     align_method: str = "sync"
     align_transform: str = "similarity"
     method: str = "pca"
@@ -258,7 +261,7 @@ class StagedBuild:
 
 
 def run_correspondence(meshes: list[TriMesh], reference: str | int = "auto",
-                       n_references: int = 3, progress: ProgressCallback | None = None):
+                       n_references: int = DEFAULT_N_REFERENCES, progress: ProgressCallback | None = None):
     """Stage 1 (``core.pipeline.correspond``): every mesh with the reference's topology.
 
     ``reference`` is "auto", an index into ``meshes``, or :data:`NO_CORRESPONDENCE` for meshes

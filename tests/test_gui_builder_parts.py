@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 BUILDER_MODULES = sorted((ROOT / "app" / "panels").glob("builder*.py"))
 
@@ -84,3 +86,122 @@ def test_builder_views_keep_their_lights_when_redrawn(qtbot):
     finally:
         view.close_view()
         window.close()
+
+
+# ------------------------------------------------------------------------------------------
+# Issue 17 defects 4 (explained share per factor) and 8 (Build tab layout and opening)
+# ------------------------------------------------------------------------------------------
+
+
+def _planted_meshes(n_shapes=12, n_factors=3):
+    from core.io import TriMesh
+    from core.models.synthetic import ellipsoid_surface, planted_shapes
+
+    base, faces = ellipsoid_surface(2)
+    planted = planted_shapes(base, faces, n_shapes=n_shapes, n_factors=n_factors, noise=0.02,
+                             random_state=4)
+    return [TriMesh(x, faces, f"s{k:02d}.vtk") for k, x in enumerate(planted.shapes)]
+
+
+def _built_model(method="pca", **params):
+    from core.stages import NO_CORRESPONDENCE, BuildSettings, StagedBuild
+
+    build = StagedBuild()
+    model = build.run(BuildSettings(_planted_meshes(), reference=NO_CORRESPONDENCE,
+                                    align_method="none", method=method, params=params))
+    return model, build.cache["alignment"].result.aligned
+
+
+@pytest.fixture
+def panel(qtbot):
+    from PySide6.QtWidgets import QMainWindow
+
+    from app.panels.builder import BuilderPanel
+
+    window = QMainWindow()
+    panel = BuilderPanel()
+    window.setCentralWidget(panel)
+    window.resize(1200, 800)
+    qtbot.addWidget(window)
+    window.show()
+    qtbot.waitExposed(window)
+    yield panel
+    panel.close_views()
+    window.close()
+
+
+def _list_percentages(view) -> list[float]:
+    import re
+
+    return [float(re.match(r"\d+: +([\d.]+)% var", view.factor_list.item(i).text()).group(1))
+            for i in range(view.factor_list.count())]
+
+
+def test_factor_list_shows_each_factors_share_of_the_training_variance(panel, qtbot):
+    import numpy as np
+
+    model, aligned = _built_model("pca")
+    panel.show_model(model)
+    panel.tabs.setCurrentWidget(panel.factor_view)
+    shown = np.array(_list_percentages(panel.factor_view))
+    # PCA: the shares are the eigenvalue ratios of the training shapes' covariance
+    centred = (aligned - aligned.mean(axis=0)).reshape(len(aligned), -1)
+    s = np.linalg.svd(centred, compute_uv=False)
+    truth = 100 * s[:model.n_factors] ** 2 / np.sum(s ** 2)
+    np.testing.assert_allclose(shown, truth, atol=0.051)  # one decimal shown
+    assert "of the training shapes' variance" in panel.factor_view.factor_list.item(0).toolTip()
+    assert f"{truth.sum():.1f}%" in panel.factor_view.total_label.text()
+    # LSF with more factors than the 3 planted ones: the extra ones show as explaining little,
+    # and the total stays at most the training variance (not renormalised to 100% each time)
+    lsf, _ = _built_model("lsf", n_factors=8)
+    panel.show_model(lsf)
+    shares = np.array(_list_percentages(panel.factor_view))
+    assert len(shares) == lsf.n_factors and shares.sum() < 100.5
+    assert np.sort(shares)[:3].max() < 0.5 * shares.max()
+
+
+def test_model_form_is_as_tall_as_the_shown_method(panel):
+    box = panel.pipeline
+    for name in ("pca", "lsf", "pca"):
+        panel.model_method.setCurrentText(name)
+        panel.layout().activate()
+        panel.repaint()
+        form = panel.current_form()
+        # the stack used to take the tallest form's height (LSF), leaving a blank gap under PCA
+        assert box.model_forms.sizeHint().height() <= form.sizeHint().height() + 4
+
+
+def test_build_tab_hides_the_segmentation_toolbar(qtbot, tmp_path, monkeypatch):
+    from app.window import MainWindow
+
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    win = MainWindow(with_3d=False, recovery=False)
+    qtbot.addWidget(win)
+    win.resize(1000, 700)
+    win.show()
+    qtbot.waitExposed(win)
+    try:
+        assert win.toolbar.isVisible()
+        win.tabs.setCurrentIndex(1)
+        assert win.builder is not None and not win.toolbar.isVisible()
+        # the 3D views are not built until there is something to draw
+        assert not win.builder.tabs.meshes_view.created
+        assert win.builder.tabs.meshes_view.hint.isVisible()
+        win.tabs.setCurrentIndex(0)
+        assert win.toolbar.isVisible()
+    finally:
+        win.close()
+
+
+def test_opening_the_builder_does_not_load_the_correspondence_engine():
+    # importing core.correspondence (scipy.optimize) took ~1.8 s of the ~2 s tab switch
+    code = ("import sys; from PySide6.QtWidgets import QApplication; app = QApplication([]);"
+            "from app.panels.builder import BuilderPanel; p = BuilderPanel();"
+            "print(p.n_references.value(), 'core.correspondence' in sys.modules,"
+            " 'scipy.optimize' in sys.modules)")
+    import os
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, check=True, env=env)
+    assert out.stdout.split()[-3:] == ["3", "False", "False"], out.stdout + out.stderr

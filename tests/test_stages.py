@@ -12,6 +12,7 @@ import pytest
 from core.io import TriMesh
 from core.models.synthetic import ellipsoid_surface, planted_shapes
 from core.stages import (
+    DEFAULT_N_REFERENCES,
     NO_CORRESPONDENCE,
     STAGES,
     BuildSettings,
@@ -153,3 +154,12 @@ def test_shape_model_read_outs(meshes):
     d = model.distance_to_mean(samples[:3])
     assert d.shape == (3, model.n_vertices)
     np.testing.assert_allclose(d[1], np.sqrt(np.sum((samples[1] - model.mean) ** 2, axis=1)))
+
+
+def test_default_number_of_references_is_the_engines():
+    import inspect
+
+    from core.correspondence import establish_correspondence
+
+    default = inspect.signature(establish_correspondence).parameters["n_references"].default
+    assert DEFAULT_N_REFERENCES == default

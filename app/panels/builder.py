@@ -68,6 +68,7 @@ class BuilderPanel(QWidget):
         self._layout()
         self._expose_parts()
         self._connect()
+        self._refresh_stage_labels()
         self._update_buttons()
 
     def _layout(self) -> None:
@@ -80,7 +81,9 @@ class BuilderPanel(QWidget):
         scroll = QScrollArea()
         scroll.setWidget(controls)
         scroll.setWidgetResizable(True)
-        scroll.setMinimumWidth(340)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarAlwaysOff)
+        scroll.setMinimumWidth(controls.minimumSizeHint().width()
+                               + scroll.verticalScrollBar().sizeHint().width() + 4)
         splitter = QSplitter(Qt.Horizontal)
         splitter.addWidget(scroll)
         splitter.addWidget(self.tabs)

@@ -21,7 +21,7 @@ from core.mesh import surface_problems
 from core.models import MODELS
 from core.pipeline import ALIGN_METHODS, TRANSFORMS
 from core.progress import ProgressCallback
-from core.stages import NO_CORRESPONDENCE
+from core.stages import DEFAULT_N_REFERENCES, NO_CORRESPONDENCE
 
 __all__ = ["ALIGN_METHODS", "TRANSFORMS", "NO_CORRESPONDENCE", "MeshEntry", "load_entries",
            "model_classes", "method_summary", "default_n_references", "evaluation_table",
@@ -97,11 +97,10 @@ def method_summary(cls: type) -> str:
 
 
 def default_n_references() -> int:
-    """``establish_correspondence``'s default number of candidate references."""
-    from core.correspondence import establish_correspondence  # heavy: only when asked
-
-    default = inspect.signature(establish_correspondence).parameters["n_references"].default
-    return int(default)
+    """``establish_correspondence``'s default number of candidate references (read from
+    ``core.stages`` so that opening the builder does not import the correspondence engine and
+    scipy.optimize, ~1.8 s; a test keeps the two equal)."""
+    return DEFAULT_N_REFERENCES
 
 
 def evaluation_table(results: dict[str, Any]) -> tuple[list[str], dict[str, list[str]]]:

@@ -71,12 +71,17 @@ def grid_offsets(extents: np.ndarray, gap: float = 0.25) -> np.ndarray:
 
 
 class LazyPlotter(QWidget):
-    """A placeholder that becomes a ``QtInteractor`` the first time it is needed."""
+    """A placeholder (a hint text) that becomes a ``QtInteractor`` the first time it is needed."""
 
-    def __init__(self, parent: QWidget | None = None):
+    def __init__(self, parent: QWidget | None = None, hint: str = ""):
         super().__init__(parent)
         self._layout = QVBoxLayout(self)
         self._layout.setContentsMargins(0, 0, 0, 0)
+        self.hint = QLabel(hint)
+        self.hint.setAlignment(Qt.AlignCenter)
+        self.hint.setWordWrap(True)
+        self.hint.setStyleSheet("color: #666;")
+        self._layout.addWidget(self.hint)
         self._plotter = None
         self._closed = False
         self._creating = False
@@ -105,6 +110,7 @@ class LazyPlotter(QWidget):
             try:
                 plotter = QtInteractor(None, auto_update=False)
                 plotter.set_background("white")
+                self.hint.hide()
                 self._layout.addWidget(plotter.interactor)
                 self._plotter = plotter
             finally:
@@ -200,7 +206,7 @@ class FactorView(QWidget):
 
     def __init__(self, parent: QWidget | None = None):
         super().__init__(parent)
-        self.view = LazyPlotter()
+        self.view = LazyPlotter(hint="Build a model (or open one) to see its factors.")
         self.factor_list = QListWidget()
         self.factor_list.setObjectName("factor_list")
         self.factor_list.setToolTip("Deformation factors; the variance is that of the factor's "
@@ -224,6 +230,9 @@ class FactorView(QWidget):
         left_layout = QVBoxLayout(left)
         left_layout.setContentsMargins(0, 0, 0, 0)
         left_layout.addWidget(QLabel("Factors"))
+        self.total_label = QLabel("")
+        self.total_label.setWordWrap(True)
+        left_layout.addWidget(self.total_label)
         left_layout.addWidget(self.factor_list)
         splitter = QSplitter(Qt.Horizontal)
         splitter.addWidget(left)
@@ -265,6 +274,7 @@ class FactorView(QWidget):
                 self.view.clear()
                 self.view.render()
             self.info_label.setText("No model yet: build one on the left.")
+            self.total_label.setText("")
             self.setEnabled(False)
             return
         magnitudes = model.factor_magnitudes()
@@ -282,6 +292,8 @@ class FactorView(QWidget):
                             f"{len(support)} vertices move more than 5% of that.")
             self.factor_list.addItem(item)
         self.explained = share
+        self.total_label.setText(f"{model.n_factors} factors explain "
+                                 f"{100 * float(share.sum()):.1f}% {of_what}.")
         self.info_label.setText(title)
         self.setEnabled(True)
         if model.n_factors:
@@ -446,7 +458,8 @@ class BuilderViews(QTabWidget):
         self._meshes_drawn: tuple | None = None
         self._pending_model: tuple | None = None  # (model, title) for the hidden factor view
         self._closed = False
-        self.meshes_view = MeshesView()
+        self.meshes_view = MeshesView(hint="Add training meshes on the left: a folder, files, "
+                                           "label maps, or drop them here.")
         self.show_overlay = QRadioButton("Overlaid")
         self.show_grid = QRadioButton("Grid")
         self.show_overlay.setChecked(True)
