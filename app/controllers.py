@@ -27,6 +27,8 @@ class SessionController:
         self.state = state
         # extra blocks of the session's ``info`` (e.g. "planning"): key -> callable giving it
         self.info_providers: dict[str, Callable[[], Any]] = {}
+        # and read back by key when a session is applied (``read(session.info.get(key))``)
+        self.info_readers: dict[str, Callable[[Any], None]] = {}
 
     # -- image and models --------------------------------------------------------------
     def open_image(self, path: str | os.PathLike, series: str | None = None) -> str:
@@ -168,6 +170,8 @@ class SessionController:
             self.state.set_window(*session.window)
         if session.crosshair is not None:
             self.state.set_crosshair(session.crosshair)
+        for key, read in self.info_readers.items():
+            read((session.info or {}).get(key))
         self.state.clear_history()
         return dict(session.fit or {})
 
@@ -234,6 +238,18 @@ class SessionController:
         sessions.write_recovery(self.to_session(fit_settings))
 
 
+def edits_path(labels_path: str | os.PathLike) -> Path:
+    """Where the manual-edit marks go next to a label map: ``<name>_manual_edits.nii.gz``."""
+    path = Path(labels_path)
+    name = path.name
+    for suffix in (".nii.gz", ".seg.nrrd"):
+        if name.lower().endswith(suffix):
+            name = name[:-len(suffix)]
+            break
+    stem = name if name != path.name else path.stem
+    return path.with_name(f"{stem}_manual_edits.nii.gz")
+
+
 class ExportController:
     """Label map, surface mesh and points out; points in."""
 
@@ -241,14 +257,21 @@ class ExportController:
         self.state = state
 
     def label_map(self, structure: Structure | None = None) -> np.ndarray:
-        """The fitted surface as a uint8 label map on the image grid (1 inside)."""
-        from core.segmentation import voxelize
+        """The fitted surface as a uint8 label map on the image grid (1 inside), with the
+        structure's manual brush/eraser edits applied (``core.labelmap``)."""
+        from core.labelmap import structure_label_map
 
         s = structure or self.state.active
         if s.model is None or self.state.volume is None:
             raise ValueError("need an image and a fitted model to export a label map")
         volume = self.state.volume
-        return voxelize(s.surface_vertices(), s.model.faces, volume.shape, volume.affine)
+        return structure_label_map(s.surface_vertices(), s.model.faces, volume.shape,
+                                   volume.affine, self._edits(s))
+
+    def _edits(self, s: Structure):
+        volume = self.state.volume
+        return s.edits if s.edits and volume is not None and s.edits.shape == volume.shape \
+            else None
 
     def export_labels(self, path: str | os.PathLike) -> str:
         """The label map by extension; a .seg.nrrd carries the structure's name and colour."""
@@ -264,7 +287,14 @@ class ExportController:
         else:
             save_volume(path, labels.astype(np.uint8), self.state.volume.affine,
                         like=self.state.volume)  # the image's own sform/qform and codes
-        return f"Exported label map {Path(path).name}: {int(labels.sum())} voxels inside"
+        message = f"Exported label map {Path(path).name}: {int(labels.sum())} voxels inside"
+        edits = self._edits(self.state.active)
+        if edits:  # marked apart: 1 = added by hand, 2 = erased by hand
+            marks = edits_path(path)
+            save_volume(marks, edits.edit_map(), self.state.volume.affine, like=self.state.volume)
+            message += (f" (manual edits: +{len(edits.added)}/-{len(edits.removed)} voxels, "
+                        f"marked in {marks.name})")
+        return message
 
     def export_mesh(self, path: str | os.PathLike) -> str:
         from core.io import TriMesh
@@ -316,6 +346,8 @@ class ExportController:
         if self.state.model is not None and self.state.volume is not None:
             written.append(folder / "segmentation.nii.gz")
             self.export_labels(written[-1])
+            if self._edits(self.state.active):
+                written.append(edits_path(written[-1]))
             written.append(folder / "surface.vtk")
             self.export_mesh(written[-1])
         if len(self.state.points):

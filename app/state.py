@@ -147,6 +147,7 @@ class Snapshot:
     coef: np.ndarray | None
     pose: np.ndarray | None
     placement: np.ndarray | None = None
+    edits: object = None              # core.labelmap.ManualEdits (brush / eraser), or None
 
 
 # When a fit is flagged as implausible (issue 17): the GUI's safety net on the numbers of
@@ -236,6 +237,7 @@ class Structure:
         self.fit_info = FitInfo()
         self.last_fit = None                   # core FitResult of the current surface (warm start)
         self.manual_edit = False               # factors set by hand since the last refit
+        self.edits = None                      # core.labelmap.ManualEdits: brush/eraser voxels
         self.model_version = 0                 # bumped when the model is replaced
         self._undo: list[Snapshot] = []
         self._redo: list[Snapshot] = []
@@ -386,6 +388,19 @@ class Structure:
         self.set_surface(self.coef, pose)
         self._notify(self, "edited")
 
+    def set_pose(self, pose: np.ndarray, checkpoint: bool = True, edited: bool = True) -> None:
+        """Place the model by hand (the move tool): the pose, which becomes the placement the
+        next fit's pose prior is centred on. ``edited`` False while a drag is in progress."""
+        if self.model is None:
+            return
+        if checkpoint:
+            self.checkpoint()
+        self.placement = np.asarray(pose, dtype=np.float64).copy()
+        self.last_fit = None
+        self.set_surface(self.coef, pose)
+        if edited:
+            self._notify(self, "edited")
+
     def reset_placement(self) -> None:
         """Back to the model's stored world placement and zero coefficients (undoable)."""
         if self.model is None:
@@ -438,12 +453,22 @@ class Structure:
         if len(self.points):
             self.set_points(Points())
 
+    # -- manual label edits (app.tools: brush and eraser) -----------------------------------
+    def set_edits(self, edits, checkpoint: bool = True) -> None:
+        """Replace the manual label edits (an immutable ``ManualEdits``; one undo step)."""
+        if checkpoint:
+            self.checkpoint()
+        self.edits = edits
+        self._notify(self, "edits")
+        self._notify(self, "edited")
+
     # -- undo / redo ---------------------------------------------------------------------
     def _snapshot(self) -> Snapshot:
         return Snapshot(self.points,
                         None if self.coef is None else self.coef.copy(),
                         None if self.pose is None else self.pose.copy(),
-                        None if self.placement is None else self.placement.copy())
+                        None if self.placement is None else self.placement.copy(),
+                        self.edits)
 
     def checkpoint(self) -> None:
         """Record the current state as one undo step (call before an undoable edit)."""
@@ -484,6 +509,9 @@ class Structure:
             if snap.placement is not None:
                 self.placement = snap.placement.copy()
             self.set_surface(snap.coef, snap.pose)
+        if snap.edits is not self.edits:
+            self.edits = snap.edits
+            self._notify(self, "edits")
         if points_differ:
             self._notify(self, "points")
         self._notify(self, "history")

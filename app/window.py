@@ -143,6 +143,8 @@ class MainWindow(QMainWindow):
         self.fit_panel.refit_requested.connect(lambda: self.schedule_refit(force=True))
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
+        from app.panels.editing import install_editing   # issue 17 tools (label map, brush, move)
+        self.labels = install_editing(self)
 
     def _create_planning(self) -> None:
         """The Planning dock (tabbed with the segmentation dock) and its controller."""

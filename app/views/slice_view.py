@@ -67,6 +67,12 @@ class SliceView(QWidget):
         # extra painters (trajectories, measurements...): callables (painter, view), called
         # after the contours, in screen space (use view.world_to_screen)
         self.overlays: list = []
+        # Extensions (app.panels.editing): layers drawn over the image, under the contours
+        # (``layer.paint(view, painter)``: the label fill), and extra left-button tools by
+        # name (``handler.press/move/release(view, x, y, modifiers)``).
+        self.layers: list = []
+        self.tool_handlers: dict = {}
+        self.show_outline = True
         self.setMinimumSize(160, 160)
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.setMouseTracking(True)
@@ -201,6 +207,8 @@ class SliceView(QWidget):
         (x0, y0), (x1, y1) = self.plane_to_screen(np.array([[left, top], [right, bottom]]))
         painter.setRenderHint(QPainter.RenderHint.SmoothPixmapTransform, False)
         painter.drawImage(QRectF(x0, y0, x1 - x0, y1 - y0), self._qimage)
+        for layer in self.layers:
+            layer.paint(self, painter)
         self._paint_crosshair(painter)
         painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
         self._paint_points(painter)
@@ -221,6 +229,8 @@ class SliceView(QWidget):
         """Every visible structure in its colour; the active one last, the others dimmed."""
         active = self.state.active
         for s in sorted(self.state.structures, key=lambda s: s is active):
+            if not self.show_outline:
+                break
             segments = self._segments.get(s.id)
             if segments is None or not s.visible:
                 continue
@@ -303,6 +313,10 @@ class SliceView(QWidget):
 
     # -- interaction -------------------------------------------------------------------------
     def set_tool(self, tool: str) -> None:
+        if tool in self.tool_handlers:
+            self.tool = tool
+            self.setCursor(Qt.CursorShape.CrossCursor)
+            return
         if tool not in TOOLS:
             raise ValueError(f"unknown tool '{tool}', expected one of {TOOLS}")
         self.tool = tool
@@ -318,7 +332,10 @@ class SliceView(QWidget):
         self.activated.emit(self.frame_name)
         x, y = self._event_xy(event)
         button, mods = event.button(), event.modifiers()
-        if button == Qt.MouseButton.LeftButton:
+        if button == Qt.MouseButton.LeftButton and self.tool in self.tool_handlers:
+            self._drag = {"kind": "tool", "handler": self.tool_handlers[self.tool]}
+            self._drag["handler"].press(self, x, y, mods)
+        elif button == Qt.MouseButton.LeftButton:
             if mods & Qt.KeyboardModifier.ShiftModifier or self.tool == "window":
                 self._drag = {"kind": "window", "xy": (x, y), "wl": (self.state.window, self.state.level)}
             elif self.tool == "draw":
@@ -342,7 +359,9 @@ class SliceView(QWidget):
         if drag is None:
             return
         kind = drag["kind"]
-        if kind == "navigate":
+        if kind == "tool":
+            drag["handler"].move(self, x, y, event.modifiers())
+        elif kind == "navigate":
             self.state.set_crosshair(self.screen_to_world(x, y))
         elif kind == "draw":
             world = self.screen_to_world(x, y)
@@ -365,7 +384,9 @@ class SliceView(QWidget):
             self.update()
 
     def mouseReleaseEvent(self, event) -> None:  # noqa: N802
-        self._drag = None
+        drag, self._drag = self._drag, None
+        if drag is not None and drag["kind"] == "tool":
+            drag["handler"].release(self, *self._event_xy(event), event.modifiers())
 
     def leaveEvent(self, event) -> None:  # noqa: N802
         self.hovered.emit(None)

@@ -1,0 +1,193 @@
+"""Issue 17 tools in the segmentation workspace, driven like a user: the filled label overlay
+and its volume, brush and eraser on the label map (undo, session, export), moving the model
+by hand (translate, rotate, scale; undo)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("PySide6")
+
+from PySide6.QtCore import QPoint, Qt  # noqa: E402
+from PySide6.QtTest import QTest  # noqa: E402
+
+from app import demo  # noqa: E402
+from app.window import MainWindow  # noqa: E402
+from core.io import load_volume  # noqa: E402
+from core.segmentation import voxelize  # noqa: E402
+
+NO_MOD = Qt.KeyboardModifier.NoModifier
+LEFT = Qt.MouseButton.LeftButton
+
+
+@pytest.fixture
+def window(qtbot, tmp_path, monkeypatch):
+    if demo.demo_image() is None or demo.demo_model() is None:
+        pytest.skip("demo image or model missing from resources/")
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    win = MainWindow(with_3d=False, recovery=False)
+    qtbot.addWidget(win)
+    win.resize(1300, 900)
+    win.load_demo()
+    win.show()
+    qtbot.waitExposed(win)
+    centre = win.state.active.surface_vertices().mean(axis=0)
+    win.state.set_crosshair(centre)
+    yield win
+    win.runner.cancel()
+    win.runner.wait()
+    win.unsaved = False
+    win.close()
+
+
+def drag(view, points, modifier=NO_MOD):
+    """Press at the first widget point, move through the others, release at the last."""
+    pts = [QPoint(int(round(x)), int(round(y))) for x, y in points]
+    QTest.mousePress(view, LEFT, modifier, pts[0])
+    for p in pts[1:]:
+        QTest.mouseMove(view, p)
+    QTest.mouseRelease(view, LEFT, modifier, pts[-1])
+
+
+def mesh_volume(vertices, faces):
+    """Enclosed volume of a closed triangle mesh (divergence theorem), mm^3."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return abs(float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0)
+
+
+def test_label_overlay_is_the_exported_map_and_its_volume_is_shown(window, qtbot):
+    view = window.workspace.views["axial"]
+    s = window.state.active
+    labels = window.exports.label_map()
+    # the overlay on this slice is the exported map's slice, voxel for voxel (axis-aligned demo)
+    mask = window.labels.slice_mask(s, view)
+    assert mask.sum() > 20
+    volume = window.state.volume
+    ijk = np.rint(np.linalg.inv(volume.affine) @ np.append(window.state.crosshair, 1))[:3]
+    assert mask.sum() == labels[:, :, int(ijk[2])].sum()
+    # the volume read-out: voxel count x voxel volume, close to the surface's own volume
+    voxel = abs(np.linalg.det(volume.affine[:3, :3]))
+    shown = window.labels.volume_mm3()
+    assert shown == pytest.approx(labels.sum() * voxel)
+    truth = mesh_volume(s.surface_vertices(), s.model.faces)
+    assert abs(shown / truth - 1) < 0.05
+    qtbot.waitUntil(lambda: f"{shown:,.0f} mm³" in window.volume_label.text(), timeout=2000)
+    # fill colours the pixels inside; opacity 0 leaves the image as it was
+    window.label_panel.outline.setChecked(False)
+    x, y = view.world_to_screen(_inside_point(window, view))
+    filled = view.grab().toImage().pixelColor(int(x), int(y))
+    window.label_panel.opacity.setValue(0)
+    plain = view.grab().toImage().pixelColor(int(x), int(y))
+    assert filled.red() - filled.blue() > plain.red() - plain.blue() + 20  # orange tint
+    window.label_panel.opacity.setValue(60)
+    assert window.labels.opacity == pytest.approx(0.6)
+    # outline and fill switch independently
+    view.grab()
+    assert not view.show_outline
+    window.label_panel.outline.setChecked(True)
+    view.grab()
+    assert view.show_outline
+    window.label_panel.fill.setChecked(False)
+    assert not window.labels.fill
+    window.labels.set_fill(True)
+    assert window.label_panel.fill.isChecked()  # the panel follows the model
+
+
+def _inside_point(window, view):
+    """A world point on the axial slice inside the label map (the first labelled voxel)."""
+    from scipy.ndimage import distance_transform_edt
+
+    mask = window.labels.slice_mask(window.state.active, view)
+    row, col = np.unravel_index(np.argmax(distance_transform_edt(mask)), mask.shape)
+    u, v = view._slice.pixel_to_plane(col, row)  # the voxel deepest inside
+    return view.frame.to_world(np.array([u, v, view.depth]))
+
+
+def test_brush_and_eraser_edit_the_label_map_with_undo_session_and_export(window, qtbot,
+                                                                          tmp_path):
+    view = window.workspace.views["axial"]
+    s = window.state.active
+    before = int(window.exports.label_map().sum())
+    window.set_tool("brush")
+    window.label_panel.radius.setValue(3.0)
+    # a stroke outside the structure, 6 mm long
+    start = window.state.crosshair + [25.0, 0.0, 0.0]
+    a, b = view.world_to_screen(start), view.world_to_screen(start + [6.0, 0, 0])
+    drag(view, [a, (a + b) / 2, b])
+    assert s.edits is not None and len(s.edits.added) > 0
+    added = len(s.edits.added)
+    # a 3 mm brush dragged 6 mm on 1 mm voxels: between the disc (29) and the swept area
+    assert 29 <= added <= 29 + 7 * 6 + 10
+    assert int(window.exports.label_map().sum()) == before + added
+    qtbot.waitUntil(lambda: f"+{added}/−0 by hand" in window.volume_label.text(), timeout=2000)
+    # the eraser inside the structure removes voxels; Ctrl+brush erases too
+    window.set_tool("eraser")
+    inside = view.world_to_screen(_inside_point(window, view))
+    drag(view, [inside])
+    removed = len(s.edits.removed)
+    assert removed > 0
+    assert int(window.exports.label_map().sum()) == before + added - removed
+    # one undo step per stroke
+    window.undo()
+    assert len(s.edits.removed) == 0 and len(s.edits.added) == added
+    window.redo()
+    assert len(s.edits.removed) == removed
+    # kept with the session
+    path = tmp_path / "session.json"
+    assert window.save_session(path=path)
+    window.state.active.set_edits(None, checkpoint=False)
+    window.open_session(path)
+    s = window.state.active
+    assert len(s.edits.added) == added and len(s.edits.removed) == removed
+    # exported with the marks of the manual edits
+    written = window.export_all(tmp_path / "out")
+    names = sorted(p.name for p in written)
+    assert "segmentation_manual_edits.nii.gz" in names
+    marks = np.asarray(load_volume(tmp_path / "out" / "segmentation_manual_edits.nii.gz").data)
+    assert int((marks == 1).sum()) == added and int((marks == 2).sum()) == removed
+    exported = np.asarray(load_volume(tmp_path / "out" / "segmentation.nii.gz").data)
+    model_only = voxelize(s.surface_vertices(), s.model.faces, window.state.volume)
+    assert np.all(exported[marks == 1] == 1) and np.all(exported[marks == 2] == 0)
+    assert np.array_equal(exported[marks == 0], model_only[marks == 0])
+    # a locked structure is not edited
+    s.set_properties(locked=True)
+    window.set_tool("brush")
+    drag(view, [a])
+    assert len(s.edits.added) == added
+
+
+def test_move_model_by_hand_translate_rotate_scale_and_undo(window):
+    view = window.workspace.views["axial"]
+    s = window.state.active
+    window.set_tool("move")
+    pose0 = s.pose.copy()
+    c0 = s.surface_vertices().mean(axis=0)
+    # translate: the centre follows the drag (8 mm right, 5 mm anterior on the axial slice)
+    p = view.world_to_screen(c0)
+    q = view.world_to_screen(c0 + [8.0, 5.0, 0.0])
+    drag(view, [p, (p + q) / 2, q])
+    c1 = s.surface_vertices().mean(axis=0)
+    np.testing.assert_allclose(c1 - c0, [8.0, 5.0, 0.0], atol=0.6)  # one pixel ~ 0.5 mm
+    np.testing.assert_allclose(s.placement, s.pose)  # the pose prior follows the hand
+    # rotate (Ctrl): a quarter turn about the axial normal through the centre
+    before = s.surface_vertices().copy()
+    a = view.world_to_screen(c1 + [20.0, 0, 0])
+    b = view.world_to_screen(c1 + [0, 20.0, 0])
+    drag(view, [a, b], Qt.KeyboardModifier.ControlModifier)
+    after = s.surface_vertices()
+    d0, d1 = before - before.mean(axis=0), after - after.mean(axis=0)
+    cross = d0[:, 0] * d1[:, 1] - d0[:, 1] * d1[:, 0]
+    angle = np.degrees(np.arctan2(cross, np.sum(d0[:, :2] * d1[:, :2], axis=1)))
+    assert np.median(np.abs(np.abs(angle) - 90)) < 3
+    np.testing.assert_allclose(d1[:, 2], d0[:, 2], atol=1e-6)  # about the slice normal
+    # scale (Shift): dragging from 10 to 15 mm from the centre scales by 1.5
+    size = np.ptp(after, axis=0)
+    a = view.world_to_screen(c1 + [10.0, 0, 0])
+    b = view.world_to_screen(c1 + [15.0, 0, 0])
+    drag(view, [a, b], Qt.KeyboardModifier.ShiftModifier)
+    np.testing.assert_allclose(np.ptp(s.surface_vertices(), axis=0) / size, 1.5, rtol=0.08)
+    # one undo step per drag
+    for _ in range(3):
+        window.undo()
+    np.testing.assert_allclose(s.pose, pose0)
