@@ -144,7 +144,10 @@ class MainWindow(QMainWindow):
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
         from app.panels.editing import install_editing   # issue 17 tools (label map, brush, move)
+        from app.panels.navigation import install_navigation   # zoom, layouts, colour maps...
+
         self.labels = install_editing(self)
+        install_navigation(self)
 
     def _create_planning(self) -> None:
         """The Planning dock (tabbed with the segmentation dock) and its controller."""

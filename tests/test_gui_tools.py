@@ -191,3 +191,127 @@ def test_move_model_by_hand_translate_rotate_scale_and_undo(window):
     for _ in range(3):
         window.undo()
     np.testing.assert_allclose(s.pose, pose0)
+
+
+# ------------------------------------------------------------------------------------------
+# Navigation and display
+# ------------------------------------------------------------------------------------------
+
+
+def test_ctrl_wheel_zooms_towards_the_cursor(window):
+    from PySide6.QtCore import QPointF
+    from PySide6.QtGui import QWheelEvent
+
+    view = window.workspace.views["axial"]
+    x, y = view.width() * 0.8, view.height() * 0.3   # off centre
+    before = view.screen_to_world(x, y)
+    event = QWheelEvent(QPointF(x, y), view.mapToGlobal(QPointF(x, y)), QPoint(0, 0),
+                        QPoint(0, 120), Qt.MouseButton.NoButton,
+                        Qt.KeyboardModifier.ControlModifier, Qt.ScrollPhase.NoScrollPhase, False)
+    view.wheelEvent(event)
+    assert view.zoom == pytest.approx(1.15)
+    np.testing.assert_allclose(view.screen_to_world(x, y), before, atol=1e-9)
+
+
+def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path):
+    from app.panels import navigation as nav
+
+    s = window.state.active
+    vertices = s.surface_vertices()
+    window.act_zoom_structure.trigger()
+    for view in window.workspace.views.values():
+        xy = view.world_to_screen(vertices)
+        span = xy.max(axis=0) - xy.min(axis=0)
+        # the structure fills ~60% of the view along its tighter side, centred
+        fill = max(span[0] / view.width(), span[1] / view.height())
+        assert 0.55 < fill < 0.65
+        centre = (xy.max(axis=0) + xy.min(axis=0)) / 2
+        np.testing.assert_allclose(centre, [view.width() / 2, view.height() / 2], atol=2)
+    np.testing.assert_allclose(window.state.crosshair, vertices.mean(axis=0), atol=1.0)
+    # one view maximised (F) and back
+    window.active_view = "coronal"
+    window.act_maximise.trigger()
+    views = window.workspace.views
+    assert views["coronal"].isVisible() and not views["axial"].isVisible()
+    window.act_maximise.trigger()
+    assert all(v.isVisible() for v in views.values())
+    nav.set_layout(window, "sagittal")
+    assert views["sagittal"].isVisible() and not views["coronal"].isVisible()
+    nav.set_layout(window, "2 x 2")
+    # colour maps: the pixels follow the lookup table of the windowed grey value
+    view = views["axial"]
+    nav.set_colormap(window, "hot")
+    lut = nav.colormap_lut("hot")
+    assert lut.shape == (256, 3) and lut[0].tolist() != lut[-1].tolist()
+    from core.planes import window_to_uint8
+
+    grey = window_to_uint8(view._slice.data, window.state.window, window.state.level)
+    r, c = grey.shape[0] // 2, grey.shape[1] // 2
+    assert view._qimage.pixelColor(c, r).getRgb()[:3] == tuple(lut[grey[r, c]])
+    nav.set_colormap(window, "inverted grey")
+    assert view._qimage.pixelColor(c, r).red() == 255 - grey[r, c]
+    with pytest.raises(ValueError, match="colour map must be one of"):
+        nav.colormap_lut("rainbow")
+    # typed window and level (the dialog's values; no dialog under tests)
+    dialog = nav.WindowLevelDialog(window)
+    dialog.width_box.setValue(80.0)
+    dialog.level_box.setValue(120.0)
+    window.state.set_window(*dialog.values())
+    assert (window.state.window, window.state.level) == (80.0, 120.0)
+
+
+def test_recent_files_and_screenshot(window, tmp_path):
+    from app.panels import navigation as nav
+
+    recent = nav.recent_files()
+    assert recent[:2] == [str(demo.demo_model().resolve()), str(demo.demo_image().resolve())]
+    nav.remember(demo.demo_image())
+    assert nav.recent_files()[0] == str(demo.demo_image().resolve())
+    assert len(set(nav.recent_files())) == len(nav.recent_files())  # no duplicates
+    nav._fill_recent(window, window.recent_menu)
+    assert [a.text() for a in window.recent_menu.actions()][0] == demo.demo_image().name
+    path = tmp_path / "shot.png"
+    window.save_screenshot(path)
+    from PySide6.QtGui import QImage
+
+    image = QImage(str(path))
+    assert image.width() == window.width() and image.height() == window.height()
+
+
+def test_3d_view_has_a_labelled_orientation_cube_and_plane_and_point_toggles(qtbot, tmp_path,
+                                                                            monkeypatch):
+    if demo.demo_image() is None or demo.demo_model() is None:
+        pytest.skip("demo data missing")
+    from app.views.orientation import FACES
+
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    win = MainWindow(with_3d=True, recovery=False)
+    qtbot.addWidget(win)
+    win.resize(1000, 700)
+    win.load_demo()
+    win.show()
+    qtbot.waitExposed(win)
+    try:
+        view = win.workspace.volume_view
+        cube = view.orientation_widget.GetOrientationMarker()
+        assert [cube.GetXPlusFaceText(), cube.GetXMinusFaceText(), cube.GetYPlusFaceText(),
+                cube.GetYMinusFaceText(), cube.GetZPlusFaceText(), cube.GetZMinusFaceText()] \
+            == list(FACES.values()) == ["R", "L", "A", "P", "S", "I"]
+        win.state.add_point(win.state.crosshair, "axial", win.workspace.views["axial"].depth)
+        view.flush()
+        assert view._plane_actors and view._points_actor is not None
+        win.act_show_planes.trigger()            # off
+        assert not any(a.GetVisibility() for a in view._plane_actors.values())
+        win.act_show_points.trigger()
+        assert not view._points_actor.GetVisibility()
+        win.state.add_point(win.state.crosshair + [1, 0, 0], "axial",
+                            win.workspace.views["axial"].depth)
+        view.flush()                             # redraws keep the choice
+        assert not view._points_actor.GetVisibility()
+        win.act_show_planes.trigger()            # on again
+        assert all(a.GetVisibility() for a in view._plane_actors.values())
+    finally:
+        win.runner.cancel()
+        win.runner.wait()
+        win.unsaved = False
+        win.close()

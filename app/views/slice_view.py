@@ -73,6 +73,7 @@ class SliceView(QWidget):
         self.layers: list = []
         self.tool_handlers: dict = {}
         self.show_outline = True
+        self.colormap: np.ndarray | None = None   # (256, 3) uint8 lookup table; None = grey
         self.setMinimumSize(160, 160)
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.setMouseTracking(True)
@@ -138,6 +139,11 @@ class SliceView(QWidget):
         grey = window_to_uint8(self._slice.data, self.state.window, self.state.level)
         grey = np.ascontiguousarray(grey)
         h, w = grey.shape
+        if self.colormap is not None:       # image colour map (app.panels.navigation)
+            rgb = np.ascontiguousarray(self.colormap[grey])
+            self._qimage = QImage(rgb.data, w, h, 3 * w, QImage.Format.Format_RGB888).convertToFormat(
+                QImage.Format.Format_RGB32)
+            return
         image = QImage(grey.data, w, h, w, QImage.Format.Format_Grayscale8)
         # own the pixels (grey goes out of scope); RGB32 is blitted without per-paint conversion
         self._qimage = image.convertToFormat(QImage.Format.Format_RGB32)
@@ -189,6 +195,15 @@ class SliceView(QWidget):
     def world_to_screen(self, xyz: np.ndarray) -> np.ndarray:
         """Widget pixel (x, y) of world point(s) (..., 3) projected on this slice."""
         return self.plane_to_screen(self.frame.to_plane(xyz)[..., :2])
+
+    def zoom_at(self, x: float, y: float, factor: float) -> None:
+        """Zoom by ``factor`` keeping the point under widget pixel (x, y) where it is."""
+        before = self.screen_to_plane(np.array([x, y], dtype=np.float64))
+        self.zoom = float(np.clip(self.zoom * factor, 0.2, 40))
+        scale, center = self._base()
+        after = self.screen_to_plane(np.array([x, y], dtype=np.float64))
+        self.center = center + (before - after)
+        self.update()
 
     def reset_view(self) -> None:
         self.zoom, self.center = 1.0, None
@@ -396,8 +411,7 @@ class SliceView(QWidget):
         if delta == 0:
             return
         if event.modifiers() & Qt.KeyboardModifier.ControlModifier:
-            self.zoom = float(np.clip(self.zoom * (1.15 if delta > 0 else 1 / 1.15), 0.2, 40))
-            self.update()
+            self.zoom_at(*self._event_xy(event), 1.15 if delta > 0 else 1 / 1.15)
         else:
             self.state.step_slice(self.frame_name, 1 if delta > 0 else -1)
 

@@ -43,7 +43,11 @@ class VolumeView(QWidget):
         self.plotter = QtInteractor(self, auto_update=False)
         layout.addWidget(self.plotter.interactor)
         self.plotter.set_background((0.08, 0.08, 0.12), top=(0.25, 0.27, 0.33))
-        self.plotter.add_axes(xlabel="R", ylabel="A", zlabel="S", line_width=2)
+        from app.views.orientation import add_orientation_cube
+
+        self.orientation_widget = add_orientation_cube(self.plotter)   # labelled R/L A/P S/I
+        self.show_planes = True         # View menu toggles (app.panels.navigation)
+        self.show_points = True
         # structure id -> (actor, mesh, style) with style = (colour, opacity, factor)
         self._surfaces: dict[int, tuple[object, pv.PolyData, tuple]] = {}
         self._points_actor = None
@@ -164,7 +168,15 @@ class VolumeView(QWidget):
             self._update_overlays()
         if "camera" in dirty or not self._camera_set:
             self.reset_camera()
+        self.apply_visibility()
         self.plotter.render()
+
+    def apply_visibility(self) -> None:
+        """Show or hide the slice planes and the contour points (``show_planes/points``)."""
+        for actor in self._plane_actors.values():
+            actor.SetVisibility(self.show_planes)
+        if self._points_actor is not None:
+            self._points_actor.SetVisibility(self.show_points)
 
     def _update_planes(self) -> None:
         state = self.state
