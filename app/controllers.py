@@ -255,6 +255,8 @@ class ExportController:
 
     def __init__(self, state: WorkspaceState):
         self.state = state
+        # more files for Export all: ``write(folder) -> [paths]`` (e.g. the measurements)
+        self.extra_exports: list[Callable[[Path], list[Path]]] = []
 
     def label_map(self, structure: Structure | None = None) -> np.ndarray:
         """The fitted surface as a uint8 label map on the image grid (1 inside), with the
@@ -354,6 +356,8 @@ class ExportController:
             for name in ("points.csv", "points.mrk.json"):
                 written.append(folder / name)
                 self.export_points(written[-1])
+        for write in self.extra_exports:
+            written.extend(write(folder))
         return written
 
     def import_points(self, path: str | os.PathLike) -> str:

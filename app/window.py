@@ -146,8 +146,11 @@ class MainWindow(QMainWindow):
         from app.panels.editing import install_editing   # issue 17 tools (label map, brush, move)
         from app.panels.navigation import install_navigation   # zoom, layouts, colour maps...
 
+        from app.panels.measurements import install_measurements   # ruler and angle
+
         self.labels = install_editing(self)
         install_navigation(self)
+        self.measurements = install_measurements(self)
 
     def _create_planning(self) -> None:
         """The Planning dock (tabbed with the segmentation dock) and its controller."""

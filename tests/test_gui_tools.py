@@ -315,3 +315,52 @@ def test_3d_view_has_a_labelled_orientation_cube_and_plane_and_point_toggles(qtb
         win.runner.wait()
         win.unsaved = False
         win.close()
+
+
+# ------------------------------------------------------------------------------------------
+# Ruler and angle
+# ------------------------------------------------------------------------------------------
+
+
+def test_ruler_and_angle_in_a_slice_kept_with_the_session_and_exported(window, tmp_path):
+    view = window.workspace.views["axial"]
+    c = window.state.crosshair.copy()
+    window.set_tool("ruler")
+    a, b = view.world_to_screen(c), view.world_to_screen(c + [12.0, 16.0, 0.0])
+    drag(view, [a, (a + b) / 2, b])
+    store = window.measurements
+    assert len(store.items) == 1
+    ruler = store.items[0]
+    px = 1.0 / view._base()[0]                      # mm per pixel
+    assert ruler.value == pytest.approx(20.0, abs=2 * px)
+    assert ruler.frame == "axial" and ruler.depth == pytest.approx(view.depth)
+    window.set_tool("angle")
+    for p in (c + [10.0, 0, 0], c, c + [0, 10.0, 0]):   # a right angle at c
+        drag(view, [view.world_to_screen(p)])
+    assert len(store.items) == 2 and store.items[1].kind == "angle"
+    assert store.items[1].value == pytest.approx(90.0, abs=np.degrees(2 * px / 10.0) + 0.5)
+    # drawn on their slice only: the measurement colour is there, not one slice further
+    assert _green_pixels(view) > 50
+    window.state.step_slice("axial", 1)
+    assert _green_pixels(view) == 0
+    window.state.step_slice("axial", -1)
+    # session and export
+    path = tmp_path / "session.json"
+    assert window.save_session(path=path)
+    window.measurements.clear()
+    window.open_session(path)
+    assert [m.kind for m in window.measurements.items] == ["ruler", "angle"]
+    written = {p.name for p in window.export_all(tmp_path / "out")}
+    assert {"measurements.csv", "measurements.mrk.json"} <= written
+    rows = (tmp_path / "out" / "measurements.csv").read_text().splitlines()
+    assert float(rows[1].split(",")[1]) == pytest.approx(ruler.value, abs=1e-3)
+
+
+def _green_pixels(view) -> int:
+    """Pixels of the measurement colour (120, 255, 140) in the view's image."""
+    image = view.grab().toImage().convertToFormat(view.grab().toImage().Format.Format_RGB888)
+    ptr = image.constBits()
+    rgb = np.frombuffer(ptr, dtype=np.uint8, count=image.sizeInBytes()).reshape(
+        image.height(), image.bytesPerLine())[:, :3 * image.width()].reshape(
+        image.height(), image.width(), 3).astype(int)
+    return int(np.sum((np.abs(rgb - [120, 255, 140]) <= 12).all(axis=2)))
