@@ -37,6 +37,13 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--session", help="session file (.json) to restore")
     _add_gui_options(view, suppress=True)
     view.set_defaults(_command="view")
+    tour = sub.add_parser("demo", help="play the demo tour in the GUI (any key stops it)",
+                          description="Open the demo data and play a scripted session: contours "
+                                      "drawn slice by slice with the live refit, a factor "
+                                      "slider sweep, an export. Any key stops the tour.")
+    tour.add_argument("--record", metavar="DIR",
+                      help="write the frames as PNG files into DIR and quit at the end")
+    tour.set_defaults(_command="demo")
     add_commands(sub)
     return parser
 
@@ -72,8 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     if hasattr(args, "_run"):  # an engine command: no Qt
         return run_command(args)
     screenshot = getattr(args, "screenshot", None)
+    record = getattr(args, "record", None)
     if _needs_virtual_display():
-        if screenshot:
+        if screenshot or record:
             return _rerun_under_xvfb(argv)
         print("ssm-studio: no display found. Run it on a desktop, or render the window with "
               "'ssm-studio --screenshot out.png'.", file=sys.stderr)
@@ -87,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
         screenshot=screenshot,
         tab=getattr(args, "tab", None) or "segment",
         series=getattr(args, "series", None),
+        tour=getattr(args, "_command", None) == "demo",
+        record=record,
     )
 
 

@@ -151,6 +151,9 @@ class MainWindow(QMainWindow):
         self.labels = install_editing(self)
         install_navigation(self)
         self.measurements = install_measurements(self)
+        from app.demo_tour import install_demo_tour   # Help > Demo tour
+
+        install_demo_tour(self)
 
     def _create_planning(self) -> None:
         """The Planning dock (tabbed with the segmentation dock) and its controller."""
@@ -552,7 +555,8 @@ class MainWindow(QMainWindow):
 
 
 def run_gui(image: str | None = None, model: str | None = None, session: str | None = None,
-            screenshot: str | None = None, tab: str = "segment", series: str | None = None) -> int:
+            screenshot: str | None = None, tab: str = "segment", series: str | None = None,
+            tour: bool = False, record: str | None = None) -> int:
     """Open the main window; with ``screenshot`` render it to that PNG and exit. Exit code."""
     app = QApplication.instance() or QApplication(sys.argv[:1])
     app.setApplicationName("SSM Studio")
@@ -592,5 +596,16 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
               file=sys.stderr)
         return 0
     QTimer.singleShot(100, window.workspace.create_volume_view)   # after the first paint
-    QTimer.singleShot(0, window.offer_recovery)
+    if tour:                                     # ssm-studio demo [--record DIR]
+        from app.demo_tour import start_tour
+
+        def play() -> None:
+            window.unsaved = False
+            if start_tour(window, record=record, quit_at_end=record is not None) is None \
+                    and record is not None:
+                window.close()
+
+        QTimer.singleShot(800, play)
+    else:
+        QTimer.singleShot(0, window.offer_recovery)
     return app.exec()

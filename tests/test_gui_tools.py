@@ -364,3 +364,21 @@ def _green_pixels(view) -> int:
         image.height(), image.bytesPerLine())[:, :3 * image.width()].reshape(
         image.height(), image.width(), 3).astype(int)
     return int(np.sum((np.abs(rgb - [120, 255, 140]) <= 12).all(axis=2)))
+
+
+def test_every_shortcut_is_unique_and_listed_in_help_and_readme(window):
+    from pathlib import Path
+
+    from PySide6.QtGui import QAction
+
+    from app.actions import SHORTCUTS
+
+    keys = [a.shortcut().toString() for a in window.findChildren(QAction)
+            if not a.shortcut().isEmpty()]
+    duplicates = {k for k in keys if keys.count(k) > 1}
+    assert not duplicates, duplicates
+    listed = " ".join(k for k, _ in SHORTCUTS)
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    for key in ("B / X", "G", "Z", "F", "Ctrl+L", "F12", "M / A", "Ctrl+wheel"):
+        assert key in listed
+        assert f"| {key} |" in readme, key

@@ -6,7 +6,7 @@
   with its display options (fill, outline, opacity) in a side-panel box;
 - the volume of the active structure's label map (mm^3, with the voxel count and the manual
   edits) always visible in the status bar;
-- three tools in the tool group: Brush (B), Eraser (E) and Move model (G)
+- three tools in the tool group: Brush (B), Eraser (X) and Move model (G)
   (:mod:`app.views.edit_tools`), with the brush radius and *Clear edits* in the box.
 """
 
@@ -29,10 +29,10 @@ from app.views.edit_tools import BrushTool, MoveTool
 from app.views.label_overlay import LabelOverlay
 
 TOOLS = {"brush": ("Brush", "B", "Brush: drag to paint the label map by hand (Ctrl: erase)"),
-         "eraser": ("Eraser", "E", "Eraser: drag to erase the label map by hand (Ctrl: paint)"),
+         "eraser": ("Eraser", "X", "Eraser: drag to erase the label map by hand (Ctrl: paint)"),
          "move": ("Move model", "G", "Move model: drag = translate, Ctrl+drag = rotate, "
                                      "Shift+drag = scale (about the model's centre)")}
-SHORTCUTS = [("B / E", "Tool: brush / eraser on the label map (Ctrl: the other one)"),
+SHORTCUTS = [("B / X", "Tool: brush / eraser on the label map (Ctrl: the other one)"),
              ("G", "Tool: move the model (drag translate, Ctrl rotate, Shift scale)")]
 
 
