@@ -68,8 +68,9 @@ class RulerTool:
             return
         a, b = self.store.pending[0], view.screen_to_world(x, y)
         self.store.pending = []
-        if np.linalg.norm(b - a) > 1e-6:
-            self.store.add(Measurement("ruler", [a, b], view.frame_name, view.depth))
+        ruler = Measurement("ruler", [a, b], view.frame_name, view.depth)
+        if ruler.value > 1e-6:
+            self.store.add(ruler)
         else:
             self.store._changed()
 
