@@ -40,6 +40,21 @@ class WorkspaceTabs(QTabWidget):
             self.ensure_builder()
         self.segment_shown.emit(self.currentWidget() is self.segment)
 
+    def prepare_builder(self) -> None:
+        """Build the builder panel in the background of an idle GUI (after the first paint),
+        without switching to it, so that the first switch to its tab is only a repaint."""
+        if self.builder is None and self.indexOf(self._placeholder) >= 0:
+            current = self.currentIndex()
+            size = self.currentWidget().size()
+            if self.ensure_builder() is None:
+                return
+            self.builder.resize(size)
+            self.builder.grab()      # polish and lay out now (the first show costs ~0.3 s)
+            self.blockSignals(True)
+            self.setCurrentIndex(current)
+            self.blockSignals(False)
+            self.segment_shown.emit(self.currentWidget() is self.segment)
+
     def ensure_builder(self):
         """The builder panel, created (and its tab made current) on the first call."""
         if self.builder is not None:

@@ -596,6 +596,7 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
               file=sys.stderr)
         return 0
     QTimer.singleShot(100, window.workspace.create_volume_view)   # after the first paint
+    QTimer.singleShot(1500, window.tabs.prepare_builder)          # then the Build tab, idle
     if tour:                                     # ssm-studio demo [--record DIR]
         from app.demo_tour import start_tour
 

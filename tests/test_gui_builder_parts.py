@@ -205,3 +205,27 @@ def test_opening_the_builder_does_not_load_the_correspondence_engine():
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, check=True, env=env)
     assert out.stdout.split()[-3:] == ["3", "False", "False"], out.stdout + out.stderr
+
+
+def test_builder_is_prepared_in_the_background_without_leaving_the_segment_tab(qtbot, tmp_path,
+                                                                               monkeypatch):
+    from app.window import MainWindow
+
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    win = MainWindow(with_3d=False, recovery=False)
+    qtbot.addWidget(win)
+    win.resize(1000, 700)
+    win.show()
+    qtbot.waitExposed(win)
+    try:
+        assert win.builder is None
+        win.tabs.prepare_builder()               # run_gui calls this 1.5 s after the first paint
+        assert win.builder is not None
+        assert win.tabs.currentWidget() is win.workspace and win.toolbar.isVisible()
+        assert win.tabs.tabText(1) == "Build model" and win.tabs.widget(1) is win.builder
+        win.tabs.setCurrentIndex(1)
+        assert win.tabs.currentWidget() is win.builder and not win.toolbar.isVisible()
+        win.tabs.prepare_builder()               # idempotent
+        assert win.tabs.count() == 2
+    finally:
+        win.close()

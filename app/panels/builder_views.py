@@ -458,8 +458,8 @@ class BuilderViews(QTabWidget):
         self._meshes_drawn: tuple | None = None
         self._pending_model: tuple | None = None  # (model, title) for the hidden factor view
         self._closed = False
-        self.meshes_view = MeshesView(hint="Add training meshes on the left: a folder, files, "
-                                           "label maps, or drop them here.")
+        self.meshes_view = MeshesView(hint="Add training meshes on the left (a folder or "
+                                           "files), or drop them here.")
         self.show_overlay = QRadioButton("Overlaid")
         self.show_grid = QRadioButton("Grid")
         self.show_overlay.setChecked(True)

@@ -192,6 +192,7 @@ def install_editing(window) -> LabelOverlay:
     window.side_dock.boxes["Label map"] = box
     window.volume_label = VolumeReadout(overlay)
     window.statusBar().addPermanentWidget(window.volume_label)
+    window.tabs.segment_shown.connect(window.volume_label.setVisible)   # not in the Build tab
     views = list(window.workspace.views.values())
     overlay.events.display.connect(lambda: [v.update() for v in views])
     window.state.events.structure_changed.connect(
