@@ -229,3 +229,39 @@ def test_builder_is_prepared_in_the_background_without_leaving_the_segment_tab(q
         assert win.tabs.count() == 2
     finally:
         win.close()
+
+
+# ------------------------------------------------------------------------------------------
+# Issue 13: Add label maps...
+# ------------------------------------------------------------------------------------------
+
+
+def test_add_label_maps_makes_training_surfaces_in_a_worker(panel, qtbot, tmp_path):
+    pytest.importorskip("core.mesh_labels")
+    import numpy as np
+
+    from core.io import save_volume
+
+    affine = np.diag([1.0, 1.0, 1.0, 1.0])
+    affine[:3, 3] = [-20.0, -20.0, -20.0]
+    ijk = np.indices((40, 40, 40)).reshape(3, -1).T + affine[:3, 3]
+    inside = (np.sum(ijk ** 2, axis=1) <= 8.0 ** 2).reshape(40, 40, 40)
+    labels = np.where(inside, 3, 0).astype(np.uint8)
+    good = tmp_path / "sphere.nii.gz"
+    save_volume(good, labels, affine)
+    empty = tmp_path / "nothing.nii.gz"
+    save_volume(empty, np.zeros_like(labels), affine)
+    assert panel.meshes_box.labels_button.isVisible()
+    panel.add_label_maps([good, empty], 3, 600)
+    assert panel.is_busy and panel.cancel_button.isEnabled()   # a worker, cancellable
+    qtbot.waitUntil(lambda: not panel.is_busy, timeout=60000)
+    first, second = panel.state.entries
+    assert first.mesh is not None and second.mesh is None
+    assert "nothing.nii.gz" in second.problems[0] and "3" in second.problems[0]
+    v, f = first.mesh.vertices, first.mesh.faces
+    a, b, c = (v[f[:, i]] for i in range(3))
+    volume = abs(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
+    assert abs(volume / (4 / 3 * np.pi * 8.0 ** 3) - 1) < 0.05
+    assert abs(len(v) - 600) < 0.2 * 600
+    item = panel.mesh_list.topLevelItem(1)
+    assert item.text(3) and item.text(1) == ""   # the error is listed, nothing aborted

@@ -110,6 +110,7 @@ class BuilderPanel(QWidget):
 
     def _connect(self) -> None:
         self.meshes_box.paths_requested.connect(self.add_paths)
+        self.meshes_box.label_maps_requested.connect(self.add_label_maps)
         self.meshes_box.remove_requested.connect(self._remove_rows)
         self.meshes_box.clear_requested.connect(self.clear_meshes)
         self.meshes_box.inclusion_changed.connect(self._on_inclusion_changed)
@@ -199,6 +200,12 @@ class BuilderPanel(QWidget):
             return
         self.runner.run("load", engine.load_entries, files)
 
+    def add_label_maps(self, paths: list[str | Path], label: str | int,
+                       n_vertices: int = 2000) -> None:
+        """One label of each label map as a training surface, in a worker (Cancel works)."""
+        self.runner.run("labels", engine.load_label_entries, [str(p) for p in paths], label,
+                        n_vertices)
+
     def add_entries(self, entries: list[engine.MeshEntry]) -> None:
         """Append loaded entries to the list."""
         self.state.entries.extend(entries)
@@ -272,7 +279,7 @@ class BuilderPanel(QWidget):
         self._update_buttons()
 
     def _on_succeeded(self, stage: str, result: Any, key: Any, seconds: float) -> None:
-        if stage == "load":
+        if stage in ("load", "labels"):
             self.add_entries(result)
         elif stage == "evaluation":
             self._on_evaluated(result)

@@ -25,6 +25,7 @@ from core.stages import DEFAULT_N_REFERENCES, NO_CORRESPONDENCE
 
 __all__ = ["ALIGN_METHODS", "TRANSFORMS", "NO_CORRESPONDENCE", "MeshEntry", "load_entries",
            "model_classes", "method_summary", "default_n_references", "evaluation_table",
+           "label_maps_available", "load_label_entries",
            "evaluation_figure"]
 
 MODEL_ORDER = ("pca", "lsf", "splocs", "varimax")
@@ -62,17 +63,28 @@ def load_entries(files: list[str | os.PathLike], progress: ProgressCallback | No
     return entries
 
 
-def load_label_entries(files: list[str | os.PathLike], label: str,
+def label_maps_available() -> bool:
+    """Whether ``core.mesh_labels`` (label maps -> surfaces) is installed."""
+    import importlib.util
+
+    return importlib.util.find_spec("core.mesh_labels") is not None
+
+
+def load_label_entries(files: list[str | os.PathLike], label: str | int,
+                       n_vertices: int | None = 2000,
                        progress: ProgressCallback | None = None) -> list[MeshEntry]:
-    """One label of each label map as a training mesh (core.mesh_labels); errors per file."""
+    """One label of each label map as a training mesh (core.mesh_labels); errors per file
+    (a missing or empty label names the file and the label; the other files still load)."""
     from core.mesh_labels import label_map_surfaces
 
     entries = []
-    for path, mesh, error in label_map_surfaces(files, label, progress=progress):
+    for path, mesh, error in label_map_surfaces(files, label, n_vertices=n_vertices,
+                                                progress=progress):
         if mesh is None:
             entries.append(MeshEntry(path, Path(path).name, None, [error], included=False))
         else:
-            entries.append(MeshEntry(path, mesh.name, mesh, surface_problems(mesh.vertices, mesh.faces)))
+            entries.append(MeshEntry(path, mesh.name, mesh,
+                                     surface_problems(mesh.vertices, mesh.faces)))
     return entries
 
 

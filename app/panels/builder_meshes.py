@@ -18,6 +18,7 @@ from PySide6.QtWidgets import (
     QGroupBox,
     QHBoxLayout,
     QHeaderView,
+    QInputDialog,
     QLabel,
     QPushButton,
     QTreeWidget,
@@ -26,6 +27,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.panels import builder_engine as engine
 from app.panels.builder_engine import MeshEntry
 from core.io import MESH_SUFFIXES
 
@@ -50,6 +52,7 @@ class MeshListBox(QGroupBox):
     """
 
     paths_requested = Signal(list)
+    label_maps_requested = Signal(list, object, int)   # files, label (number or name), vertices
     remove_requested = Signal(list)
     clear_requested = Signal()
     inclusion_changed = Signal(int, bool)
@@ -62,6 +65,11 @@ class MeshListBox(QGroupBox):
                                             "folders onto this panel.")
         self.add_files_button = QPushButton("Add files…")
         self.add_files_button.setToolTip("Add mesh files.")
+        self.labels_button = QPushButton("Add label maps…")
+        self.labels_button.setToolTip("Make a training surface from one label of each label "
+                                      "map (NIfTI, NRRD, Slicer .seg.nrrd; label by number or "
+                                      "FreeSurfer/segment name).")
+        self.labels_button.setVisible(engine.label_maps_available())
         self.remove_button = QPushButton("Remove")
         self.remove_button.setToolTip("Remove the selected meshes from the list.")
         self.clear_button = QPushButton("Clear")
@@ -82,8 +90,8 @@ class MeshListBox(QGroupBox):
         self.summary = QLabel("No meshes. Add a folder of training meshes.")
         self.summary.setWordWrap(True)
         self.buttons_row = QHBoxLayout()
-        for b in (self.add_folder_button, self.add_files_button, self.remove_button,
-                  self.clear_button):
+        for b in (self.add_folder_button, self.add_files_button, self.labels_button,
+                  self.remove_button, self.clear_button):
             self.buttons_row.addWidget(b)
         layout = QVBoxLayout(self)
         layout.addLayout(self.buttons_row)
@@ -92,13 +100,14 @@ class MeshListBox(QGroupBox):
 
         self.add_folder_button.clicked.connect(self._ask_folder)
         self.add_files_button.clicked.connect(self._ask_files)
+        self.labels_button.clicked.connect(self._ask_label_maps)
         self.remove_button.clicked.connect(self.remove_selected)
         self.clear_button.clicked.connect(self.clear_requested)
         self.tree.itemChanged.connect(self._on_item_changed)
 
     def set_busy(self, busy: bool) -> None:
-        for w in (self.add_folder_button, self.add_files_button, self.remove_button,
-                  self.clear_button, self.tree):
+        for w in (self.add_folder_button, self.add_files_button, self.labels_button,
+                  self.remove_button, self.clear_button, self.tree):
             w.setEnabled(not busy)
 
     # -- asking --------------------------------------------------------------------------
@@ -113,6 +122,23 @@ class MeshListBox(QGroupBox):
         files, _ = QFileDialog.getOpenFileNames(self, "Training meshes", "", pattern)
         if files:
             self.paths_requested.emit(files)
+
+    def _ask_label_maps(self) -> None:
+        files, _ = QFileDialog.getOpenFileNames(
+            self, "Label maps", "", "Label maps (*.nii *.nii.gz *.nrrd *.seg.nrrd *.mha *.mhd);;"
+                                    "All files (*)")
+        if not files:
+            return
+        label, ok = QInputDialog.getText(self, "Label", "Label number or name (e.g. 11 or "
+                                                        "Left-Caudate):")
+        if not ok or not label.strip():
+            return
+        vertices, ok = QInputDialog.getInt(self, "Vertices", "Vertices per surface:", 2000,
+                                           100, 100000, 100)
+        if ok:
+            text = label.strip()
+            self.label_maps_requested.emit(files, int(text) if text.isdigit() else text,
+                                           vertices)
 
     def remove_selected(self) -> None:
         rows = sorted({self.tree.indexOfTopLevelItem(i) for i in self.tree.selectedItems()},
