@@ -37,7 +37,7 @@ from core.progress import ProgressCallback, report, sub_progress
 
 __all__ = ["STAGES", "NO_CORRESPONDENCE", "DEFAULT_N_REFERENCES", "BuildSettings", "CachedStage", "StageCache",
            "StagedBuild", "run_correspondence", "run_alignment", "run_model", "run_evaluation",
-           "explained_variance_ratio", "corresponded_meshes", "aligned_meshes"]
+           "corresponded_meshes", "aligned_meshes"]
 
 STAGES = ("correspondence", "alignment", "model")
 # The reference choice for training meshes that already share one topology.
@@ -316,24 +316,10 @@ def run_model(corr, aligned, method: str = "pca", params: Mapping[str, Any] | No
     info = {"alignment": {"method": aligned.method, "transform": aligned.transform},
             "n_iter": getattr(estimator, "n_iter_", None),
             "converged": getattr(estimator, "converged_", None)}
-    model = estimator.to_shape_model(corr.faces, world_transform=world, source_meshes=names,
-                                     info=info)
-    model.info["explained_variance_ratio"] = explained_variance_ratio(model, aligned.aligned)
-    return model
-
-
-def explained_variance_ratio(model, shapes: np.ndarray) -> list[float]:
-    """Each factor's variance over the total variance of ``shapes`` (K, N, 3) about their mean.
-
-    ``coef_var_m * ||factor_m||^2 / (sum_k ||x_k - mean||^2 / (K - 1))``: for PCA the usual
-    explained-variance ratio (summing to 1 with K - 1 factors); for local or sparse factors a
-    factor that explains nothing of the training shapes shows as 0.
-    """
-    shapes = np.asarray(shapes, dtype=np.float64)
-    centred = shapes - shapes.mean(axis=0)
-    total = float(np.sum(centred ** 2)) / max(len(shapes) - 1, 1)
-    explained = model.explained_variance()
-    return (explained / total if total > 0 else np.zeros_like(explained)).tolist()
+    # the estimator stores each factor's share of the training variance in the model's info
+    # (info["explained_variance_ratio"], shown by the builder's factor list)
+    return estimator.to_shape_model(corr.faces, world_transform=world, source_meshes=names,
+                                    info=info)
 
 
 def run_evaluation(corr, aligned, methods: Mapping[str, Mapping[str, Any]],

@@ -18,7 +18,6 @@ from core.stages import (
     BuildSettings,
     StageCache,
     StagedBuild,
-    explained_variance_ratio,
 )
 
 
@@ -132,7 +131,7 @@ def test_built_model_spans_the_aligned_shapes_and_reports_explained_variance(mes
     small = build.run(settings(meshes, params={"n_factors": 2}))
     share = np.asarray(small.info["explained_variance_ratio"])
     assert share.sum() < 0.999 and np.all(np.diff(share) <= 1e-12)
-    np.testing.assert_allclose(share, explained_variance_ratio(small, aligned))
+    np.testing.assert_allclose(share, stored[:2], rtol=1e-6)  # the same leading PCA factors
 
 
 def test_shape_model_read_outs(meshes):
