@@ -3,7 +3,6 @@ refit, sweeps a factor, exports; any key stops it; --record writes PNG frames.""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 pytest.importorskip("PySide6")

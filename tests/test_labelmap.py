@@ -7,7 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from core.labelmap import ManualEdits, brush_voxels, mask_volume_mm3, structure_label_map
+from core.labelmap import (
+    ManualEdits,
+    brush_voxels,
+    mask_volume_mm3,
+    structure_label_map,
+)
 from core.models.synthetic import ellipsoid_surface
 
 

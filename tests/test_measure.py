@@ -7,8 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from core.measure import Measurement, measurements_from_json, measurements_to_json, \
-    save_measurements
+from core.measure import (
+    Measurement,
+    measurements_from_json,
+    measurements_to_json,
+    save_measurements,
+)
 
 
 def test_values_of_known_rulers_and_angles():

@@ -12,8 +12,12 @@ import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QPainter, QPen
 
-from core.measure import Measurement, measurements_from_json, measurements_to_json, \
-    save_measurements
+from core.measure import (
+    Measurement,
+    measurements_from_json,
+    measurements_to_json,
+    save_measurements,
+)
 
 COLOR = QColor(120, 255, 140)
 TOOLS = {"ruler": ("Ruler", "M", "Ruler: drag from one end to the other to measure a length"),

@@ -32,7 +32,6 @@ from PySide6.QtWidgets import (
     QMenu,
 )
 
-
 LAYOUTS = ("2 x 2", "axial", "sagittal", "coronal", "3D")
 COLORMAPS = ("grey", "inverted grey", "hot", "bone", "viridis")
 RECENT_MAX = 10
