@@ -44,7 +44,7 @@ STAGES = ("correspondence", "alignment", "model")
 NO_CORRESPONDENCE = "none (already corresponded)"
 # core.correspondence.establish_correspondence's default n_references, without importing it
 # (the engine pulls in scipy.optimize: ~1.8 s; tests/test_stages.py keeps them equal).
-DEFAULT_N_REFERENCES = 3
+DEFAULT_N_REFERENCES = 1
 
 
 def _frozen(params: Mapping[str, Any]) -> tuple:

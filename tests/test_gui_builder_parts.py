@@ -195,6 +195,8 @@ def test_build_tab_hides_the_segmentation_toolbar(qtbot, tmp_path, monkeypatch):
 
 def test_opening_the_builder_does_not_load_the_correspondence_engine():
     # importing core.correspondence (scipy.optimize) took ~1.8 s of the ~2 s tab switch
+    from core.stages import DEFAULT_N_REFERENCES
+
     code = ("import sys; from PySide6.QtWidgets import QApplication; app = QApplication([]);"
             "from app.panels.builder import BuilderPanel; p = BuilderPanel();"
             "print(p.n_references.value(), 'core.correspondence' in sys.modules,"
@@ -204,7 +206,7 @@ def test_opening_the_builder_does_not_load_the_correspondence_engine():
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, check=True, env=env)
-    assert out.stdout.split()[-3:] == ["3", "False", "False"], out.stdout + out.stderr
+    assert out.stdout.split()[-3:] == [str(DEFAULT_N_REFERENCES), "False", "False"], out.stdout + out.stderr
 
 
 def test_builder_is_prepared_in_the_background_without_leaving_the_segment_tab(qtbot, tmp_path,
