@@ -82,16 +82,16 @@ def main() -> int:
     for fill in (False, True):
         window.labels.set_fill(fill)
         window.render_now()
-        ((_, refit, residual, _, _),) = bench_refit(window, app, args.edits, ("gmm-aniso",))
+        (row,) = bench_refit(window, app, args.edits, ("gmm-aniso",))
         steps = slice_steps(window, app)
-        rows.append((fill, refit, steps, residual))
+        rows.append((fill, row[1], steps))      # row: (method, round-trip times, ...)
     dabs = brush_dabs(window, app)
     window.unsaved = False
     window.close()
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (shared machine: "
           "times are upper bounds)")
     print(f"{'label fill':<12}{'what':<34}{'p50 ms':>8} {'p90 ms':>8} {'max ms':>8}")
-    for fill, refit, steps, residual in rows:
+    for fill, refit, steps in rows:
         name = "on" if fill else "off"
         print(f"{name:<12}{'click -> refit -> repainted':<34}{_stats(refit)}")
         print(f"{name:<12}{'slice step (axial)':<34}{_stats(steps)}")
