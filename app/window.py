@@ -161,6 +161,7 @@ class MainWindow(QMainWindow):
         self.planning_panel = PlanningPanel(self.planning)
         scroll = QScrollArea()
         scroll.setWidgetResizable(True)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         scroll.setWidget(self.planning_panel)
         self.plan_dock = QDockWidget("Planning", self)
         self.plan_dock.setObjectName("planning-dock")

@@ -188,7 +188,7 @@ def install_editing(window) -> LabelOverlay:
     box_layout = QVBoxLayout(box)
     box_layout.setContentsMargins(2, 2, 2, 2)
     box_layout.addWidget(window.label_panel)
-    window.side_dock.widget().layout().insertWidget(1, box)
+    window.side_dock.panel.layout().insertWidget(1, box)
     window.side_dock.boxes["Label map"] = box
     window.volume_label = VolumeReadout(overlay)
     window.statusBar().addPermanentWidget(window.volume_label)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QCheckBox, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
-                               QPushButton, QSlider, QVBoxLayout, QWidget)
+                               QPushButton, QSizePolicy, QSlider, QVBoxLayout, QWidget)
 
 from app.planning import LANDMARK_LABELS, LANDMARKS, PlanningState
 from app.views.plan_overlays import ProbeView
@@ -61,6 +61,8 @@ class PlanningPanel(QWidget):
             grid.addWidget(QLabel(LANDMARK_LABELS[name]), row, 0)
             label = QLabel()
             label.setObjectName(f"landmark-{name}")
+            # narrow docks: the coordinates give way before the buttons do
+            label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
             grid.addWidget(label, row, 1)
             self.landmark_labels[name] = label
             set_button = QPushButton("Set")

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from PySide6.QtWidgets import QDockWidget, QGroupBox, QVBoxLayout, QWidget
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import QDockWidget, QGroupBox, QScrollArea, QVBoxLayout, QWidget
 
 
 class SidePanel(QDockWidget):
@@ -23,5 +24,11 @@ class SidePanel(QDockWidget):
             box_layout.addWidget(widget)
             layout.addWidget(box, stretch)
             self.boxes[title] = box
-        self.setWidget(panel)
+        # in a scroll area, so that a small window (800x600) is not forced taller by the panel
+        scroll = QScrollArea()
+        scroll.setWidgetResizable(True)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        scroll.setWidget(panel)
+        self.panel = panel
+        self.setWidget(scroll)
         self.setMinimumWidth(280)
