@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.events import EmitterGroup
+from app.history import UndoHistory
 from app.state import Structure, WorkspaceState
 from core.model_library import structure_info
 from core.plan_report import PlannedStructure, model_target, plan_report
@@ -31,7 +32,6 @@ from core.planning import ACPCFrame, PlanningError, Trajectory
 
 LANDMARKS = ("ac", "pc", "midline")
 LANDMARK_LABELS = {"ac": "AC", "pc": "PC", "midline": "Midline"}
-MAX_HISTORY = 200
 
 
 @dataclass
@@ -53,9 +53,8 @@ class PlanningState:
     def __post_init__(self) -> None:
         self.events = EmitterGroup(landmarks=(), trajectory=("structure",), history=(),
                                    edited=("what",))
-        self._undo: list[_Snapshot] = []
+        self.history = UndoHistory(self._snapshot, self._restore, self.events.history)
         self._default_targets: dict = {}    # (structure, model, surface version) -> world
-        self._redo: list[_Snapshot] = []
         self.workspace.events.structure_changed.connect(self._on_structure)
         self.workspace.events.structures.connect(self._on_structures)
 
@@ -170,30 +169,19 @@ class PlanningState:
         return _Snapshot(dict(self.landmarks), dict(self.targets), dict(self.entries))
 
     def _checkpoint(self) -> None:
-        self._undo.append(self._snapshot())
-        del self._undo[:-MAX_HISTORY]
-        self._redo.clear()
-        self.events.history()
+        self.history.checkpoint()
 
     def can_undo(self) -> bool:
-        return bool(self._undo)
+        return self.history.can_undo()
 
     def can_redo(self) -> bool:
-        return bool(self._redo)
+        return self.history.can_redo()
 
     def undo(self) -> bool:
-        if not self._undo:
-            return False
-        self._redo.append(self._snapshot())
-        self._restore(self._undo.pop())
-        return True
+        return self.history.undo()
 
     def redo(self) -> bool:
-        if not self._redo:
-            return False
-        self._undo.append(self._snapshot())
-        self._restore(self._redo.pop())
-        return True
+        return self.history.redo()
 
     def _restore(self, snap: _Snapshot) -> None:
         self.landmarks, self.targets, self.entries = snap.landmarks, snap.targets, snap.entries
@@ -238,12 +226,10 @@ class PlanningState:
             if item.get("entry") is not None:
                 entries[sid] = np.asarray(item["entry"], dtype=np.float64)
         self.landmarks, self.targets, self.entries = landmarks, targets, entries
-        self._undo.clear()
-        self._redo.clear()
+        self.history.clear()
         self.events.landmarks()
         for s in structures:
             self.events.trajectory(s)
-        self.events.history()
 
     # -- following the workspace ------------------------------------------------------------
     def _on_structure(self, structure: Structure, what: str) -> None:

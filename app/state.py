@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from app.events import EmitterGroup
+from app.history import UndoHistory
 from core.io import Volume
 from core.model_library import structure_info
 from core.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
@@ -239,8 +240,8 @@ class Structure:
         self.manual_edit = False               # factors set by hand since the last refit
         self.edits = None                      # core.labelmap.ManualEdits: brush/eraser voxels
         self.model_version = 0                 # bumped when the model is replaced
-        self._undo: list[Snapshot] = []
-        self._redo: list[Snapshot] = []
+        self.history = UndoHistory(self._snapshot, self._restore,
+                                   lambda: self._notify(self, "history"), MAX_HISTORY)
         self._vertices_cache: tuple[int, np.ndarray] | None = None
         self._normals_cache: tuple[int, np.ndarray] | None = None
         self._factor_cache: tuple[tuple[int, int], np.ndarray] | None = None
@@ -472,35 +473,22 @@ class Structure:
 
     def checkpoint(self) -> None:
         """Record the current state as one undo step (call before an undoable edit)."""
-        self._undo.append(self._snapshot())
-        del self._undo[:-MAX_HISTORY]
-        self._redo.clear()
-        self._notify(self, "history")
+        self.history.checkpoint()
 
     def can_undo(self) -> bool:
-        return bool(self._undo)
+        return self.history.can_undo()
 
     def can_redo(self) -> bool:
-        return bool(self._redo)
+        return self.history.can_redo()
 
     def undo(self) -> bool:
-        if not self._undo:
-            return False
-        self._redo.append(self._snapshot())
-        self._restore(self._undo.pop())
-        return True
+        return self.history.undo()
 
     def redo(self) -> bool:
-        if not self._redo:
-            return False
-        self._undo.append(self._snapshot())
-        self._restore(self._redo.pop())
-        return True
+        return self.history.redo()
 
     def clear_history(self) -> None:
-        self._undo.clear()
-        self._redo.clear()
-        self._notify(self, "history")
+        self.history.clear()
 
     def _restore(self, snap: Snapshot) -> None:
         points_differ = snap.points is not self.points
