@@ -52,6 +52,29 @@ def _action(window: QMainWindow, text: str, slot, shortcut=None, tip: str = "") 
     return action
 
 
+def add_tools(w, tools: dict, shortcuts: list, insert_at: int | None = None) -> None:
+    """Register extra slice-view tools on main window ``w``: per tool ``(text, key, hint)`` a
+    checkable action in the tool group and the View menu (appended, or before entry
+    ``insert_at``), its hint; ``shortcuts`` rows join the Help list."""
+    from app import window as window_module
+
+    SHORTCUTS.extend(row for row in shortcuts if row not in SHORTCUTS)
+    view_menu = next((a.menu() for a in w.menuBar().actions() if a.text() == "&View"), None)
+    for tool, (text, key, hint) in tools.items():
+        action = _action(w, text, lambda checked=False, t=tool: w.set_tool(t), key, hint)
+        action.setCheckable(True)
+        w.tool_group.addAction(action)
+        w.tool_actions[tool] = action
+        window_module.TOOL_HINTS[tool] = hint
+        if view_menu is None:
+            continue
+        entries = view_menu.actions()
+        if insert_at is not None and len(entries) > insert_at:
+            view_menu.insertAction(entries[insert_at], action)
+        else:
+            view_menu.addAction(action)
+
+
 def create_actions(w) -> None:
     """Create the ``act_*`` actions and ``tool_actions`` of main window ``w``."""
     key, state = QKeySequence.StandardKey, w.state

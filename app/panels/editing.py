@@ -160,11 +160,7 @@ class LabelPanel(QWidget):
 
 def install_editing(window) -> LabelOverlay:
     """Add the label overlay, the volume read-out and the edit tools to ``window``."""
-    from app import window as window_module
-    from app.actions import SHORTCUTS as HELP_SHORTCUTS
-    from app.actions import _action
-
-    HELP_SHORTCUTS.extend(row for row in SHORTCUTS if row not in HELP_SHORTCUTS)
+    from app.actions import add_tools
 
     overlay = LabelOverlay(window.state)
     brush, eraser, move = BrushTool(), BrushTool(erase=True), MoveTool()
@@ -172,17 +168,7 @@ def install_editing(window) -> LabelOverlay:
     for view in window.workspace.views.values():
         view.layers.append(overlay)
         view.tool_handlers.update(handlers)
-    view_menu = next((a.menu() for a in window.menuBar().actions() if a.text() == "&View"), None)
-    for tool, (text, key, hint) in TOOLS.items():
-        action = _action(window, text, lambda checked=False, t=tool: window.set_tool(t), key,
-                         hint)
-        action.setCheckable(True)
-        window.tool_group.addAction(action)
-        window.tool_actions[tool] = action
-        window_module.TOOL_HINTS[tool] = hint
-        if view_menu is not None:
-            view_menu.insertAction(view_menu.actions()[3] if len(view_menu.actions()) > 3
-                                   else None, action)
+    add_tools(window, TOOLS, SHORTCUTS, insert_at=3)
     window.label_panel = LabelPanel(window, overlay, brush, eraser)
     box = QGroupBox("Label map")
     box_layout = QVBoxLayout(box)

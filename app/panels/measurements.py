@@ -128,11 +128,8 @@ def paint_measurements(store: Measurements):
 
 def install_measurements(window) -> Measurements:
     """Ruler and angle tools, their painting, session keys and export (see module docstring)."""
-    from app import window as window_module
-    from app.actions import SHORTCUTS as HELP_SHORTCUTS
-    from app.actions import _action
+    from app.actions import _action, add_tools
 
-    HELP_SHORTCUTS.extend(row for row in SHORTCUTS if row not in HELP_SHORTCUTS)
     views = list(window.workspace.views.values())
     store = Measurements(lambda: [v.update() for v in views])
     handlers = {"ruler": RulerTool(store), "angle": AngleTool(store)}
@@ -140,16 +137,8 @@ def install_measurements(window) -> Measurements:
     for view in views:
         view.tool_handlers.update(handlers)
         view.overlays.append(painter)
+    add_tools(window, TOOLS, SHORTCUTS)
     view_menu = next((a.menu() for a in window.menuBar().actions() if a.text() == "&View"), None)
-    for tool, (text, key, hint) in TOOLS.items():
-        action = _action(window, text, lambda checked=False, t=tool: window.set_tool(t), key,
-                         hint)
-        action.setCheckable(True)
-        window.tool_group.addAction(action)
-        window.tool_actions[tool] = action
-        window_module.TOOL_HINTS[tool] = hint
-        if view_menu is not None:
-            view_menu.addAction(action)
     window.act_clear_measurements = _action(window, "Clear measurements", store.clear, None,
                                             "Remove every ruler and angle")
     if view_menu is not None:

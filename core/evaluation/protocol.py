@@ -31,16 +31,22 @@ import multiprocessing as mp
 import os
 import time
 from collections.abc import Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from core.evaluation.measures import (compactness, reconstruction_errors, residual_variance,
-                                      sparse_fit, specificity, vertex_errors)
+from core.evaluation.measures import (
+    compactness,
+    reconstruction_errors,
+    residual_variance,
+    sparse_fit,
+    specificity,
+    vertex_errors,
+)
 from core.models import make_model, model_class
 from core.models.base import check_shapes
+from core.parallel import single_threaded_children
 from core.progress import ProgressCallback, report, sub_progress
 
 MEASURES = ("reconstruction", "generalisation", "specificity", "sparse_reconstruction",
@@ -149,22 +155,6 @@ def _fold(task: dict, progress: ProgressCallback | None = None) -> dict:
     return out
 
 
-@contextmanager
-def _single_threaded_children():
-    """Spawned workers inherit these: one BLAS thread each, so n_jobs processes fill n cores."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    saved = {key: os.environ.get(key) for key in keys}
-    os.environ.update({key: "1" for key in keys})
-    try:
-        yield
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-
-
 def _run_serial(tasks: list[dict], progress: ProgressCallback | None) -> list[dict]:
     results = []
     for i, task in enumerate(tasks):
@@ -180,7 +170,7 @@ def _run_folds(tasks: list[dict], n_jobs: int, progress: ProgressCallback | None
         return _run_serial(tasks, progress)
     results: list[dict] = []
     ctx = mp.get_context("spawn")  # no fork from a (possibly) multi-threaded GUI process
-    with _single_threaded_children():
+    with single_threaded_children():
         pool = ctx.Pool(processes=min(n_jobs, len(tasks)))
     try:
         pending = [pool.apply_async(_fold, (task,)) for task in tasks]
