@@ -10,32 +10,12 @@ import pytest
 pytest.importorskip("PySide6")
 pytestmark = pytest.mark.gui
 
-from app import demo  # noqa: E402
-from app.window import MainWindow  # noqa: E402
 from app.state import FRAME_NAMES, Points  # noqa: E402
 from core.planning import ACPCFrame, volume_centroid  # noqa: E402
 from core.simulated_user import simulate_user  # noqa: E402
 
 # AC, PC and a midline point of the MNI template, roughly where they are (mm)
 AC, PC, MID = np.array([0.0, 2.0, -4.0]), np.array([0.0, -24.0, -2.0]), np.array([0.0, -10.0, 40.0])
-
-
-@pytest.fixture
-def window(qtbot, tmp_path, monkeypatch):
-    if demo.demo_image() is None or demo.demo_model() is None:
-        pytest.skip("demo image or model missing from resources/")
-    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
-    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
-    win = MainWindow(with_3d=False, recovery=False)
-    qtbot.addWidget(win)
-    win.resize(1300, 900)
-    win.load_demo()
-    win.show()
-    qtbot.waitExposed(win)
-    yield win
-    win.runner.cancel()
-    win.runner.wait()
-    win.close()
 
 
 def _set_at(window, name, xyz):

@@ -13,7 +13,6 @@ pytestmark = pytest.mark.gui
 from PySide6.QtCore import QPoint, Qt  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
-from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
 from core.model_library import list_library  # noqa: E402
 
@@ -23,24 +22,6 @@ def _library(name: str):
         if entry.structure is not None and entry.path.stem == name:
             return entry.path
     pytest.skip(f"library model {name} missing from resources/models/")
-
-
-@pytest.fixture
-def window(qtbot, tmp_path, monkeypatch):
-    if demo.demo_image() is None or demo.demo_model() is None:
-        pytest.skip("demo image or model missing from resources/")
-    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
-    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
-    win = MainWindow(with_3d=False, recovery=False)
-    qtbot.addWidget(win)
-    win.resize(1300, 900)
-    win.load_demo()
-    win.show()
-    qtbot.waitExposed(win)
-    yield win
-    win.refit.cancel()
-    win.refit.wait()
-    win.close()
 
 
 def _draw_around(window, centre, radius, n, frame="axial"):
