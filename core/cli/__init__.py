@@ -65,9 +65,16 @@ def one_line_warnings(command: str) -> Iterator[None]:
 
 def run_command(args: argparse.Namespace) -> int:
     """Run a parsed subcommand, turning user-fixable errors into one-line messages."""
+    from core.parallel import Terminated, termination_signals
+
     try:
-        with one_line_warnings(args._command):
+        # SIGTERM raises Terminated; SIGINT interrupts even when the shell started us with it
+        # ignored (a background job): pool workers are stopped on the way out
+        with termination_signals(), one_line_warnings(args._command):
             return int(args._run(args) or 0)
+    except Terminated as exc:
+        print(f"\nssm-studio {args._command}: terminated", file=sys.stderr)
+        return exc.exit_code
     except Cancelled:
         print(f"ssm-studio {args._command}: cancelled", file=sys.stderr)
         return 130
