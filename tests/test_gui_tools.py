@@ -382,3 +382,22 @@ def test_every_shortcut_is_unique_and_listed_in_help_and_readme(window):
     for key in ("B / X", "G", "Z", "F", "Ctrl+L", "F12", "M / A", "Ctrl+wheel"):
         assert key in listed
         assert f"| {key} |" in readme, key
+
+
+def test_label_fill_follows_the_surface_on_every_repaint(window, qtbot):
+    """The slice images of the fill are cached per view: moving the surface (a refit) must
+    repaint the new fill, not the cached old one."""
+    view = window.workspace.views["axial"]
+    s = window.state.active
+    window.label_panel.outline.setChecked(False)
+    inside = _inside_point(window, view)
+    x, y = view.world_to_screen(inside)
+    tinted = view.grab().toImage().pixelColor(int(x), int(y))
+    pose = s.pose.copy()
+    pose[:3, 3] += (40.0, 0.0, 0.0)           # the whole structure 40 mm to the side
+    s.set_surface(s.coef, pose, s.surface_vertices() + (40.0, 0.0, 0.0))
+    moved = view.grab().toImage().pixelColor(int(x), int(y))
+    assert tinted.red() - tinted.blue() > moved.red() - moved.blue() + 20   # no fill left here
+    x2, y2 = view.world_to_screen(inside + (40.0, 0.0, 0.0))
+    again = view.grab().toImage().pixelColor(int(x2), int(y2))
+    assert again.red() - again.blue() > moved.red() - moved.blue() + 20    # it moved along

@@ -35,6 +35,7 @@ class _Cached:
     sampler: SliceSampler
     volume_mm3: float
     voxels: int
+    serial: int = 0           # distinguishes recomputed maps (cache keys of slice images)
 
 
 class LabelOverlay:
@@ -61,6 +62,10 @@ class LabelOverlay:
         self.opacity = float(opacity)
         self.events = EmitterGroup(display=(), volume=())
         self._cache: dict[int, _Cached] = {}
+        # (structure id, view) -> (key, QImage): a view repaints on every click and refit,
+        # mostly with the same slice of the same label maps (only the refitted one changed)
+        self._images: dict[tuple[int, int], tuple[tuple, QImage | None]] = {}
+        self._serial = 0
         state.events.image.connect(self._cache.clear)
 
     # -- display options -------------------------------------------------------------------
@@ -97,8 +102,9 @@ class LabelOverlay:
         labels = structure_label_map(vertices, faces, volume.shape, volume.affine, edits)
         sampler = SliceSampler(replace(volume, data=labels))
         voxels = int(np.count_nonzero(labels))
+        self._serial += 1
         cached = _Cached(vertices, edits, id(volume), labels, sampler,
-                         mask_volume_mm3(labels, volume.affine), voxels)
+                         mask_volume_mm3(labels, volume.affine), voxels, self._serial)
         self._cache[structure.id] = cached
         self.events.volume()
         return cached
@@ -127,13 +133,28 @@ class LabelOverlay:
         for s in sorted(self.state.structures, key=lambda s: s is active):
             if not s.visible or (s.model is None and not s.edits):
                 continue
-            mask = self.slice_mask(s, view)
-            if mask is None or not mask.any():
-                continue
+            image = self._slice_image(s, view, active)
+            if image is not None:
+                painter.drawImage(QRectF(x0, y0, x1 - x0, y1 - y0), image)
+
+    def _slice_image(self, s: Structure, view, active: Structure) -> QImage | None:
+        """The structure's label on the view's slice as an RGBA image (None if empty)."""
+        cached = self.label_map(s)
+        alpha = int(round(255 * self.opacity * (1.0 if s is active else 0.6)))
+        key = (None if cached is None else cached.serial, view.frame_name,
+               round(view._slice.depth, 9), tuple(s.color), alpha)
+        hit = self._images.get((s.id, id(view)))
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        mask = self.slice_mask(s, view)
+        image = None
+        if mask is not None and mask.any():
             rgba = np.zeros(mask.shape + (4,), dtype=np.uint8)
-            rgba[mask] = (*s.color, int(round(255 * self.opacity * (1.0 if s is active
-                                                                     else 0.6))))
-            rgba = np.ascontiguousarray(rgba)
+            rgba[mask] = (*s.color, alpha)
             h, w = mask.shape
-            image = QImage(rgba.data, w, h, 4 * w, QImage.Format.Format_RGBA8888)
-            painter.drawImage(QRectF(x0, y0, x1 - x0, y1 - y0), image)
+            # premultiplied ARGB is what the raster painter blends without converting first
+            image = QImage(np.ascontiguousarray(rgba).data, w, h, 4 * w,
+                           QImage.Format.Format_RGBA8888).convertToFormat(
+                QImage.Format.Format_ARGB32_Premultiplied)
+        self._images[(s.id, id(view))] = (key, image)
+        return image
