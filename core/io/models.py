@@ -70,12 +70,34 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
         Not found, not an npz, missing header or arrays, unknown format or version,
         inconsistent shapes, non-finite values.
     """
-    import zipfile
-
     path = require_file(path)
     fmt = lookup(path, "model")
     if fmt is not None and fmt.read is not None and fmt.read is not load_model:
         return fmt.read(path)  # another format (statismo .h5, core.io.statismo)
+    arrays = _read_arrays(path)
+    header = _read_header(path, arrays)
+    _check_arrays(path, header, arrays)
+    try:
+        model = ShapeModel(
+            mean=arrays["mean"], factors=arrays["factors"], coef_var=arrays["coef_var"],
+            faces=arrays["faces"], world_transform=arrays["world_transform"],
+            method=str(header.get("method", "unknown")), params=dict(header.get("params", {})),
+            source_meshes=[str(m) for m in header.get("source_meshes", [])],
+            info=dict(header.get("info", {})),
+        )
+    except (ValueError, TypeError) as exc:
+        raise DataFileError(path, f"inconsistent model: {exc}") from None
+    for key, expected in (("n_vertices", model.n_vertices), ("n_factors", model.n_factors)):
+        if key in header and header[key] != expected:
+            raise DataFileError(path, f"inconsistent model: header says {key}={header[key]} but "
+                                      f"the arrays hold {expected}")
+    return model
+
+
+def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the model's ``.npz`` (members checked against the file size first)."""
+    import zipfile
+
     with open(path, "rb") as fh:
         if fh.read(4) != b"PK\x03\x04":
             raise DataFileError(path, "not a shape model file (not an .npz archive)")
@@ -92,6 +114,11 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
         raise DataFileError(path, f"not a shape model file ({why(exc, path)})") from None
     except MemoryError:
         raise DataFileError(path, "not enough memory to read this model") from None
+    return arrays
+
+
+def _read_header(path: Path, arrays: dict[str, np.ndarray]) -> dict:
+    """The model's JSON header, checked for format and version."""
     if "header" not in arrays:
         raise DataFileError(path, "not a shape model file (no header)")
     if arrays["header"].dtype.kind not in "US" or arrays["header"].ndim != 0:
@@ -112,6 +139,12 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
     if version != MODEL_FORMAT_VERSION:
         raise DataFileError(path, f"model format version {version} is not supported "
                                   f"(this SSM Studio reads version {MODEL_FORMAT_VERSION})")
+    return header
+
+
+def _check_arrays(path: Path, header: dict, arrays: dict[str, np.ndarray]) -> None:
+    """Arrays present, of real numbers, and a proper affine world transform; header fields
+    of the right JSON types."""
     missing = [k for k in ("mean", "factors", "coef_var", "faces", "world_transform")
                if k not in arrays]
     if missing:
@@ -137,21 +170,6 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
         if not np.allclose(transform[3], [0, 0, 0, 1]):
             raise DataFileError(path, "the model's world_transform is not affine (last row "
                                       "must be 0 0 0 1)")
-    try:
-        model = ShapeModel(
-            mean=arrays["mean"], factors=arrays["factors"], coef_var=arrays["coef_var"],
-            faces=arrays["faces"], world_transform=arrays["world_transform"],
-            method=str(header.get("method", "unknown")), params=dict(header.get("params", {})),
-            source_meshes=[str(m) for m in header.get("source_meshes", [])],
-            info=dict(header.get("info", {})),
-        )
-    except (ValueError, TypeError) as exc:
-        raise DataFileError(path, f"inconsistent model: {exc}") from None
-    for key, expected in (("n_vertices", model.n_vertices), ("n_factors", model.n_factors)):
-        if key in header and header[key] != expected:
-            raise DataFileError(path, f"inconsistent model: header says {key}={header[key]} but "
-                                      f"the arrays hold {expected}")
-    return model
 
 
 def _dtype_name(dtype: np.dtype) -> str:

@@ -167,86 +167,24 @@ def read_statismo(path: str | os.PathLike, space: str | None = None) -> ShapeMod
 
 
 def _read_open(path: Path, h5, space: str | None) -> ShapeModel:
+    """The model in the open statismo file ``h5`` (steps: representer, arrays, info, frame)."""
     if "model" not in h5 or "representer" not in h5:
         if "catalog" in h5:
             raise DataFileError(path, "a statismo model catalog (several models in one file) "
                                       "is not supported: extract one model first")
         raise DataFileError(path, "not a statismo model (no 'model' and 'representer' groups)")
-    rep = h5["representer"]
-    name = _text(rep.attrs.get("name", ""))
-    kind = _text(rep.attrs.get("datasetType", ""))
-    if name in _LEGACY_REPRESENTERS:
-        points, faces = _legacy_reference(path, h5)
-    else:
-        if kind != "POLYGON_MESH" and name not in MESH_REPRESENTERS:
-            what = {"IMAGE": "an image (deformation) model", "POINT_SET": "a point-set model "
-                    "without cells", "VOLUME_MESH": "a volume (tetrahedral) mesh model",
-                    "LINE_MESH": "a line mesh model"}.get(kind, f"dataset type '{kind or '?'}'")
-            raise DataFileError(path, f"{what} (representer '{name or '?'}'): only triangle "
-                                      "surface models can be used")
-        if kind and kind != "POLYGON_MESH":
-            raise DataFileError(path, f"representer '{name}' holds dataset type '{kind}', not "
-                                      "a triangle surface (POLYGON_MESH)")
-        pts = _dataset(path, h5, "representer/points")
-        cells = _dataset(path, h5, "representer/cells", required=False)
-        if cells is None:
-            raise DataFileError(path, "a point-set model without cells (representer/cells): "
-                                      "only triangle surface models can be used")
-        if pts.ndim != 2 or pts.shape[0] != 3:
-            raise DataFileError(path, f"representer/points must be (3, N), got {pts.shape}")
-        if cells.ndim != 2 or cells.shape[0] != 3:
-            extra = " (tetrahedra: a volume mesh)" if cells.ndim == 2 and cells.shape[0] == 4 else ""
-            raise DataFileError(path, f"representer/cells must be (3, F) triangles, got "
-                                      f"{cells.shape}{extra}")
-        points, faces = pts.T, cells.T
+    name = _text(h5["representer"].attrs.get("name", ""))
+    points, faces = _representer_mesh(path, h5, name)
     n = len(points)
     major, minor = _version(path, h5, name)
     if (major, minor) not in ((0, 8), (0, 9), (0, 10)) and major != 1:
         raise DataFileError(path, f"statismo format version {major}.{minor} is not supported")
-    mean = _dataset(path, h5, "model/mean").reshape(-1)
-    basis = _dataset(path, h5, "model/pcaBasis")
-    variance = _dataset(path, h5, "model/pcaVariance").reshape(-1)
-    noise = _dataset(path, h5, "model/noiseVariance", required=False)
-    if mean.shape != (3 * n,):
-        raise DataFileError(path, f"model/mean has {mean.size} values, the representer has {n} "
-                                  f"points (3N = {3 * n} expected)")
-    if basis.ndim == 1 and variance.size == 1:
-        basis = basis.reshape(-1, 1)
-    if basis.ndim != 2 or basis.shape[0] != 3 * n:
-        raise DataFileError(path, f"model/pcaBasis must be (3N, M) = ({3 * n}, M), got "
-                                  f"{basis.shape}")
-    if variance.shape != (basis.shape[1],):
-        raise DataFileError(path, f"model/pcaVariance has {variance.size} values for "
-                                  f"{basis.shape[1]} basis columns")
-    for label, values in (("model/mean", mean), ("model/pcaBasis", basis),
-                          ("model/pcaVariance", variance), ("representer/points", points)):
-        if not np.all(np.isfinite(values)):
-            raise DataFileError(path, f"{label} contains NaN or infinite values")
-    if np.any(variance < 0):
-        raise DataFileError(path, "model/pcaVariance has negative variances")
+    mean, basis, variance = _pca_arrays(path, h5, points, (major, minor))
     if faces.size == 0 or faces.min() < 0 or faces.max() >= n or \
             np.any(faces != np.rint(faces)):
         raise DataFileError(path, f"representer/cells must index the {n} points (0..{n - 1})")
-    if (major, minor) == (0, 8):  # old files store U sqrt(lambda)
-        scale = np.sqrt(variance)
-        basis = basis / np.where(scale > 1e-12, scale, 1.0)
-    gram = basis.T @ basis
-    err = float(np.abs(gram - np.eye(len(gram))).max()) if len(gram) else 0.0
-    if err > 1e-2:
-        raise DataFileError(path, f"model/pcaBasis columns are not orthonormal (max |U'U - I| "
-                                  f"= {err:.3g}); not a statismo {major}.{minor} model")
     keep = variance > max(float(variance.max(initial=0.0)) * 1e-12, 0.0)
-    info: dict = {"source_format": f"statismo {major}.{minor}", "statismo_representer": name}
-    if noise is not None and noise.size:
-        nv = float(noise.reshape(-1)[0])
-        if not np.isfinite(nv) or nv < 0:
-            raise DataFileError(path, f"model/noiseVariance is {nv}, must be >= 0")
-        info["noise_variance"] = nv
-    if not keep.all():
-        info["dropped_zero_variance_components"] = int((~keep).sum())
-    modelinfo = _modelinfo(h5)
-    if modelinfo:
-        info["statismo_modelinfo"] = modelinfo
+    info = _model_info(path, h5, name, (major, minor), keep)
     stored = _ssmstudio_group(path, h5)
     file_space = (space or (stored or {}).get("space") or "LPS").upper()
     if file_space not in SPACES:
@@ -266,6 +204,89 @@ def _read_open(path: Path, h5, space: str | None) -> ShapeModel:
                           method="statismo", params={}, source_meshes=[], info=info)
     except ValueError as exc:
         raise DataFileError(path, f"inconsistent model: {exc}") from None
+
+
+def _representer_mesh(path: Path, h5, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) reference points and (F, 3) triangles of the representer (only triangle
+    surfaces can be used: images, point sets, volume and line meshes are refused)."""
+    kind = _text(h5["representer"].attrs.get("datasetType", ""))
+    if name in _LEGACY_REPRESENTERS:
+        return _legacy_reference(path, h5)
+    if kind != "POLYGON_MESH" and name not in MESH_REPRESENTERS:
+        what = {"IMAGE": "an image (deformation) model", "POINT_SET": "a point-set model "
+                "without cells", "VOLUME_MESH": "a volume (tetrahedral) mesh model",
+                "LINE_MESH": "a line mesh model"}.get(kind, f"dataset type '{kind or '?'}'")
+        raise DataFileError(path, f"{what} (representer '{name or '?'}'): only triangle "
+                                  "surface models can be used")
+    if kind and kind != "POLYGON_MESH":
+        raise DataFileError(path, f"representer '{name}' holds dataset type '{kind}', not "
+                                  "a triangle surface (POLYGON_MESH)")
+    pts = _dataset(path, h5, "representer/points")
+    cells = _dataset(path, h5, "representer/cells", required=False)
+    if cells is None:
+        raise DataFileError(path, "a point-set model without cells (representer/cells): "
+                                  "only triangle surface models can be used")
+    if pts.ndim != 2 or pts.shape[0] != 3:
+        raise DataFileError(path, f"representer/points must be (3, N), got {pts.shape}")
+    if cells.ndim != 2 or cells.shape[0] != 3:
+        extra = " (tetrahedra: a volume mesh)" if cells.ndim == 2 and cells.shape[0] == 4 else ""
+        raise DataFileError(path, f"representer/cells must be (3, F) triangles, got "
+                                  f"{cells.shape}{extra}")
+    return pts.T, cells.T
+
+
+def _pca_arrays(path: Path, h5, points: np.ndarray, version: tuple[int, int]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The checked (3N,) mean, (3N, M) orthonormal basis and (M,) variances."""
+    n = len(points)
+    mean = _dataset(path, h5, "model/mean").reshape(-1)
+    basis = _dataset(path, h5, "model/pcaBasis")
+    variance = _dataset(path, h5, "model/pcaVariance").reshape(-1)
+    if mean.shape != (3 * n,):
+        raise DataFileError(path, f"model/mean has {mean.size} values, the representer has {n} "
+                                  f"points (3N = {3 * n} expected)")
+    if basis.ndim == 1 and variance.size == 1:
+        basis = basis.reshape(-1, 1)
+    if basis.ndim != 2 or basis.shape[0] != 3 * n:
+        raise DataFileError(path, f"model/pcaBasis must be (3N, M) = ({3 * n}, M), got "
+                                  f"{basis.shape}")
+    if variance.shape != (basis.shape[1],):
+        raise DataFileError(path, f"model/pcaVariance has {variance.size} values for "
+                                  f"{basis.shape[1]} basis columns")
+    for label, values in (("model/mean", mean), ("model/pcaBasis", basis),
+                          ("model/pcaVariance", variance), ("representer/points", points)):
+        if not np.all(np.isfinite(values)):
+            raise DataFileError(path, f"{label} contains NaN or infinite values")
+    if np.any(variance < 0):
+        raise DataFileError(path, "model/pcaVariance has negative variances")
+    if version == (0, 8):  # old files store U sqrt(lambda)
+        scale = np.sqrt(variance)
+        basis = basis / np.where(scale > 1e-12, scale, 1.0)
+    gram = basis.T @ basis
+    err = float(np.abs(gram - np.eye(len(gram))).max()) if len(gram) else 0.0
+    if err > 1e-2:
+        raise DataFileError(path, f"model/pcaBasis columns are not orthonormal (max |U'U - I| "
+                                  f"= {err:.3g}); not a statismo {version[0]}.{version[1]} model")
+    return mean, basis, variance
+
+
+def _model_info(path: Path, h5, name: str, version: tuple[int, int], keep: np.ndarray) -> dict:
+    """The model's ``info``: source format, PPCA noise variance, dropped components and the
+    statismo modelinfo group."""
+    info: dict = {"source_format": f"statismo {version[0]}.{version[1]}",
+                  "statismo_representer": name}
+    noise = _dataset(path, h5, "model/noiseVariance", required=False)
+    if noise is not None and noise.size:
+        nv = float(noise.reshape(-1)[0])
+        if not np.isfinite(nv) or nv < 0:
+            raise DataFileError(path, f"model/noiseVariance is {nv}, must be >= 0")
+        info["noise_variance"] = nv
+    if not keep.all():
+        info["dropped_zero_variance_components"] = int((~keep).sum())
+    modelinfo = _modelinfo(h5)
+    if modelinfo:
+        info["statismo_modelinfo"] = modelinfo
+    return info
 
 
 def _ssmstudio_group(path: Path, h5) -> dict | None:
