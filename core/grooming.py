@@ -250,7 +250,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
     rv = np.asarray(out.points, dtype=np.float64)
     rf = np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
     rv, rf = compact(rv, rf)
-    projector = SurfaceProjector(dense_v, dense_f, exact=False)
+    projector = SurfaceProjector(dense_v, dense_f, exact=False, candidates="centroids")
     rv = meshops.fair_mesh(rv, rf, projector, iterations=relax_iterations, step=0.5)
     return rv, rf
 

@@ -94,6 +94,14 @@ def test_fast_and_exact_projection_agree_with_brute_force_near_the_surface():
     tri_idx, bary, points = geometry.surface_coordinates(queries, v, f)
     assert np.allclose(points, closest, atol=1e-9)
     assert np.allclose(bary.sum(axis=1), 1.0) and bary.min() >= 0
+    # the fairing loop's projector (first pass over the nearest centroids only): points on
+    # the surface, within a small fraction of an edge of the exact distance
+    first, d_first = geometry.SurfaceProjector(v, f, exact=False, candidates="centroids")(queries)
+    edge = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1).mean()
+    assert np.all(d_first >= d_brute - 1e-9) and np.abs(d_first - d_brute).max() < 0.05 * edge
+    assert np.allclose(np.linalg.norm(first - queries, axis=1), d_first)
+    with pytest.raises(ValueError, match="candidates"):
+        geometry.SurfaceProjector(v, f, exact=False, candidates="faces")
 
 
 @pytest.mark.parametrize("scaling,reflection", [(True, False), (False, False), (False, True)])

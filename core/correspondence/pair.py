@@ -161,7 +161,7 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     labelled = label_points(moved, xn, tgt_f, nonrigid.sigma2, p["w"])
     t3 = time.perf_counter()
     times["assignment"] = t3 - t2
-    projector = SurfaceProjector(xn, tgt_f, exact=False)
+    projector = SurfaceProjector(xn, tgt_f, exact=False, candidates="centroids")
     faired = meshops.fair_mesh(labelled, ref_f, projector, rest_vertices=y_posed,
                                iterations=p["fairing_iterations"], step=p["fairing_step"])
     faired, _ = SurfaceProjector(xn, tgt_f)(faired)  # final exact projection
