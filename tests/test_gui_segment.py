@@ -453,3 +453,26 @@ def test_open_stroke_normals_point_out_of_the_model(window):
     _, near = cKDTree(vertices).query(stroke)
     assert np.mean(np.einsum("ij,ij->i", got, normals[near]) > 0) > 0.8
     window.wait_for_refit()
+
+
+def test_factor_sliders_show_each_factors_share_of_the_training_variance(window, tmp_path):
+    """Issue 17, defect 4 (Segment tab): the sliders carry the model's explained shares; the
+    truth is the SVD of the centred training shapes (eigenvalue ratios)."""
+    from core.io import save_model
+    from core.models import PCA
+    from core.simulated_user import synthetic_shapes
+
+    shapes, faces = synthetic_shapes(8, subdivisions=2, seed=4)
+    shapes = shapes + window.state.crosshair
+    model = PCA(n_factors=3, connectivity=faces).fit(shapes).to_shape_model()
+    path = tmp_path / "pca3.npz"
+    save_model(path, model)
+    window.load_model(path)
+    panel = window.factors_panel
+    centred = (shapes - shapes.mean(axis=0)).reshape(len(shapes), -1)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    truth = sv ** 2 / np.sum(sv ** 2)
+    shown = [float(label.text().rstrip("%")) / 100 for label in panel.share_labels]
+    assert len(shown) == 3
+    np.testing.assert_allclose(shown, truth[:3], atol=0.0006)   # display rounds to 0.1 %
+    assert f"{100 * truth[:3].sum():.1f}%" in panel.summary.text()

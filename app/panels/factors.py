@@ -34,6 +34,7 @@ class FactorsPanel(QWidget):
         self.state = state
         self.sliders: list[QSlider] = []
         self.value_labels: list[QLabel] = []
+        self.share_labels: list[QLabel] = []     # each factor's explained share (issue 17, 4)
         layout = QVBoxLayout(self)
         layout.setContentsMargins(4, 4, 4, 4)
         self.summary = QLabel("No model loaded")
@@ -60,18 +61,30 @@ class FactorsPanel(QWidget):
             item = self.grid.takeAt(0)
             if item.widget() is not None:
                 item.widget().deleteLater()
-        self.sliders, self.value_labels = [], []
+        self.sliders, self.value_labels, self.share_labels = [], [], []
         model = self.state.model
         if model is None:
             self.summary.setText("No model loaded")
             self.reset_button.setEnabled(False)
             return
         self.reset_button.setEnabled(True)
+        share = model.explained_variance_share()          # the builder's read-out (core)
+        of_what = ("of the training shapes' variance"
+                   if "explained_variance_ratio" in model.info else "of the model's variance")
         self.summary.setText(f"{model.method.upper()} model: {model.n_factors} factors, "
-                             f"{model.n_vertices} vertices. Sliders span \u00b13 SD.")
+                             f"{model.n_vertices} vertices; together they explain "
+                             f"{100 * float(share.sum()):.1f}% {of_what}. Sliders span "
+                             "\u00b13 SD; the percentage is each factor's share.")
         for m in range(model.n_factors):
             name = QLabel(f"{m + 1}")
-            name.setToolTip(f"Factor {m + 1}, SD {np.sqrt(model.coef_var[m]):.3g}")
+            tip = (f"Factor {m + 1}: explains {100 * share[m]:.1f}% {of_what}; "
+                   f"SD {np.sqrt(model.coef_var[m]):.3g}")
+            name.setToolTip(tip)
+            explained = QLabel(f"{100 * share[m]:.1f}%")
+            explained.setObjectName(f"factor-share-{m}")
+            explained.setToolTip(tip)
+            explained.setMinimumWidth(40)
+            explained.setAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
             slider = QSlider(Qt.Orientation.Horizontal)
             slider.setRange(int(-MAX_SD * STEPS_PER_SD), int(MAX_SD * STEPS_PER_SD))
             slider.setPageStep(STEPS_PER_SD // 2)
@@ -85,8 +98,10 @@ class FactorsPanel(QWidget):
             self.grid.addWidget(name, m, 0)
             self.grid.addWidget(slider, m, 1)
             self.grid.addWidget(value, m, 2)
+            self.grid.addWidget(explained, m, 3)
             self.sliders.append(slider)
             self.value_labels.append(value)
+            self.share_labels.append(explained)
         self.grid.setRowStretch(model.n_factors, 1)
         self._sync()
 
