@@ -6,6 +6,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import QMainWindow, QMessageBox, QToolBar
 
+from app import formats
 from app.panels.tools import WINDOW_PRESETS
 from core import __version__
 
@@ -171,3 +172,41 @@ def create_toolbar(w) -> QToolBar:
         bar.addSeparator() if act is None else bar.addAction(act)
     w.addToolBar(Qt.ToolBarArea.TopToolBarArea, bar)
     return bar
+
+
+def update_actions(w) -> None:
+    """Enable the actions of main window ``w`` that have something to act on."""
+    state = w.state
+    has_model = state.model is not None
+    w.act_undo.setEnabled(state.can_undo())
+    w.act_redo.setEnabled(state.can_redo())
+    for act in (w.act_place, w.act_auto_place, w.act_reset_pose, w.act_export_labels,
+                w.act_export_mesh):
+        act.setEnabled(has_model)
+    has_points = len(state.points) > 0
+    for act in (w.act_delete, w.act_clear_slice, w.act_clear_points, w.act_export_points):
+        act.setEnabled(has_points)
+
+
+def update_title(w) -> None:
+    """Window title: session, image and model names, '*' when there is unsaved work."""
+    state = w.state
+    parts = [formats.display_name(state.image_path)] if state.image_path else []
+    parts += [state.model_path.name] if state.model_path is not None else []
+    if w.session_path is not None:
+        parts.insert(0, w.session_path.name)
+    title = "SSM Studio" + (" — " + " + ".join(parts) if parts else "")
+    w.setWindowTitle(title + (" *" if w.unsaved else ""))
+
+
+def show_segment_controls(w, visible: bool) -> None:
+    """The side panel, the toolbar and the drawing tools belong to the Segment tab only."""
+    w.toolbar.setVisible(visible)  # the Build tab has its own buttons (issue 17, 8)
+    shown = visible and w.act_side_panel.isChecked()     # F9 hides the side docks
+    w.side_dock.setVisible(shown)
+    w.plan_dock.setVisible(shown)
+    w.cursor_label.setVisible(visible)
+    w.fit_label.setVisible(visible)
+    for act in (*w.tool_actions.values(), w.act_undo, w.act_redo, w.act_place,
+                w.act_reset_views):
+        act.setVisible(visible)

@@ -115,6 +115,33 @@ class SessionActions:
         w.show_message(message[0])
         return True
 
+    def apply_session(self, session) -> None:
+        """Restore image, model, fit, points, window, crosshair and plan from a Session
+        (without a refit: the stored fit is shown)."""
+        w = self.w
+        w.refit.cancel()
+        with w.refit.suspended():
+            fit = w.sessions.apply(session)
+            was_blocked = w.fit_panel.blockSignals(True)
+            try:
+                w.fit_panel.set_settings(fit.get("method"), fit.get("pose"),
+                                         fit.get("prior_weight"), fit.get("pose_spread"))
+            finally:
+                w.fit_panel.blockSignals(was_blocked)
+        w.planning.apply_document(session.info.get("planning"))
+        w._update_actions()
+
+    def confirm_close(self) -> bool:
+        """Unsaved work: ask to save it before closing; False if the user cancels (or the save
+        fails)."""
+        w = self.w
+        if not w.unsaved or w._quiet_errors() or w.state.image_path is None:
+            return True
+        buttons = QMessageBox.StandardButton
+        answer = QMessageBox.question(w, "Unsaved changes", "Save the session before closing?",
+                                      buttons.Save | buttons.Discard | buttons.Cancel, buttons.Save)
+        return answer != buttons.Cancel and (answer != buttons.Save or w.save_session())
+
     def write_recovery(self) -> None:
         w = self.w
         if not w.recovery_enabled:

@@ -12,15 +12,39 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QObject
+from PySide6.QtCore import QObject, Qt
 from PySide6.QtGui import QKeySequence
+from PySide6.QtWidgets import QDockWidget, QFileDialog, QScrollArea
 
+from app.panels.planning import PlanningPanel
 from app.planning import PlanningState
 from app.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
 from core.plan_report import export_plan
 from core.planning import anchored_point_weights, format_acpc
 from core.uncertainty import ellipsoid, fit_posterior, suggest_slice
+
+
+def install_planning(window) -> PlanController:
+    """The Planning dock (tabbed with the segmentation dock ``window.side_dock``), its state and
+    controller; sets ``window.planning``, ``planning_panel``, ``plan_dock`` and ``plan``, and
+    keeps the plan with the session (``info.planning``)."""
+    window.planning = PlanningState(window.state)
+    window.planning_panel = PlanningPanel(window.planning)
+    scroll = QScrollArea()
+    scroll.setWidgetResizable(True)
+    scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    scroll.setWidget(window.planning_panel)
+    dock = window.plan_dock = QDockWidget("Planning", window)
+    dock.setObjectName("planning-dock")
+    dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)
+    dock.setWidget(scroll)
+    window.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
+    window.tabifyDockWidget(window.side_dock, dock)
+    window.side_dock.raise_()
+    window.plan = PlanController(window, window.planning, window.planning_panel)
+    window.sessions.info_providers["planning"] = window.planning.to_document
+    return window.plan
 
 
 class PlanController(QObject):
@@ -46,8 +70,16 @@ class PlanController(QObject):
         panel.message.connect(window.show_message)
         panel.uncertainty_toggled.connect(self.set_uncertainty)
         panel.suggest_requested.connect(self.suggest_next_slice)
-        panel.export_requested.connect(window.export_plan_dialog)
+        panel.export_requested.connect(self.export_dialog)
         self._create_menu()
+
+    def export_dialog(self) -> None:
+        """Ask for a folder and write the plan's files into it."""
+        w = self.window
+        folder = QFileDialog.getExistingDirectory(w, "Export the plan into folder", w._start_dir())
+        if folder:
+            w._guarded(lambda: w.show_message(
+                f"Exported the plan: {len(self.export(folder))} file(s) in {folder}"))
 
     def _create_menu(self) -> None:
         """The Plan menu: landmarks, target and entry at the crosshair, export (with keys)."""
@@ -65,7 +97,7 @@ class PlanController(QObject):
                    ("Redo plan edit", self.planning.redo, "Alt+Shift+Z"),
                    ("Suggest next slice", self.suggest_next_slice, "S"),
                    None,
-                   ("E&xport plan…", w.export_plan_dialog, None)]
+                   ("E&xport plan…", self.export_dialog, None)]
         self.actions = {}
         for entry in entries:
             if entry is None:

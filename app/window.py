@@ -23,44 +23,36 @@ import time
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer, Signal
-from PySide6.QtWidgets import (QApplication, QDockWidget, QFileDialog, QMainWindow, QMessageBox,
-                               QScrollArea)
+from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
-from app import demo, formats
-from app.actions import SHORTCUTS, create_actions, create_menus, create_toolbar
+from app import demo
+from app.actions import (SHORTCUTS, create_actions, create_menus, create_toolbar,
+                         show_segment_controls, update_actions, update_title)
 from app.controllers import ExportController, SessionController
 from app.dialogs import ExportActions, SessionActions
+from app.edit_commands import EditCommands
+from app.file_actions import OPEN_DIALOGS, FileActions
 from app.placement import AutoPlacement
 from app.panels.factors import FactorsPanel
 from app.panels.fit import FitPanel
-from app.panels.planning import PlanningPanel
 from app.panels.side import SidePanel
 from app.panels.status import CursorReadout, FitReadout
 from app.panels.structures import StructuresPanel
 from app.panels.tools import WINDOW_PRESETS, ToolsPanel
-from app.plan_controller import PlanController
-from app.planning import PlanningState
+from app.plan_controller import install_planning
 from app.refit import RefitController
 from app.state import WorkspaceState
 from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
 from app.workers import error_message
-from core.io.points import is_markups_file
 from core.model_library import list_library
 
-__all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "run_gui"]
+__all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "OPEN_DIALOGS", "run_gui"]
 
 TOOL_HINTS = {"navigate": "Navigate: click to move the crosshair",
               "draw": "Draw: click or drag on the structure's outline to add contour points; "
                       "Ctrl+click deletes a point",
               "window": "Window/level: drag left-right for width, up-down for level"}
-
-OPEN_DIALOGS = {"image": ("Open image", formats.IMAGE_FILTER),
-                "model": ("Load shape model", formats.MODEL_FILTER),
-                "session": ("Open session", "Sessions (*.json);;All files (*)"),
-                "structure": ("Add a structure's model", "Shape models (*.npz *.h5);;All files (*)"),
-                "points": ("Import points", "Points (*.csv *.tsv *.fcsv *.mrk.json *.json);;"
-                                             "All files (*)")}
 
 
 class MainWindow(QMainWindow):
@@ -81,6 +73,8 @@ class MainWindow(QMainWindow):
         self.auto_place.finished.connect(self._on_auto_placed)
         self.auto_place.failed.connect(lambda m: self.show_message(m, 10000))
         self.session_actions = SessionActions(self)
+        self.files = FileActions(self)
+        self.edit_commands = EditCommands(self)
         self.session_path: Path | None = None
         self.active_view = "axial"
         self._closing = False
@@ -109,7 +103,7 @@ class MainWindow(QMainWindow):
         self.resizeDocks([self.side_dock], [340], Qt.Orientation.Horizontal)
         self.act_side_panel.toggled.connect(lambda on: self._show_segment_controls(
             self.tabs.currentWidget() is self.workspace if hasattr(self, "tabs") else True))
-        self._create_planning()
+        install_planning(self)      # planning, planning_panel, plan_dock, plan
 
         self.workspace.volume_view_created.connect(self._wire_volume_view)
         if self.workspace.volume_view is not None:
@@ -155,30 +149,6 @@ class MainWindow(QMainWindow):
 
         install_demo_tour(self)
 
-    def _create_planning(self) -> None:
-        """The Planning dock (tabbed with the segmentation dock) and its controller."""
-        self.planning = PlanningState(self.state)
-        self.planning_panel = PlanningPanel(self.planning)
-        scroll = QScrollArea()
-        scroll.setWidgetResizable(True)
-        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        scroll.setWidget(self.planning_panel)
-        self.plan_dock = QDockWidget("Planning", self)
-        self.plan_dock.setObjectName("planning-dock")
-        self.plan_dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)
-        self.plan_dock.setWidget(scroll)
-        self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.plan_dock)
-        self.tabifyDockWidget(self.side_dock, self.plan_dock)
-        self.side_dock.raise_()
-        self.plan = PlanController(self, self.planning, self.planning_panel)
-        self.sessions.info_providers["planning"] = self.planning.to_document   # info.planning
-
-    def export_plan_dialog(self) -> None:
-        folder = QFileDialog.getExistingDirectory(self, "Export the plan into folder", self._start_dir())
-        if folder:
-            self._guarded(lambda: self.show_message(
-                f"Exported the plan: {len(self.plan.export(folder))} file(s) in {folder}"))
-
     @property
     def runner(self):
         """The active structure's refit runner (tests and scripts wait on it)."""
@@ -206,15 +176,7 @@ class MainWindow(QMainWindow):
         """
         notes: list[str] = []
         if series is None:
-            if ask is None:
-                ask = not os.environ.get("SSM_STUDIO_NO_DIALOGS")
-            if ask:
-                from app.series_dialog import ask_series
-
-                chooser = lambda found: ask_series(self, found)  # noqa: E731
-            else:
-                chooser = None
-            path = formats.resolve_dicom_choice(path, chooser, notes.append)
+            path = self.files.resolve_image(path, ask, notes)
             if path is None:
                 return  # the user cancelled the series choice
         message = self.sessions.open_image(path, series=series)
@@ -248,52 +210,23 @@ class MainWindow(QMainWindow):
 
     def open_path(self, path: str | os.PathLike) -> None:
         """Open any supported file by its type (drag and drop, recent files)."""
-        name = str(path).lower()
-        try:
-            if formats.is_image_path(path):
-                self.load_image(path)
-            elif formats.is_model_path(path):
-                self.load_model(path)
-            elif name.endswith((".mrk.json", ".csv", ".tsv", ".fcsv")) or \
-                    (name.endswith(".json") and is_markups_file(path)):
-                self.import_points(path)
-            elif name.endswith(".json"):
-                self.open_session(path)
-            else:
-                raise ValueError(f"{path}: unsupported file type (expected an image: .nii/.nii.gz,"
-                                 " .nrrd, .mha or a DICOM folder/file; a .npz or .h5 model; a "
-                                 ".json session; or .csv/.mrk.json points)")
-        except (ValueError, OSError) as exc:
-            self.show_error(exc)
+        self.files.open_path(path)
 
     def _start_dir(self) -> str:
-        for p in (self.session_path, self.state.image_path):
-            if p is not None:
-                return str(Path(p).parent)
-        return str(Path.cwd())
+        return self.files.start_dir()
 
     def open_dialog(self, what: str) -> None:
-        title, filt = OPEN_DIALOGS[what]
-        path, _ = QFileDialog.getOpenFileName(self, title, self._start_dir(), filt)
-        if path and what == "structure":
-            self.add_structure(path)
-        elif path:
-            self.open_path(path)
+        self.files.open_dialog(what)
 
     def open_dicom_dialog(self) -> None:
-        folder = QFileDialog.getExistingDirectory(self, "Open DICOM folder", self._start_dir())
-        if folder:
-            self.open_path(folder)
+        self.files.open_dicom_dialog()
 
     def dragEnterEvent(self, event) -> None:  # noqa: N802
         if event.mimeData().hasUrls():
             event.acceptProposedAction()
 
     def dropEvent(self, event) -> None:  # noqa: N802
-        for url in event.mimeData().urls():
-            if url.isLocalFile():
-                self.open_path(url.toLocalFile())
-        event.acceptProposedAction()
+        self.files.drop(event)
 
     # -- export ---------------------------------------------------------------------------------
     def confirm_orientation(self) -> bool:
@@ -329,17 +262,7 @@ class MainWindow(QMainWindow):
 
     def apply_session(self, session) -> None:
         """Restore image, model, fit, points, window and crosshair from a Session."""
-        self.refit.cancel()
-        with self.refit.suspended():            # the stored fit is shown: no refit
-            fit = self.sessions.apply(session)
-            was_blocked = self.fit_panel.blockSignals(True)
-            try:
-                self.fit_panel.set_settings(fit.get("method"), fit.get("pose"), fit.get("prior_weight"),
-                                            fit.get("pose_spread"))
-            finally:
-                self.fit_panel.blockSignals(was_blocked)
-        self.planning.apply_document(session.info.get("planning"))
-        self._update_actions()
+        self.session_actions.apply_session(session)
 
     def open_session(self, path: str | os.PathLike) -> None:
         self.apply_session(self.sessions.read(path))
@@ -388,30 +311,13 @@ class MainWindow(QMainWindow):
 
     def delete_point(self) -> None:
         """The point under the cursor, else the last point drawn on the active view's slice."""
-        view = self.workspace.views[self.active_view]
-        if self.cursor_label.hover is not None:
-            x, y = view.world_to_screen(self.cursor_label.hover)
-            if view.delete_point_near(x, y):
-                return
-        here = view.points_here()
-        if len(here) and not self.state.active.locked:
-            self.state.remove_point(int(here[-1]))
-        else:
-            self.show_message(f"No point to delete on this {self.active_view} slice")
+        self.edit_commands.delete_point()
 
     def clear_active_slice(self) -> None:
-        view = self.workspace.views[self.active_view]
-        removed = self.state.clear_slice(self.active_view, view.depth)
-        self.show_message(f"Removed {removed} point(s) from the {self.active_view} slice")
+        self.edit_commands.clear_active_slice()
 
     def place_here(self) -> None:
-        if self.state.model is None:
-            self.show_message("Load a model first (File > Load model)")
-            return
-        self.refit.cancel(self.state.active)
-        self.state.place_at(self.state.crosshair)
-        if len(self.state.points):
-            self.schedule_refit()
+        self.edit_commands.place_here()
 
     def place_automatically(self, template=None, **options) -> bool:
         """Register the image to the template in a worker and place every structure."""
@@ -470,36 +376,14 @@ class MainWindow(QMainWindow):
         return bool(os.environ.get("SSM_STUDIO_NO_DIALOGS")) or not self.isVisible()
 
     def _update_actions(self) -> None:
-        has_model = self.state.model is not None
-        self.act_undo.setEnabled(self.state.can_undo())
-        self.act_redo.setEnabled(self.state.can_redo())
-        for act in (self.act_place, self.act_auto_place, self.act_reset_pose, self.act_export_labels,
-                    self.act_export_mesh):
-            act.setEnabled(has_model)
-        has_points = len(self.state.points) > 0
-        for act in (self.act_delete, self.act_clear_slice, self.act_clear_points, self.act_export_points):
-            act.setEnabled(has_points)
+        update_actions(self)
 
     def _update_title(self) -> None:
-        parts = [formats.display_name(self.state.image_path)] if self.state.image_path else []
-        parts += [self.state.model_path.name] if self.state.model_path is not None else []
-        if self.session_path is not None:
-            parts.insert(0, self.session_path.name)
-        title = "SSM Studio" + (" — " + " + ".join(parts) if parts else "")
-        self.setWindowTitle(title + (" *" if self.unsaved else ""))
+        update_title(self)
 
     # -- builder tab ----------------------------------------------------------------------------
     def _show_segment_controls(self, visible: bool) -> None:
-        """The side panel, the toolbar and the drawing tools belong to the Segment tab only."""
-        self.toolbar.setVisible(visible)  # the Build tab has its own buttons (issue 17, 8)
-        shown = visible and self.act_side_panel.isChecked()     # F9 hides the side docks
-        self.side_dock.setVisible(shown)
-        self.plan_dock.setVisible(shown)
-        self.cursor_label.setVisible(visible)
-        self.fit_label.setVisible(visible)
-        for act in (*self.tool_actions.values(), self.act_undo, self.act_redo, self.act_place,
-                    self.act_reset_views):
-            act.setVisible(visible)
+        show_segment_controls(self, visible)
 
     @property
     def builder(self):
@@ -530,15 +414,9 @@ class MainWindow(QMainWindow):
         if self._closing:
             event.accept()
             return
-        if self.unsaved and not self._quiet_errors() and self.state.image_path is not None:
-            answer = QMessageBox.question(
-                self, "Unsaved changes", "Save the session before closing?",
-                QMessageBox.StandardButton.Save | QMessageBox.StandardButton.Discard
-                | QMessageBox.StandardButton.Cancel, QMessageBox.StandardButton.Save)
-            if answer == QMessageBox.StandardButton.Cancel or (
-                    answer == QMessageBox.StandardButton.Save and not self.save_session()):
-                event.ignore()
-                return
+        if not self.session_actions.confirm_close():
+            event.ignore()
+            return
         self._closing = True
         self._autosave_timer.stop()
         self.refit.cancel()

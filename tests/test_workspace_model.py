@@ -65,6 +65,23 @@ def test_no_linear_algebra_kd_trees_or_model_sampling_in_app():
         f"no longer pending, remove from PENDING: {set(PENDING) - set(found)}"
 
 
+MAX_CLASS_LINES = 400   # issue 16: the largest class in app/ under ~400 lines
+
+
+def test_no_class_in_app_exceeds_400_lines():
+    """God objects stay split: every class in app/ (source lines from ``class`` to its last
+    statement) is under the limit."""
+    sizes = {}
+    for path in sorted((ROOT / "app").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes[f"{path.relative_to(ROOT).as_posix()}::{node.name}"] = \
+                    node.end_lineno - node.lineno + 1
+    assert len(sizes) > 20                                   # the scan found app/'s classes
+    too_big = {name: n for name, n in sizes.items() if n >= MAX_CLASS_LINES}
+    assert too_big == {}, too_big
+
+
 @pytest.fixture
 def model():
     shapes, faces = synthetic_shapes(6, subdivisions=2, seed=1)

@@ -20,22 +20,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from PySide6.QtCore import QLineF, QPointF, QRectF, Qt, Signal
-from PySide6.QtGui import QColor, QFont, QFontMetricsF, QImage, QPainter, QPen
+from PySide6.QtCore import QRectF, Qt, Signal
+from PySide6.QtGui import QColor, QFont, QImage, QPainter
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
 from app.state import FRAME_NAMES, Structure, WorkspaceState
 from core.planes import FRAMES, SliceImage, window_to_uint8
 from core.slicing import intersect_plane
 
-CONTOUR_COLOR = QColor(255, 170, 0)          # model cross-section (orange: the first structure)
-INACTIVE_ALPHA = 120                         # other structures' contours are dimmed
-POINT_COLOR = QColor(0, 230, 255)            # contour points on this slice (cyan)
-POINT_NEAR_COLOR = QColor(0, 230, 255, 90)   # points one slice away
-CROSSHAIR_COLOR = QColor(60, 200, 60, 150)
-LABEL_COLOR = QColor(255, 255, 120)
-VIEW_COLORS = {"axial": QColor(220, 60, 60), "coronal": QColor(60, 170, 60),
-               "sagittal": QColor(230, 200, 40)}
+from app.views.slice_overlays import (CONTOUR_COLOR, POINT_COLOR, VIEW_COLORS,  # noqa: F401
+                                      label_layout, outlined_text, paint_contours,
+                                      paint_crosshair, paint_labels, paint_points)
 
 TOOLS = ("navigate", "draw", "window")
 DRAW_SPACING_MM = 1.5
@@ -224,85 +219,16 @@ class SliceView(QWidget):
         painter.drawImage(QRectF(x0, y0, x1 - x0, y1 - y0), self._qimage)
         for layer in self.layers:
             layer.paint(self, painter)
-        self._paint_crosshair(painter)
+        paint_crosshair(self, painter)
         painter.setRenderHint(QPainter.RenderHint.Antialiasing, True)
-        self._paint_points(painter)
-        self._paint_contours(painter)
+        paint_points(self, painter)
+        paint_contours(self, painter)
         for overlay in self.overlays:
             overlay(painter, self)
-        self._paint_labels(painter)
+        paint_labels(self, painter)
         painter.end()
 
-    def _paint_crosshair(self, painter: QPainter) -> None:
-        x, y = self.world_to_screen(self.state.crosshair)
-        painter.setPen(QPen(CROSSHAIR_COLOR, 1))
-        gap = 8
-        painter.drawLines([QLineF(0, y, x - gap, y), QLineF(x + gap, y, self.width(), y),
-                           QLineF(x, 0, x, y - gap), QLineF(x, y + gap, x, self.height())])
-
-    def _paint_contours(self, painter: QPainter) -> None:
-        """Every visible structure in its colour; the active one last, the others dimmed."""
-        active = self.state.active
-        for s in sorted(self.state.structures, key=lambda s: s is active):
-            if not self.show_outline:
-                break
-            segments = self._segments.get(s.id)
-            if segments is None or not s.visible:
-                continue
-            color = QColor(*s.color)
-            if s is not active:
-                color.setAlpha(INACTIVE_ALPHA)
-            xy = self.plane_to_screen(segments).reshape(-1, 4)
-            painter.setPen(QPen(color, 1.6 if s is active else 1.2))
-            painter.drawLines([QLineF(a, b, c, d) for a, b, c, d in xy.tolist()])
-
-    def _paint_points(self, painter: QPainter) -> None:
-        step = self._step()
-        active = self.state.active
-        for s in self.state.structures:            # other structures' points: small, dimmed
-            if s is active or not s.visible or len(s.points) == 0:
-                continue
-            here = s.points.on_slice(self.frame_index, self.depth, step / 2)
-            if here.any():
-                color = QColor(*s.color)
-                color.setAlpha(INACTIVE_ALPHA)
-                painter.setPen(Qt.PenStyle.NoPen)
-                painter.setBrush(color)
-                for x, y in self.world_to_screen(s.points.xyz[here]):
-                    painter.drawEllipse(QPointF(x, y), 2.5, 2.5)
-        pts = active.points
-        if len(pts) == 0 or not active.visible:
-            painter.setBrush(Qt.BrushStyle.NoBrush)
-            return
-        depth_gap = np.abs(pts.depth - self.depth)
-        same = pts.frame == self.frame_index
-        here = same & (depth_gap <= step / 2)
-        near = ~here & (np.abs(self.frame.depth(pts.xyz) - self.depth) <= 1.5 * step)
-        xy = self.world_to_screen(pts.xyz)
-        painter.setPen(Qt.PenStyle.NoPen)
-        painter.setBrush(POINT_NEAR_COLOR)
-        for x, y in xy[near]:
-            painter.drawEllipse(QPointF(x, y), 3, 3)
-        if here.any():
-            idx = np.flatnonzero(here)
-            painter.setPen(QPen(POINT_COLOR, 1))
-            for stroke in np.unique(pts.stroke[idx]):     # strokes are not joined to each other
-                line = idx[pts.stroke[idx] == stroke]
-                painter.drawPolyline([QPointF(x, y) for x, y in xy[line]])
-            painter.setPen(QPen(QColor(0, 0, 0), 1))
-            painter.setBrush(POINT_COLOR)
-            for x, y in xy[idx]:
-                painter.drawEllipse(QPointF(x, y), 3.5, 3.5)
-        painter.setBrush(Qt.BrushStyle.NoBrush)
-
-    @staticmethod
-    def _text(painter: QPainter, rect: QRectF, flags, text: str, color: QColor) -> None:
-        """Text with a dark outline, readable over bright and dark image regions."""
-        painter.setPen(QColor(0, 0, 0, 200))
-        for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-            painter.drawText(rect.translated(dx, dy), flags, text)
-        painter.setPen(color)
-        painter.drawText(rect, flags, text)
+    _text = staticmethod(outlined_text)     # for other overlays (measurements)
 
     def label_layout(self) -> dict[str, tuple[QRectF, str, QColor, QFont]]:
         """Where each overlay text goes (see :func:`label_layout`); cached until the view's
@@ -312,16 +238,6 @@ class SliceView(QWidget):
         if self._labels is None or self._labels[0] != key:
             self._labels = (key, label_layout(self))
         return self._labels[1]
-
-    def _paint_labels(self, painter: QPainter) -> None:
-        center = Qt.AlignmentFlag.AlignCenter
-        for rect, text, color, font in self.label_layout().values():
-            painter.setFont(font)
-            self._text(painter, rect.adjusted(-2, 0, 2, 0), center, text, color)
-        if self.hasFocus():
-            w, h = self.width(), self.height()
-            painter.setPen(QPen(VIEW_COLORS[self.frame_name], 2))
-            painter.drawRect(QRectF(1, 1, w - 2, h - 2))
 
     def _step(self) -> float:
         return self.state.sampler.step(self.frame) if self.state.sampler else 1.0
@@ -474,56 +390,3 @@ class SliceView(QWidget):
             return False
         self.state.remove_point(index)
         return True
-
-
-def _label_fonts(view: SliceView) -> tuple[QFont, QFont]:
-    letters = QFont(view.font())
-    letters.setPointSize(13)
-    letters.setBold(True)
-    small = QFont(view.font())
-    small.setPointSize(9)
-    return letters, small
-
-
-def label_layout(view: SliceView) -> dict[str, tuple[QRectF, str, QColor, QFont]]:
-    """Where each overlay text goes: name -> (tight rectangle, text, colour, font).
-
-    The orientation letters sit at the middle of each edge, the slice title top left and
-    window/level bottom right; when the title reaches the top letter (narrow views, e.g.
-    an 800x600 window) the letter moves below the title instead of under it.
-    """
-    labels = view.frame.edge_labels()
-    if not view.state.orientation_known:         # never show R/L as if they were known
-        labels = {edge: "?" for edge in labels}
-    letters, small = _label_fonts(view)
-    big, little = QFontMetricsF(letters), QFontMetricsF(small)
-    w, h, m = view.width(), view.height(), 6
-    axis = "xyz"[int(np.argmax(np.abs(view.frame.n)))]
-    lo, hi = view._depth_range
-    index = int(round((view.depth - lo) / view._step())) + 1
-    total = int(round((hi - lo) / view._step())) + 1
-    title = f"{view.frame_name.capitalize()}  {axis} = {view.depth:.1f} mm  ({index}/{total})"
-    if not view.state.orientation_known:
-        title += "  orientation unknown"
-    wl = f"W {view.state.window:.0f}  L {view.state.level:.0f}"
-
-    def box(text, metrics, x, y, anchor_x="left", anchor_y="top"):
-        tw, th = metrics.horizontalAdvance(text), metrics.height()
-        x = {"left": x, "center": x - tw / 2, "right": x - tw}[anchor_x]
-        y = {"top": y, "center": y - th / 2, "bottom": y - th}[anchor_y]
-        return QRectF(x, y, tw, th)
-
-    out = {"title": (box(title, little, m, m), title, VIEW_COLORS[view.frame_name], small),
-           "window": (box(wl, little, w - m, h - m, "right", "bottom"), wl,
-                      QColor(170, 170, 170), small)}
-    top = box(labels["top"], big, w / 2, m, "center")
-    if top.intersects(out["title"][0].adjusted(-4, 0, 4, 0)):
-        top.moveTop(out["title"][0].bottom() + 2)
-    out["top"] = (top, labels["top"], LABEL_COLOR, letters)
-    out["bottom"] = (box(labels["bottom"], big, w / 2, h - m, "center", "bottom"),
-                     labels["bottom"], LABEL_COLOR, letters)
-    out["left"] = (box(labels["left"], big, m, h / 2, "left", "center"), labels["left"],
-                   LABEL_COLOR, letters)
-    out["right"] = (box(labels["right"], big, w - m, h / 2, "right", "center"),
-                    labels["right"], LABEL_COLOR, letters)
-    return out
