@@ -13,11 +13,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QObject, Qt, Signal
-from PySide6.QtWidgets import QProgressDialog, QWidget
+from PySide6.QtCore import QObject, Signal
+from PySide6.QtWidgets import QWidget
 
 from app.state import WorkspaceState
-from app.workers import Worker
+from app.workers import DialogTask
 
 
 class AutoPlacement(QObject):
@@ -29,13 +29,20 @@ class AutoPlacement(QObject):
     def __init__(self, state: WorkspaceState, parent: QWidget | None = None):
         super().__init__(parent)
         self.state = state
-        self.worker: Worker | None = None
-        self.dialog: QProgressDialog | None = None
-        self._parent = parent
+        self.task = DialogTask("Place models automatically",
+                               "Registering the image to the template…", parent)
+        self.task.succeeded.connect(self._on_done)
+        self.task.failed.connect(lambda m: self.failed.emit(f"Automatic placement failed: {m}"))
+        self.task.cancelled.connect(
+            lambda: self.failed.emit("Automatic placement cancelled: nothing moved"))
 
     @property
     def is_running(self) -> bool:
-        return self.worker is not None
+        return self.task.is_running
+
+    @property
+    def worker(self):
+        return self.task.worker
 
     def start(self, template: str | Path | None = None, show_dialog: bool = True,
               **options) -> bool:
@@ -43,7 +50,7 @@ class AutoPlacement(QObject):
         ``options`` go to ``core.registration.register_volumes`` (e.g. ``levels_mm``)."""
         from core import registration
 
-        if self.worker is not None:
+        if self.task.is_running:
             return False
         if self.state.volume is None:
             self.failed.emit("Place models automatically: open an image first")
@@ -52,41 +59,18 @@ class AutoPlacement(QObject):
             self.failed.emit("Place models automatically: add a structure with a model first")
             return False
         template = Path(template) if template else registration.default_template_path()
-        image = self.state.volume
-        self.worker = Worker(_register, image, template, **options)
-        self.worker.succeeded.connect(self._on_done)
-        self.worker.failed.connect(self._on_failed)
-        self.worker.cancelled.connect(self._on_cancelled)
-        if show_dialog:
-            self.dialog = QProgressDialog("Registering the image to the template…", "Cancel",
-                                          0, 100, self._parent)
-            self.dialog.setWindowTitle("Place models automatically")
-            self.dialog.setWindowModality(Qt.WindowModality.WindowModal)
-            self.dialog.setMinimumDuration(0)
-            self.dialog.canceled.connect(self.cancel)
-            self.worker.progress.connect(
-                lambda f, m: self.dialog is not None and self.dialog.setValue(int(100 * f)))
-        self.worker.start()
-        return True
+        return self.task.start(_register, self.state.volume, template, show_dialog=show_dialog,
+                               **options)
 
     def cancel(self) -> None:
-        if self.worker is not None:
-            self.worker.cancel()
+        self.task.cancel()
 
     def wait(self, msecs: int = 60000) -> bool:
-        return self.worker.wait(msecs) if self.worker is not None else True
-
-    def _close(self) -> None:
-        self.worker = None
-        if self.dialog is not None:
-            self.dialog.canceled.disconnect(self.cancel)
-            self.dialog.close()
-            self.dialog = None
+        return self.task.wait(msecs)
 
     def _on_done(self, result) -> None:
         from core.placement import placement_through
 
-        self._close()
         placed = []
         for s in self.state.structures:
             if s.model is None or s.locked:
@@ -100,14 +84,6 @@ class AutoPlacement(QObject):
         self.finished.emit(f"Placed {len(placed)} structure(s) by registration to the template "
                            f"({result.transform_class}, {result.seconds:.1f} s, metric "
                            f"{result.metric:.3f}): {', '.join(placed)}")
-
-    def _on_failed(self, message: str) -> None:
-        self._close()
-        self.failed.emit(f"Automatic placement failed: {message}")
-
-    def _on_cancelled(self) -> None:
-        self._close()
-        self.failed.emit("Automatic placement cancelled: nothing moved")
 
 
 def _register(image, template_path: Path, progress=None, **options):

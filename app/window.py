@@ -145,6 +145,9 @@ class MainWindow(QMainWindow):
         self.labels = install_editing(self)
         install_navigation(self)
         self.measurements = install_measurements(self)
+        from app.panels.second_image import install_second_image   # T2/FLAIR/CT over the T1
+
+        self.second_image = install_second_image(self)
         from app.demo_tour import install_demo_tour   # Help > Demo tour
 
         install_demo_tour(self)
@@ -190,6 +193,11 @@ class MainWindow(QMainWindow):
         self.show_message(message)
         if len(self.state.points) and not self.refit.is_suspended:
             self.schedule_refit()
+
+    def load_second_image(self, path: str | os.PathLike, transform=None) -> bool:
+        """Show a second image over the first: read, registered rigidly when the grids differ
+        and resampled in a worker (progress, Cancel); False if it could not start."""
+        return self.second_image.load(path, transform, show_dialog=not self._quiet_errors())
 
     def load_demo(self) -> None:
         """The demo image and model (raises DataFileError when resources/ is incomplete)."""
@@ -421,8 +429,9 @@ class MainWindow(QMainWindow):
         self._autosave_timer.stop()
         self.refit.cancel()
         self.refit.wait(5000)
-        self.auto_place.cancel()
-        self.auto_place.wait(10000)
+        for task in (self.auto_place, self.second_image):
+            task.cancel()
+            task.wait(10000)
         if self.recovery_enabled:
             self.sessions.clear_recovery()
         if self.builder is not None:

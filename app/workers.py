@@ -39,7 +39,7 @@ from PySide6.QtCore import QObject, QThread, Signal
 
 from core.progress import Cancelled
 
-__all__ = ["Worker", "LatestWinsRunner", "error_message", "running_workers"]
+__all__ = ["Worker", "DialogTask", "LatestWinsRunner", "error_message", "running_workers"]
 
 # Workers still running are kept alive here: a QThread garbage-collected while running aborts
 # the process ("QThread: Destroyed while thread is still running").
@@ -153,6 +153,73 @@ class Worker(QThread):
 
     def _forget(self) -> None:
         _RUNNING.discard(self)
+
+
+class DialogTask(QObject):
+    """One long job at a time in a :class:`Worker`, behind a modal progress dialog with Cancel.
+
+    ``start(fn, *args, **kwargs)`` runs ``fn`` (given ``progress=``) unless a job is running;
+    the outcome arrives as ``succeeded(result)``, ``failed(message)`` or ``cancelled()``, after
+    the dialog is closed. Without a dialog (``show_dialog=False``: tests, scripts) the job runs
+    the same way. Used by *Place models automatically* and *Open second image*.
+    """
+
+    succeeded = Signal(object)
+    failed = Signal(str)
+    cancelled = Signal()
+
+    def __init__(self, title: str, label: str, parent=None):
+        super().__init__(parent)
+        self.title, self.label = title, label
+        self.worker: Worker | None = None
+        self.dialog = None
+        self._parent = parent
+
+    @property
+    def is_running(self) -> bool:
+        return self.worker is not None
+
+    def start(self, fn: Callable[..., Any], *args: Any, show_dialog: bool = True,
+              **kwargs: Any) -> bool:
+        if self.worker is not None:
+            return False
+        self.worker = Worker(fn, *args, **kwargs)
+        self.worker.succeeded.connect(lambda result: self._finish(self.succeeded, result))
+        self.worker.failed.connect(lambda message: self._finish(self.failed, message))
+        self.worker.cancelled.connect(lambda: self._finish(self.cancelled))
+        if show_dialog:
+            from PySide6.QtCore import Qt
+            from PySide6.QtWidgets import QProgressDialog
+
+            self.dialog = QProgressDialog(self.label, "Cancel", 0, 100, self._parent)
+            self.dialog.setWindowTitle(self.title)
+            self.dialog.setWindowModality(Qt.WindowModality.WindowModal)
+            self.dialog.setMinimumDuration(0)
+            self.dialog.canceled.connect(self.cancel)
+            self.worker.progress.connect(self._on_progress)
+        self.worker.start()
+        return True
+
+    def cancel(self) -> None:
+        if self.worker is not None:
+            self.worker.cancel()
+
+    def wait(self, msecs: int = 60000) -> bool:
+        return self.worker.wait(msecs) if self.worker is not None else True
+
+    def _on_progress(self, fraction: float, message: str) -> None:
+        if self.dialog is not None:
+            self.dialog.setValue(int(100 * fraction))
+            if message:
+                self.dialog.setLabelText(f"{self.label}\n{message}")
+
+    def _finish(self, signal, *args) -> None:
+        self.worker = None
+        if self.dialog is not None:
+            self.dialog.canceled.disconnect(self.cancel)
+            self.dialog.close()
+            self.dialog = None
+        signal.emit(*args)
 
 
 class LatestWinsRunner(QObject):

@@ -1,0 +1,239 @@
+"""*Open second image*: a T2, FLAIR or CT scan over the first image (issue 17).
+
+:func:`install_second_image` adds to a main window, without the window knowing the details:
+
+- File > *Open second image…* (Ctrl+Shift+I): any image the app reads (NIfTI, NRRD,
+  MetaImage, a DICOM series). Reading, the rigid registration onto the first image when the
+  grids differ (``core.registration`` through ``core.coregistration``) and the resampling run
+  in a :class:`app.workers.DialogTask` (progress, Cancel: a cancelled load changes nothing);
+- the composite layer in every slice view (:class:`app.views.second_image_layer.
+  SecondImageLayer`): blend with an opacity, or checkerboard (View > K);
+- *Swap base image* (Ctrl+B): which image is drawn on (the other is shown over it), and the
+  one window/level acts on; points are world coordinates, so nothing moves;
+- a "Second image" box in the side panel with these settings;
+- the session keeps the path, the transform and the settings (``info.second_image``); a
+  reopened session resamples with the stored transform, without registering again.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from PySide6.QtCore import QObject, Qt, Signal
+from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QGroupBox, QHBoxLayout, QLabel,
+                               QPushButton, QSlider, QVBoxLayout, QWidget)
+
+from app.second_image import SecondImage
+from app.views.second_image_layer import SecondImageLayer
+from app.workers import DialogTask
+
+SHORTCUTS = [("Ctrl+Shift+I", "Open a second image (T2, FLAIR, CT) over the first"),
+             ("K", "Second image: checkerboard / blend"),
+             ("Ctrl+B", "Second image: swap the base image (the one drawn on)")]
+
+
+def _load(path: str, reference, transform=None, series=None, progress=None):
+    """Worker: read the second image and bring it onto the reference grid."""
+    from core.coregistration import coregister
+    from core.io import DataFileError, load_volume
+
+    second = load_volume(path, series=series)
+    try:
+        return coregister(reference, second, transform, progress=progress)
+    except DataFileError:
+        raise
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+
+
+class SecondImageController(QObject):
+    """Loads the second image in a worker and keeps the views and the panel in step."""
+
+    message = Signal(str)
+    error = Signal(str)
+
+    def __init__(self, window):
+        super().__init__(window)
+        self.w = window
+        self.model = SecondImage(window.state)
+        self.layer = SecondImageLayer(self.model)
+        self.task = DialogTask("Open second image", "Reading and registering the second image…",
+                               window)
+        self.task.succeeded.connect(self._on_loaded)
+        self.task.failed.connect(lambda m: self.error.emit(f"Second image not opened: {m}"))
+        self.task.cancelled.connect(
+            lambda: self.message.emit("Second image cancelled: nothing changed"))
+        self._pending: tuple[str, dict | None] | None = None
+        views = list(window.workspace.views.values())
+        for view in views:
+            view.layers.insert(0, self.layer)         # under the label fill and the contours
+        for event in (self.model.events.loaded, self.model.events.display):
+            event.connect(lambda: [v.update() for v in views])
+
+    @property
+    def is_running(self) -> bool:
+        return self.task.is_running
+
+    def load(self, path: str | os.PathLike, transform=None, show_dialog: bool = True,
+             display: dict | None = None) -> bool:
+        """Start loading ``path`` (``transform``: a known second -> first world matrix)."""
+        if self.w.state.volume is None:
+            self.error.emit("Open the first image before a second one")
+            return False
+        notes: list[str] = []
+        resolved = self.w.files.resolve_image(path, None if show_dialog else False, notes)
+        if resolved is None:
+            return False
+        self._pending = (str(resolved), display)
+        return self.task.start(_load, str(resolved), self.w.state.volume, transform,
+                               show_dialog=show_dialog)
+
+    def cancel(self) -> None:
+        self.task.cancel()
+
+    def wait(self, msecs: int = 60000) -> bool:
+        return self.task.wait(msecs)
+
+    def _on_loaded(self, coregistered) -> None:
+        path, display = self._pending or ("second image", None)
+        self._pending = None
+        try:
+            self.model.set_image(coregistered, path)
+        except ValueError as exc:                      # the first image changed meanwhile
+            self.error.emit(str(exc))
+            return
+        if display:
+            self.model.apply_display(display)
+        self.message.emit(f"Second image {self.model.describe()}")
+
+    def restore(self, document: dict | None) -> None:
+        """A session's ``info.second_image``: load it again with its transform."""
+        if not document:
+            self.model.clear()
+            return
+        path = Path(document.get("path", ""))
+        if not path.exists():
+            self.error.emit(f"{path}: the session's second image was not found; not shown")
+            return
+        self.load(path, transform=document.get("transform"),
+                  show_dialog=not self.w._quiet_errors(), display=document)
+
+
+class SecondImagePanel(QWidget):
+    """Blend / checkerboard, opacity, square size, the base image and *Remove*."""
+
+    def __init__(self, controller: SecondImageController, parent: QWidget | None = None):
+        super().__init__(parent)
+        model = self.model = controller.model
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(4, 4, 4, 4)
+        self.info = QLabel()
+        self.info.setWordWrap(True)
+        layout.addWidget(self.info)
+        row = QHBoxLayout()
+        self.mode = QComboBox()
+        self.mode.addItems(["Blend", "Checkerboard"])
+        self.mode.setToolTip("How the other image is shown over the base image (K)")
+        self.opacity = QSlider(Qt.Orientation.Horizontal)
+        self.opacity.setObjectName("second_opacity")
+        self.opacity.setRange(0, 100)
+        self.opacity.setToolTip("Opacity of the image shown over the base image")
+        self.squares = QDoubleSpinBox()
+        self.squares.setRange(1.0, 100.0)
+        self.squares.setSuffix(" mm")
+        self.squares.setToolTip("Checkerboard square size")
+        row.addWidget(self.mode)
+        row.addWidget(self.opacity, 1)
+        row.addWidget(self.squares)
+        layout.addLayout(row)
+        row = QHBoxLayout()
+        self.base = QComboBox()
+        self.base.addItems(["Draw on the first image", "Draw on the second image"])
+        self.base.setToolTip("The base image: painted at the bottom, window/level acts on it "
+                             "(Ctrl+B). Points stay where they are.")
+        self.remove = QPushButton("Remove")
+        row.addWidget(self.base, 1)
+        row.addWidget(self.remove)
+        layout.addLayout(row)
+        self.mode.currentIndexChanged.connect(
+            lambda i: model.set_mode(("blend", "checkerboard")[i]))
+        self.opacity.valueChanged.connect(lambda v: model.set_opacity(v / 100))
+        self.squares.valueChanged.connect(model.set_checker_mm)
+        self.base.currentIndexChanged.connect(lambda i: model.set_base(("first", "second")[i]))
+        self.remove.clicked.connect(model.clear)
+        model.events.loaded.connect(self.follow)
+        model.events.display.connect(self.follow)
+        self.follow()
+
+    def follow(self) -> None:
+        m = self.model
+        widgets = (self.mode, self.opacity, self.squares, self.base)
+        for widget in widgets:
+            widget.blockSignals(True)
+        self.mode.setCurrentIndex(0 if m.mode == "blend" else 1)
+        self.opacity.setValue(int(round(100 * m.opacity)))
+        self.squares.setValue(m.checker_mm)
+        self.base.setCurrentIndex(0 if m.base == "first" else 1)
+        for widget in widgets:
+            widget.blockSignals(False)
+            widget.setEnabled(m.loaded)
+        self.opacity.setEnabled(m.loaded and m.mode == "blend")
+        self.squares.setEnabled(m.loaded and m.mode == "checkerboard")
+        self.remove.setEnabled(m.loaded)
+        self.info.setText(m.describe() if m.loaded else
+                          "No second image (File > Open second image…, Ctrl+Shift+I)")
+
+
+def install_second_image(window) -> SecondImageController:
+    """Add the second-image actions, layer, side-panel box and session hooks to ``window``."""
+    from app.actions import SHORTCUTS as HELP_SHORTCUTS
+    from app.actions import _action
+
+    controller = SecondImageController(window)
+    model = controller.model
+    controller.message.connect(window.show_message)
+    controller.error.connect(window.show_error)
+    HELP_SHORTCUTS.extend(row for row in SHORTCUTS if row not in HELP_SHORTCUTS)
+
+    def toggle_mode() -> None:
+        if model.loaded:
+            model.set_mode("blend" if model.mode == "checkerboard" else "checkerboard")
+
+    def swap() -> None:
+        if model.loaded:
+            model.swap_base()
+            window.show_message(f"Drawing on the {model.base} image")
+
+    window.act_open_second = _action(window, "Open second &image (T2, FLAIR, CT)…",
+                                     lambda: window.open_dialog("second"), "Ctrl+Shift+I",
+                                     "Show a second scan over the first; registered rigidly "
+                                     "when the grids differ")
+    window.act_checkerboard = _action(window, "Second image: checkerboard / blend", toggle_mode,
+                                      "K")
+    window.act_swap_base = _action(window, "Second image: swap the base image", swap, "Ctrl+B",
+                                   "Draw on the other image (the points stay where they are)")
+    window.act_remove_second = _action(window, "Remove second image", model.clear)
+    menus = {a.text(): a.menu() for a in window.menuBar().actions()}
+    if menus.get("&File") is not None:
+        file_menu = menus["&File"]
+        after = next((a for a in file_menu.actions() if a is window.act_open_dicom), None)
+        entries = file_menu.actions()
+        position = entries[entries.index(after) + 1] if after in entries[:-1] else None
+        for act in (window.act_open_second, window.act_remove_second):
+            file_menu.insertAction(position, act) if position else file_menu.addAction(act)
+    if menus.get("&View") is not None:
+        menus["&View"].addSeparator()
+        menus["&View"].addAction(window.act_checkerboard)
+        menus["&View"].addAction(window.act_swap_base)
+    panel = window.second_image_panel = SecondImagePanel(controller)
+    box = QGroupBox("Second image")
+    box_layout = QVBoxLayout(box)
+    box_layout.setContentsMargins(2, 2, 2, 2)
+    box_layout.addWidget(panel)
+    side = window.side_dock
+    side.panel.layout().insertWidget(min(2, side.panel.layout().count()), box)
+    side.boxes["Second image"] = box
+    window.sessions.info_providers["second_image"] = model.to_document
+    window.sessions.info_readers["second_image"] = controller.restore
+    return controller
