@@ -86,6 +86,8 @@ class MainWindow(QMainWindow):
         self.fit_panel = FitPanel(self.state)
         self.refit = RefitController(self.state, lambda: self.fit_panel.settings,
                                      self.fit_panel.auto.isChecked, self)
+        for view in self.workspace.views.values():
+            view.defer_point_paint = lambda: self.refit.is_busy
         self.refit.applied.connect(self._on_refit_applied)
         self.refit.failed.connect(lambda m: self.statusBar().showMessage(f"Fit not updated: {m}", 8000))
         self.factors_panel = FactorsPanel(self.state)

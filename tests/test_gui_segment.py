@@ -476,3 +476,63 @@ def test_factor_sliders_show_each_factors_share_of_the_training_variance(window,
     assert len(shown) == 3
     np.testing.assert_allclose(shown, truth[:3], atol=0.0006)   # display rounds to 0.1 %
     assert f"{100 * truth[:3].sum():.1f}%" in panel.summary.text()
+
+
+class _PaintCounter:
+    """Counts the paint events a widget receives."""
+
+    def __init__(self, widget):
+        from PySide6.QtCore import QObject
+
+        class Filter(QObject):
+            def eventFilter(inner, obj, event):  # noqa: N802, N805 - Qt API
+                if event.type() == QEvent.Type.Paint:
+                    self.count += 1
+                return False
+
+        self.count = 0
+        self.filter = Filter()
+        widget.installEventFilter(self.filter)
+
+
+def test_a_click_with_a_quick_refit_is_painted_once_with_its_new_contours(window, qtbot,
+                                                                          monkeypatch):
+    """The new point waits for its refit (one repaint per click instead of two); a slow
+    refit does not hold it back for more than POINT_PAINT_WAIT_S."""
+    import time
+
+    import core.reconstruction as reconstruction
+    from app.views import slice_view
+
+    window.set_tool("draw")
+    view = window.workspace.views["axial"]
+    centre = window.state.surface_vertices().mean(axis=0)
+    cross = window.state.crosshair.copy()
+    cross[2] = centre[2]
+    window.state.set_crosshair(cross)
+    for i in range(4):                          # enough points for a similarity fit
+        click(view, view.world_to_screen(centre + (6 * np.cos(i), 6 * np.sin(i), 0)))
+        window.wait_for_refit()
+    qtbot.wait(100)
+    monkeypatch.setattr(slice_view, "POINT_PAINT_WAIT_S", 30.0)   # however slow the machine
+    counter = _PaintCounter(view)
+    fits = []
+    window.refit_applied.connect(fits.append)
+    click(view, view.world_to_screen(centre + (7.0, 0.0, 0.0)))
+    qtbot.waitUntil(lambda: bool(fits) and counter.count >= 1, timeout=10000)
+    qtbot.wait(100)
+    assert counter.count == 1                   # point and new contours in one repaint
+    # a slow fit: the point is painted after at most the wait, before the fit's result
+    fit = reconstruction.fit_points
+
+    def slow_fit(*args, **kwargs):
+        time.sleep(1.5)
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(reconstruction, "fit_points", slow_fit)
+    monkeypatch.setattr(slice_view, "POINT_PAINT_WAIT_S", 0.05)
+    counter.count, fits[:] = 0, []
+    click(view, view.world_to_screen(centre + (0.0, 7.0, 0.0)))
+    qtbot.waitUntil(lambda: counter.count >= 1, timeout=10000)
+    assert not fits                             # painted while the fit was still running
+    window.wait_for_refit()
