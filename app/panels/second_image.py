@@ -70,6 +70,15 @@ class SecondImageController(QObject):
             view.layers.insert(0, self.layer)         # under the label fill and the contours
         for event in (self.model.events.loaded, self.model.events.display):
             event.connect(lambda: [v.update() for v in views])
+        window.workspace.volume_view_created.connect(self._wire_volume_view)
+        if window.workspace.volume_view is not None:
+            self._wire_volume_view()
+
+    def _wire_volume_view(self) -> None:
+        """The 3D planes keep showing the first image in its own window."""
+        view = self.w.workspace.volume_view
+        view.plane_window = lambda: self.model.window_of("first")
+        self.model.events.display.connect(view._on_planes)
 
     @property
     def is_running(self) -> bool:

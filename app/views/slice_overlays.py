@@ -11,7 +11,7 @@ over bright and dark image regions.
 from __future__ import annotations
 
 import numpy as np
-from PySide6.QtCore import QLineF, QPointF, QRectF, Qt
+from PySide6.QtCore import QLineF, QPointF, QRect, QRectF, Qt
 from PySide6.QtGui import QColor, QFont, QFontMetricsF, QPainter, QPen
 
 CONTOUR_COLOR = QColor(255, 170, 0)          # model cross-section (orange: the first structure)
@@ -25,11 +25,14 @@ VIEW_COLORS = {"axial": QColor(220, 60, 60), "coronal": QColor(60, 170, 60),
 
 
 def paint_crosshair(view, painter: QPainter) -> None:
-    x, y = view.world_to_screen(view.state.crosshair)
-    painter.setPen(QPen(CROSSHAIR_COLOR, 1))
-    gap = 8
-    painter.drawLines([QLineF(0, y, x - gap, y), QLineF(x + gap, y, view.width(), y),
-                       QLineF(x, 0, x, y - gap), QLineF(x, y + gap, x, view.height())])
+    """Two 1-pixel lines with a gap at the crosshair, as filled rectangles: a translucent
+    pen's full-width lines cost ~1 ms per paint in the raster engine, rectangles ~0.05 ms."""
+    x, y = (int(np.floor(c)) for c in view.world_to_screen(view.state.crosshair))
+    w, h, gap = view.width(), view.height(), 8
+    for rect in (QRect(0, y, x - gap, 1), QRect(x + gap, y, w - x - gap, 1),
+                 QRect(x, 0, 1, y - gap), QRect(x, y + gap, 1, h - y - gap)):
+        if rect.width() > 0 and rect.height() > 0:
+            painter.fillRect(rect, CROSSHAIR_COLOR)
 
 
 def paint_contours(view, painter: QPainter) -> None:

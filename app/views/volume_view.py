@@ -3,7 +3,10 @@
 A pyvistaqt ``QtInteractor`` (VTK in a QOpenGLWidget; needs a real OpenGL context, e.g. Xvfb
 with the xcb platform when headless). The three orthogonal slices through the crosshair are
 drawn as textured planes, as in 3D Slicer's 3D view. Updates from the state are coalesced by a
-short single-shot timer so that scrolling or refits never queue several renders.
+short single-shot timer so that scrolling or refits never queue several renders: the first
+change renders RENDER_DELAY_MS later (after the slice views' own repaint), and during a burst
+of changes (scrolling) renders are throttled to one per max(MIN_RENDER_INTERVAL_S, twice the
+last render's time), so the 3D view follows the slices without taking the GUI thread.
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ INACTIVE_OPACITY = 0.3                # the other structures are dimmed
 VIEW_DIRECTION = np.array([-0.55, 0.75, 0.45]) / math.sqrt(0.55**2 + 0.75**2 + 0.45**2)
 FACTOR_SCALARS = "factor displacement (mm per SD)"
 MAX_DEFER_S = 0.5
+RENDER_DELAY_MS = 10          # lets the slice views paint first (they are the user's focus)
+MIN_RENDER_INTERVAL_S = 0.05
+SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software rasterizer")
 POINT_COLOR = (0.0, 0.9, 1.0)
 
 
@@ -54,6 +60,9 @@ class VolumeView(QWidget):
         self._points_mesh: pv.PolyData | None = None
         self._plane_keys: dict[str, tuple] = {}
         self.defer = lambda: False      # e.g. "a refit is running": postpone non-urgent renders
+        # (window, level) of the image on the planes (the second image's tools keep the first
+        # image's own window here while the second one is the base of the slice views)
+        self.plane_window = lambda: (state.window, state.level)
         self._pending_since: float | None = None
         self._factor: int | None = None
         self._plane_actors: dict[str, object] = {}
@@ -69,8 +78,10 @@ class VolumeView(QWidget):
         self._scalars: tuple[np.ndarray, str] | None = None   # colour map on the active surface
         self._timer = QTimer(self)
         self._timer.setSingleShot(True)
-        self._timer.setInterval(60)
+        self._timer.setInterval(RENDER_DELAY_MS)
         self._timer.timeout.connect(self._flush)
+        self._last_render = (-1e9, 0.0)        # (end time, duration) of the last render
+        self._gl_checked = False
         events = state.events
         events.image.connect(self._on_image)
         events.crosshair.connect(self._on_planes)
@@ -132,14 +143,17 @@ class VolumeView(QWidget):
             self._mark("points")
 
     def _mark(self, *what: str) -> None:
-        """Schedule an update: debounced (a burst of scroll steps renders once at its end),
-        but never postponed by more than MAX_DEFER_S."""
+        """Schedule an update: RENDER_DELAY_MS from now, or when the throttle allows the next
+        render (a burst of scroll steps renders at a steady rate, showing the latest slice)."""
         now = time.perf_counter()
         if self._pending_since is None:
             self._pending_since = now
         self._dirty.update(what)
-        if now - self._pending_since < MAX_DEFER_S or not self._timer.isActive():
-            self._timer.start()
+        if self._timer.isActive():
+            return                              # the pending render will include this
+        end, duration = self._last_render
+        ready = end + max(MIN_RENDER_INTERVAL_S, 2.0 * duration)
+        self._timer.start(max(RENDER_DELAY_MS, int(1000 * (ready - now))))
 
     def flush(self) -> None:
         """Apply pending updates and render now (tests, screenshots)."""
@@ -154,7 +168,7 @@ class VolumeView(QWidget):
         # running, wait for its result (at most MAX_DEFER_S) instead of rendering twice.
         waited = time.perf_counter() - (self._pending_since or time.perf_counter())
         if self.defer() and waited < MAX_DEFER_S:
-            self._timer.start()
+            self._timer.start(RENDER_DELAY_MS)
             return
         dirty, self._dirty = self._dirty, set()
         self._pending_since = None
@@ -169,7 +183,12 @@ class VolumeView(QWidget):
         if "camera" in dirty or not self._camera_set:
             self.reset_camera()
         self.apply_visibility()
+        if not self._gl_checked:                # the OpenGL context exists by now
+            self._gl_checked = _no_multisampling_in_software(self.plotter)
+        start = time.perf_counter()
         self.plotter.render()
+        end = time.perf_counter()
+        self._last_render = (end, end - start)
 
     def apply_visibility(self) -> None:
         """Show or hide the slice planes and the contour points (``show_planes/points``)."""
@@ -184,12 +203,13 @@ class VolumeView(QWidget):
             return
         for name in FRAME_NAMES:
             frame = FRAMES[name]
-            key = (frame.depth(state.crosshair), state.window, state.level, id(state.sampler))
+            window, level = self.plane_window()
+            key = (frame.depth(state.crosshair), window, level, id(state.sampler))
             if self._plane_keys.get(name) == key:
                 continue
             self._plane_keys[name] = key
             sl = state.sampler.sample(frame, frame.depth(state.crosshair))
-            grey = window_to_uint8(sl.data, state.window, state.level)
+            grey = window_to_uint8(sl.data, window, level)
             left, right, top, bottom = sl.extent()
             corners_uv = np.array([[left, bottom], [right, bottom], [right, top], [left, top]])
             corners = frame.to_world(np.column_stack([corners_uv, np.full(4, sl.depth)]))
@@ -363,3 +383,18 @@ class VolumeView(QWidget):
         self._timer.stop()
         self.plotter.close()
         return super().close()
+
+
+def _no_multisampling_in_software(plotter) -> bool:
+    """4x multisampling doubles or triples a render on a software OpenGL stack (Mesa
+    llvmpipe: ~60 -> ~25 ms for this scene); there the 3D view renders without it.
+    True once the OpenGL renderer could be asked."""
+    try:
+        report = plotter.ren_win.ReportCapabilities().lower()
+    except Exception:  # noqa: BLE001 - no context yet: ask again at the next render
+        return False
+    if "renderer string" not in report:
+        return False
+    if any(name in report for name in SOFTWARE_GL):
+        plotter.ren_win.SetMultiSamples(0)
+    return True
