@@ -103,3 +103,17 @@ def test_bad_inputs_are_caught_per_shape_and_the_rest_completes():
     assert "far from every other training shape" in fail["ring"]
     assert "boundary edges" in fail["open"]
     assert all(m is not None for m in result.meshes[:6])
+
+
+def test_a_mirrored_side_of_a_chiral_structure_is_caught_and_the_rest_completes():
+    # Twisted beans are chiral: a mirrored one (a left/right mix-up) cannot be rotated onto
+    # the others. Mirror shape 4 (and flip its faces to keep them outward).
+    pop = known_homology_shapes("twist", 6, seed=2, n_points=(380, 420))
+    meshes = list(pop.meshes)
+    m = meshes[4]
+    meshes[4] = TriMesh(m.vertices * np.array([-1.0, 1.0, 1.0]), m.faces[:, ::-1], "mirrored")
+    result = corr.establish_correspondence(meshes, 0, n_jobs=1, vertices=400, refine=0)
+    assert set(result.failures) == {"mirrored"}, result.failures
+    assert result.failures["mirrored"].startswith("mirrored: its mirror image fits the other")
+    assert result.meshes[4] is None
+    assert all(result.meshes[k] is not None for k in (0, 1, 2, 3, 5))

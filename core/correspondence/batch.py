@@ -19,7 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core import mesh as meshops
-from core.correspondence.pair import DEFAULT_CPD_PARAMS, _normalise, _task, mesh_problem
+from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _task, mesh_problem,
+                                     mirror_fit_ratio)
 from core.geometry import umeyama
 from core.grooming import DEFAULT_GROOMING, GroomingError, groom_mesh
 from core.progress import ProgressCallback, report
@@ -340,9 +341,43 @@ def _select(candidates: list, external, prepared: list, names: list[str], usable
     return chosen, scores, done, rest, split
 
 
+MIRROR_SUSPECT = 0.95  # pair.mirror_fit_ratio against the reference below this: check again
+MIRROR_RATIO = 0.8     # ... against the others' mean below this: mirrored
+
+
+def _flag_mirrored(results: dict, usable: list[int], vertices: dict[int, np.ndarray],
+                   prepared: list, params: dict) -> dict[int, str]:
+    """Inputs whose mirror image fits better than any rotation of them (a left/right mix-up).
+
+    The pairwise step measured :func:`core.correspondence.pair.mirror_fit_ratio` against the
+    reference; a reference's own bumps make that noisy on a nearly achiral shape (0.87 for a
+    correctly sided bean), so suspects are checked again against the mean of the others
+    (measured: 0.92 and up for correctly sided beans, 1.4 and up for the chiral twisted
+    beans, 0.73 and below for mirrored twisted beans). When most inputs are suspects, the
+    reference is the odd one and nothing is flagged.
+    """
+    from core.alignment import generalized_procrustes
+
+    ratios = {i: results[i][0].get("mirror_ratio") for i in usable
+              if i in results and results[i][0] is not None}
+    suspects = [i for i, r in ratios.items() if r is not None and r < MIRROR_SUSPECT]
+    others = [k for k in sorted(vertices) if k not in suspects]
+    if not suspects or 2 * len(suspects) >= len(ratios) or len(others) < 2:
+        return {}
+    mean = generalized_procrustes(np.stack([vertices[k] for k in others]), "similarity",
+                                  max_iter=20, tol=1e-5).mean
+    flagged = {}
+    for i in suspects:
+        r = mirror_fit_ratio(mean, prepared[i].vertices, params)
+        if r < MIRROR_RATIO:
+            flagged[i] = (f"mirrored: its mirror image fits the other shapes better than any "
+                          f"rotation of it (rigid fit sigma^2 ratio {r:.2f}); a left/right mix-up?")
+    return flagged
+
+
 def _flag_outliers(vertices: dict[int, np.ndarray], names: list[str], protect) -> dict[int, str]:
     """Shapes far from every other one after similarity alignment (a different structure
-    by mistake), and mirrored ones (a reflection fits them much better than a rotation)."""
+    by mistake; mirrored sides: :func:`_flag_mirrored`)."""
     from core.alignment import generalized_procrustes
 
     keys = sorted(vertices)
@@ -356,14 +391,7 @@ def _flag_outliers(vertices: dict[int, np.ndarray], names: list[str], protect) -
     mad = 1.4826 * float(np.median(np.abs(dist - med))) + 1e-3 * med + 1e-12
     flagged = {}
     for j, k in enumerate(keys):
-        if k == protect:
-            continue
-        s, r, t = umeyama(shapes[j], gpa.mean, reflection=True)
-        mirrored = np.sqrt((((s * shapes[j] @ r.T + t) - gpa.mean) ** 2).sum(axis=1).mean()) / size
-        if np.linalg.det(r) < 0 and mirrored < 0.7 * dist[j]:
-            flagged[k] = (f"mirrored: a reflection matches the other shapes far better "
-                          f"({mirrored:.2f} vs {dist[j]:.2f} of the mean size; a left/right mix-up?)")
-        elif (dist[j] - med) / mad > 5.0 and dist[j] > 2.0 * med:
+        if k != protect and (dist[j] - med) / mad > 5.0 and dist[j] > 2.0 * med:
             flagged[k] = (f"far from every other training shape ({dist[j]:.2f} of the mean size "
                           f"from the mean, typical {med:.2f}; a different structure?)")
     return flagged
@@ -496,6 +524,9 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     ref_faces = np.asarray(ref.faces).copy()
     timings: dict = {"grooming": t_groom, "n_registrations": n_trial}
     corresponded = _collect(results, chosen, ref, usable, names, failures, timings)
+    for k, reason in _flag_mirrored(results, usable, corresponded, prepared, params).items():
+        failures[names[k]] = reason
+        corresponded.pop(k, None)
     flagged = _flag_outliers(corresponded, names, chosen)
     if flagged:  # a wrong pose looks like a wrong shape: once more from the others' mean
         _retry_from_mean(corresponded, list(flagged), ref_faces, prepared, params, n_jobs, timings)

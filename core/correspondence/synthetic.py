@@ -13,7 +13,9 @@ Base surfaces:
   parameter on the unit sphere (Fibonacci lattice, convex-hull triangulation);
 - ``"tube"``: a long bent tube closed at both ends (genus 0, ~60 x 8 mm);
 - ``"ring"``: a torus whose tube thickens on one side (genus 1, ~40 mm across), parameter
-  on the flat torus (a sheared, offset grid, each quad split along a random diagonal).
+  on the flat torus (a sheared, offset grid, each quad split along a random diagonal);
+- ``"twist"``: the bean twisted by 100 degrees about its long axis, a clearly chiral shape
+  (no mirror symmetry), to tell a mirrored side (a left/right mix-up) from a rotated one.
 
 :func:`material_points` gives, for points on a shape's surface, their material points by
 barycentric interpolation over the shape's triangles; :func:`homology_spread` the mean
@@ -31,11 +33,16 @@ from core import mesh as meshops
 from core.geometry import face_normals, random_rotation, surface_coordinates
 from core.types import TriMesh
 
-KINDS = ("bean", "tube", "ring")
+KINDS = ("bean", "tube", "ring", "twist")
 
 
 def _base(kind: str, m: np.ndarray) -> np.ndarray:
     """Base surface points (P, 3) mm at parameters ``m`` (sphere: unit vectors; ring: angles)."""
+    if kind == "twist":
+        p = _base("bean", m)
+        angle = np.deg2rad(100.0) * p[:, 0] / 36.0  # about the long (x) axis
+        c, s = np.cos(angle), np.sin(angle)
+        return np.column_stack([p[:, 0], c * p[:, 1] - s * p[:, 2], s * p[:, 1] + c * p[:, 2]])
     if kind == "bean":
         x = 18.0 * m[:, 0]
         taper = 1.0 - 0.5 * m[:, 0]
