@@ -70,6 +70,29 @@ class GroomReport:
         return {k: (list(v) if isinstance(v, list) else v) for k, v in self.__dict__.items()}
 
 
+def describe(report: dict) -> str:
+    """What grooming did to one mesh, in one short line ("" when it changed nothing), from a
+    :meth:`GroomReport.to_dict` (as stored in ``correspondence.json``)."""
+    done = []
+    if report.get("dropped_pieces"):
+        share = 100 * report.get("dropped_area_share", 0.0)
+        done.append(f"dropped {report['dropped_pieces']} piece{'s' if report['dropped_pieces'] > 1 else ''}"
+                    f" ({f'{share:.0f}%' if share >= 0.5 else '<1%'} of the area)")
+    if report.get("filled_holes"):
+        done.append(f"filled {report['filled_holes']} hole{'s' if report['filled_holes'] > 1 else ''}")
+    if report.get("welded_vertices"):
+        done.append(f"welded {report['welded_vertices']} vertices")
+    if report.get("removed_degenerate_faces"):
+        done.append(f"removed {report['removed_degenerate_faces']} degenerate triangles")
+    if report.get("flipped_faces"):
+        done.append(f"reoriented {report['flipped_faces']} triangles")
+    if report.get("turned_outward"):
+        done.append("turned outward")
+    if report.get("remeshed"):
+        done.append(f"remeshed {report.get('input_vertices')} -> {report.get('output_vertices')} vertices")
+    return "; ".join(done)
+
+
 def weld(vertices: np.ndarray, faces: np.ndarray, tol: float | None = None
          ) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Merge coincident vertices, drop degenerate faces and unused vertices.

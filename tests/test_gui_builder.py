@@ -375,3 +375,30 @@ def test_lsf_factors_from_corresponded_meshes_show_planted_regions(panel, qtbot,
                    key=lambda j: (coloured & planted.supports[j]).sum())
         inside = (coloured & planted.supports[best]).sum() / coloured.sum()
         assert coloured.mean() < 0.3 and inside > 0.8
+
+
+def test_mesh_list_shows_what_grooming_repaired(panel, qtbot, tmp_path):
+    from core.correspondence.synthetic import known_homology_shapes
+
+    pop = known_homology_shapes("bean", 4, seed=8, n_points=(150, 170))
+    paths = []
+    for k, mesh in enumerate(pop.meshes):
+        v, f = mesh.vertices, mesh.faces
+        if k == 2:  # a stray island of a few voxels beside the structure
+            island = v[f[:4]].reshape(-1, 3)[:4] * 0.05 + v.max(axis=0) + 5.0
+            f = np.vstack([f, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]]) + len(v)])
+            v = np.vstack([v, island])
+        paths.append(tmp_path / f"shape_{k}.vtk")
+        save_mesh(paths[-1], TriMesh(v, f))
+    panel.add_paths([str(p) for p in paths])
+    wait_idle(qtbot, panel, 20000)
+    panel.n_references.setValue(1)
+    panel.model_method.setCurrentText("pca")
+    with qtbot.waitSignal(panel.model_built, timeout=120000):
+        qtbot.mouseClick(panel.build_button, Qt.LeftButton)
+    wait_idle(qtbot, panel, 5000)
+    rows = {panel.mesh_list.topLevelItem(i).text(0): panel.mesh_list.topLevelItem(i)
+            for i in range(4)}
+    assert panel.mesh_list.headerItem().text(4) == "Grooming"
+    assert rows["shape_2.vtk"].text(4).startswith("dropped 1 piece"), rows["shape_2.vtk"].text(4)
+    assert all("dropped" not in rows[f"shape_{k}.vtk"].text(4) for k in (0, 1, 3))

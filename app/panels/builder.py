@@ -238,7 +238,8 @@ class BuilderPanel(QWidget):
 
     def _refresh_mesh_list(self) -> None:
         fits, failures = self.state.correspondence_report()
-        self.meshes_box.show_entries(self.state.entries, fits, failures)
+        self.meshes_box.show_entries(self.state.entries, fits, failures,
+                                     self.state.grooming_report())
         self.pipeline.set_reference_names([e.name for e in self.usable_entries()])
         self._refresh_stage_labels()
         self._update_buttons()

@@ -1,8 +1,8 @@
 """The builder's training-mesh list: add (folder, files, drop), tick, remove, and what was found.
 
 One row per mesh file: its name, vertex count, after correspondence the distance between the
-corresponded mesh and the original, and the problems found when loading (or why the
-correspondence failed). The widget only shows the entries the panel gives it and reports what
+corresponded mesh and the original and what grooming repaired or dropped, and the problems
+found when loading (or why the correspondence failed). The widget only shows the entries the panel gives it and reports what
 the user asks for through signals; loading runs in the panel's worker.
 """
 
@@ -76,8 +76,10 @@ class MeshListBox(QGroupBox):
         self.clear_button.setToolTip("Remove all meshes.")
         self.tree = QTreeWidget()
         self.tree.setObjectName("mesh_list")
-        self.tree.setColumnCount(4)
-        self.tree.setHeaderLabels(["Mesh", "Vertices", "Fit (mm)", "Problems"])
+        self.tree.setColumnCount(5)
+        self.tree.setHeaderLabels(["Mesh", "Vertices", "Fit (mm)", "Problems", "Grooming"])
+        self.tree.headerItem().setToolTip(
+            4, "After correspondence: what grooming repaired, dropped or remeshed in this mesh.")
         self.tree.headerItem().setToolTip(
             2, "After correspondence: symmetric mean surface distance between the corresponded "
                "mesh (reference topology) and the original mesh.")
@@ -156,9 +158,11 @@ class MeshListBox(QGroupBox):
 
     def show_entries(self, entries: Sequence[MeshEntry],
                      fits: Mapping[str, float] | None = None,
-                     failures: Mapping[str, str] | None = None) -> None:
-        """List ``entries``; ``fits`` (mm) and ``failures`` by mesh name from correspondence."""
-        fits, failures = fits or {}, failures or {}
+                     failures: Mapping[str, str] | None = None,
+                     grooming: Mapping[str, str] | None = None) -> None:
+        """List ``entries``; ``fits`` (mm), ``failures`` and ``grooming`` (what was repaired)
+        by mesh name from correspondence."""
+        fits, failures, grooming = fits or {}, failures or {}, grooming or {}
         self.tree.blockSignals(True)
         self.tree.clear()
         for entry in entries:
@@ -168,12 +172,14 @@ class MeshListBox(QGroupBox):
             fit = fits.get(entry.name) if entry.included else None
             item = QTreeWidgetItem([entry.name, "" if entry.mesh is None else
                                     str(entry.mesh.n_vertices),
-                                    "" if fit is None else f"{fit:.2f}", "; ".join(problems)])
+                                    "" if fit is None else f"{fit:.2f}", "; ".join(problems),
+                                    grooming.get(entry.name, "") if entry.included else ""])
             item.setToolTip(0, entry.path)
             item.setToolTip(3, "\n".join(problems))
+            item.setToolTip(4, item.text(4))
             if entry.mesh is None:
                 item.setFlags(item.flags() & ~Qt.ItemIsUserCheckable)
-                for c in range(4):
+                for c in range(5):
                     item.setForeground(c, QColor(ERROR_COLOUR))
             else:
                 item.setFlags(item.flags() | Qt.ItemIsUserCheckable)

@@ -46,6 +46,16 @@ class BuilderState:
                 if m is not None and r is not None}
         return fits, dict(corr.failures)
 
+    def grooming_report(self) -> dict[str, str]:
+        """What grooming repaired or dropped, one line by mesh name, from the cached
+        correspondence (:func:`core.grooming.describe`)."""
+        if "correspondence" not in self.stages:
+            return {}
+        from core.grooming import describe
+
+        grooming = getattr(self.stages["correspondence"].result, "grooming", None) or {}
+        return {name: describe(rep) for name, rep in grooming.items()}
+
     def meshes_for(self, which: str) -> MeshTriples:
         """The training shapes "as loaded", "corresponded" or "aligned" (empty if not built)."""
         if which == "as loaded":
