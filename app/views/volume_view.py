@@ -3,10 +3,11 @@
 A pyvistaqt ``QtInteractor`` (VTK in a QOpenGLWidget; needs a real OpenGL context, e.g. Xvfb
 with the xcb platform when headless). The three orthogonal slices through the crosshair are
 drawn as textured planes, as in 3D Slicer's 3D view. Updates from the state are coalesced by a
-short single-shot timer so that scrolling or refits never queue several renders: the first
-change renders RENDER_DELAY_MS later (after the slice views' own repaint), and during a burst
-of changes (scrolling) renders are throttled to one per max(MIN_RENDER_INTERVAL_S, twice the
-last render's time), so the 3D view follows the slices without taking the GUI thread.
+short single-shot timer so that scrolling or refits never queue several renders: a slice move
+renders RENDER_DELAY_MS later (after the slice views' own repaint), other changes (a point, its
+refit's surface) COALESCE_MS later so that an edit and its refit render once; during a burst
+(scrolling) renders are throttled to one per max(MIN_RENDER_INTERVAL_S, twice the last
+render's time), so the 3D view follows the slices without taking the GUI thread.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ VIEW_DIRECTION = np.array([-0.55, 0.75, 0.45]) / math.sqrt(0.55**2 + 0.75**2 + 0
 FACTOR_SCALARS = "factor displacement (mm per SD)"
 MAX_DEFER_S = 0.5
 RENDER_DELAY_MS = 10          # lets the slice views paint first (they are the user's focus)
+COALESCE_MS = 60              # an edit and the refit it starts: one render
 MIN_RENDER_INTERVAL_S = 0.05
 SOFTWARE_GL = ("llvmpipe", "softpipe", "swrast", "software rasterizer")
 POINT_COLOR = (0.0, 0.9, 1.0)
@@ -143,17 +145,21 @@ class VolumeView(QWidget):
             self._mark("points")
 
     def _mark(self, *what: str) -> None:
-        """Schedule an update: RENDER_DELAY_MS from now, or when the throttle allows the next
-        render (a burst of scroll steps renders at a steady rate, showing the latest slice)."""
+        """Schedule an update: RENDER_DELAY_MS (slice planes) or COALESCE_MS (anything else)
+        from now, or later when the throttle allows the next render (a burst of scroll steps
+        renders at a steady rate, showing the latest slice); a pending render due sooner
+        takes this change along."""
         now = time.perf_counter()
         if self._pending_since is None:
             self._pending_since = now
         self._dirty.update(what)
-        if self._timer.isActive():
-            return                              # the pending render will include this
         end, duration = self._last_render
         ready = end + max(MIN_RENDER_INTERVAL_S, 2.0 * duration)
-        self._timer.start(max(RENDER_DELAY_MS, int(1000 * (ready - now))))
+        delay = RENDER_DELAY_MS if set(what) <= {"planes"} else COALESCE_MS
+        delay = max(delay, int(1000 * (ready - now)))
+        if self._timer.isActive() and self._timer.remainingTime() <= delay:
+            return                              # the pending render will include this
+        self._timer.start(delay)
 
     def flush(self) -> None:
         """Apply pending updates and render now (tests, screenshots)."""
