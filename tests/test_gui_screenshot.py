@@ -116,3 +116,37 @@ def test_deferred_3d_view_is_created_after_the_slices(qtbot, tmp_path, monkeypat
     image = view3d.screenshot()
     assert image.std() > 15
     window.close()
+
+
+def test_3d_view_follows_a_slice_step_without_waiting_for_the_scroll_to_end(qtbot, tmp_path,
+                                                                          monkeypatch):
+    """Issue 17: a slice step schedules the 3D render at once (RENDER_DELAY_MS, not the old
+    60 ms debounce restarted by every step); an edit keeps the longer coalescing delay, and a
+    pending slice render is not postponed by it. The new plane is what gets rendered."""
+    _need_demo()
+    from app.views import volume_view as vv_module
+
+    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
+    window = MainWindow(recovery=False)
+    qtbot.addWidget(window)
+    window.resize(1200, 800)
+    window.load_demo()
+    window.show()
+    qtbot.waitExposed(window)
+    window.render_now()
+    vv = window.workspace.volume_view
+    renders = []
+    real = vv.plotter.render
+    vv.plotter.render = lambda *a, **k: (real(*a, **k), renders.append(1))
+    qtbot.wait(300)                                   # past the throttle of the last render
+    window.state.step_slice("axial", 3)
+    assert vv._timer.isActive() and vv._timer.interval() == vv_module.RENDER_DELAY_MS
+    vv._mark("surface")                               # an edit meanwhile: not postponed
+    assert vv._timer.interval() == vv_module.RENDER_DELAY_MS
+    qtbot.waitUntil(lambda: len(renders) > 0, timeout=5000)
+    z = window.state.crosshair[2]
+    np.testing.assert_allclose(vv._plane_meshes["axial"].points[:, 2], z, atol=1e-6)
+    qtbot.wait(300)
+    vv._mark("surface")
+    assert vv._timer.interval() == vv_module.COALESCE_MS
+    window.close()
