@@ -45,14 +45,18 @@ from app.window import MainWindow  # noqa: E402
 from bench_gui import _stats, bench_refit  # noqa: E402
 
 
-def slice_steps(window, app, steps: int = 40) -> list[float]:
+def slice_steps(window, app, steps: int = 40, cpu: list | None = None) -> list[float]:
+    """Page Up/Down in the axial view, painted synchronously (wall times; GUI-thread CPU
+    times appended to ``cpu``)."""
     view = window.workspace.views["axial"]
     out = []
     for i in range(steps):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         window.state.step_slice("axial", 1 if i % 2 == 0 else -1)
         view.repaint()
         out.append(time.perf_counter() - t0)
+        if cpu is not None:
+            cpu.append(time.thread_time() - c0)
     return out
 
 
@@ -249,7 +253,8 @@ def slices_only(app, args, second_path: str) -> list[tuple]:
         window.render_now()
         (row,) = bench_refit(window, app, args.edits, ("gmm-aniso",))
         rows.append((name, "click -> refit -> repainted", row[1], row[5]))
-        rows.append((name, "slice step (axial)", slice_steps(window, app), None))
+        cpu: list[float] = []
+        rows.append((name, "slice step (axial)", slice_steps(window, app, cpu=cpu), cpu))
     rows.append(("fill + second image", "brush dab (3 mm) -> repainted",
                  brush_dabs(window, app), None))
     window.unsaved = False
