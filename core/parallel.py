@@ -12,8 +12,9 @@ the same results.
 - jobs are submitted through a bounded window (a few per worker), and every result is handed
   to ``on_result(key, result)`` as soon as it arrives, so a caller can write it and keep only a
   summary: memory on the client stays flat in the number of jobs;
-- ``progress(fraction, message)`` follows completed jobs; raising
-  :class:`core.progress.Cancelled` from it (the GUI's Cancel) stops everything.
+- ``progress(fraction, message)`` follows completed jobs (and is called every 0.1 s while
+  waiting, a heartbeat); raising :class:`core.progress.Cancelled` from it (the GUI's Cancel)
+  stops everything, also while the workers are still starting.
 
 Interruption (issue 18 item 14). :func:`termination_signals` (installed by the command line for
 every command) turns SIGTERM into :class:`Terminated`, as Python already turns SIGINT into
@@ -49,6 +50,7 @@ from core.progress import ProgressCallback, report
 
 _SCHEDULER: contextvars.ContextVar = contextvars.ContextVar("ssm_studio_scheduler", default=None)
 _COMMON: Any = None  # a pool worker's copy of ``common``
+_WORKER_MODULES: list[str] = []  # imported once by the fork server (see preload_in_workers)
 
 
 class Terminated(BaseException):
@@ -63,27 +65,60 @@ class Terminated(BaseException):
         return 128 + self.signum
 
 
+_DEFERRED: list[int] | None = None  # signals held back by _signals_deferred, or None
+
+
+def _raise_for(signum: int) -> None:
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise Terminated(signum)
+
+
+def _on_signal(signum, frame) -> None:
+    if _DEFERRED is not None:  # inside a critical section: raise when it ends
+        _DEFERRED.append(signum)
+        return
+    _raise_for(signum)
+
+
 @contextlib.contextmanager
 def termination_signals() -> Iterator[None]:
-    """While active, SIGTERM raises :class:`Terminated` in the main thread (SIGINT stays
-    ``KeyboardInterrupt``). A no-op outside the main thread."""
+    """While active, SIGTERM raises :class:`Terminated` in the main thread and SIGINT
+    ``KeyboardInterrupt`` (also when the process started with SIGINT ignored, as a shell's
+    background job does). A no-op outside the main thread; a SIGINT handler someone else
+    installed (e.g. a GUI's) is left alone."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-
-    def on_term(signum, frame):
-        raise Terminated(signum)
-
-    previous_term = signal.signal(signal.SIGTERM, on_term)
+    previous_term = signal.signal(signal.SIGTERM, _on_signal)
     previous_int = signal.getsignal(signal.SIGINT)
-    if previous_int in (signal.SIG_IGN, None):  # e.g. started in the background by a shell
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+    ours_int = previous_int in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler)
+    if ours_int:
+        signal.signal(signal.SIGINT, _on_signal)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous_term)
-        if previous_int in (signal.SIG_IGN, None):
+        if ours_int:
             signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM (as installed by :func:`termination_signals`) back until the block
+    ends: starting a worker process must not be cut in half (a worker started but not yet
+    registered could not be stopped, and would print a traceback on its own)."""
+    global _DEFERRED
+    if _DEFERRED is not None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _DEFERRED = []
+    try:
+        yield
+    finally:
+        pending, _DEFERRED = _DEFERRED, None
+        if pending:
+            _raise_for(pending[0])
 
 
 # ----------------------------------------------------------------------------- scheduler choice
@@ -201,8 +236,12 @@ def _pool_init(common: Any, parent_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it terminates us
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     _die_with_parent()
-    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+    try:  # the submitting process died before prctl took effect
+        os.kill(parent_pid, 0)
+    except ProcessLookupError:
         os._exit(1)
+    except OSError:
+        pass
     _COMMON = common
 
 
@@ -291,16 +330,45 @@ def _run_inline(fn, iterator, common, total, progress, keep, label) -> dict:
     return results
 
 
-def _run_pool(fn, iterator, common, n, total, progress, keep, label, window) -> dict:
+def preload_in_workers(module: str) -> None:
+    """Pool workers start with ``module`` (a module whose functions are jobs) already imported:
+    the fork server imports it once and every worker is forked from it. Call at import time;
+    effective for the modules registered before the session's first pool."""
+    if module not in _WORKER_MODULES:
+        _WORKER_MODULES.append(module)
+
+
+def _pool_context(fn: Callable):
+    """forkserver where the platform has it, else spawn -- never a fork of this (possibly
+    multi-threaded GUI or BLAS) process. The fork server is a fresh single-threaded process,
+    started once per session, that imports the job modules once; a pool then starts in
+    milliseconds instead of an interpreter start and imports per worker (spawn)."""
     import multiprocessing as mp
+
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    context = mp.get_context("forkserver")
+    module = getattr(fn, "__module__", None)
+    extra = [module] if module and module != "__main__" and module not in _WORKER_MODULES else []
+    # effective when the server (re)starts; '__main__' is multiprocessing's default
+    context.set_forkserver_preload(["__main__", *_WORKER_MODULES, *extra])
+    return context
+
+
+def _run_pool(fn, iterator, common, n, total, progress, keep, label, window) -> dict:
+    # Workers start on demand (at submit); they, and a fork server started now, inherit one
+    # BLAS thread each for the whole run.
+    with single_threaded_children():
+        return _run_pool_jobs(fn, iterator, common, n, total, progress, keep, label, window)
+
+
+def _run_pool_jobs(fn, iterator, common, n, total, progress, keep, label, window) -> dict:
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    # spawn, not fork: no fork of a (possibly) multi-threaded GUI or BLAS process.
     # concurrent.futures rather than multiprocessing.Pool: Pool.terminate() can deadlock on the
     # task queue's lock held by a worker it kills; this executor survives killed workers.
-    with single_threaded_children():
-        executor = ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context("spawn"),
-                                       initializer=_pool_init, initargs=(common, os.getpid()))
+    executor = ProcessPoolExecutor(max_workers=n, mp_context=_pool_context(fn),
+                                   initializer=_pool_init, initargs=(common, os.getpid()))
     results: dict = {}
     limit = max(1, int(window) if window else 4 * n)
     in_flight: dict = {}
@@ -314,13 +382,17 @@ def _run_pool(fn, iterator, common, n, total, progress, keep, label, window) -> 
             except StopIteration:
                 exhausted = True
                 return
-            in_flight[executor.submit(_pool_call, fn, key, arg)] = key
+            with _signals_deferred():  # submit may start a worker process
+                in_flight[executor.submit(_pool_call, fn, key, arg)] = key
 
     try:
         submit_more()
         while in_flight:
             # short waits: SIGINT/SIGTERM are handled within a fraction of a second
             finished, _ = wait(list(in_flight), timeout=0.1, return_when=FIRST_COMPLETED)
+            if not finished:  # heartbeat: the GUI's Cancel is raised from the callback
+                report(progress, len(results) / total if total else 0.0,
+                       _message(label, len(results), total))
             for fut in finished:
                 key = in_flight.pop(fut)
                 exc = fut.exception()
@@ -389,7 +461,9 @@ def _run_dask(client, fn, iterator, common, total, progress, keep, label, window
         while not pending.is_empty():
             batch = pending.next_batch(block=False)
             if not batch:
-                time.sleep(0.05)  # short waits: signals are handled promptly
+                time.sleep(0.1)  # short waits: signals are handled promptly
+                report(progress, len(results) / total if total else 0.0,  # heartbeat (Cancel)
+                       _message(label, len(results), total))
                 continue
             for fut in batch:
                 key = keys.pop(fut.key)

@@ -1,7 +1,9 @@
-"""Ctrl-C and SIGTERM stop a batch command promptly, also when started with SIGINT ignored."""
+"""Ctrl-C and SIGTERM stop a batch command promptly, also when started with SIGINT ignored;
+``correspond`` leaves every finished output and a report of what completed (issue 18 item 14)."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -10,6 +12,8 @@ import time
 from pathlib import Path
 
 import pytest
+
+from proc_tree import descendants, still_alive
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,16 +36,24 @@ def _wait_for_progress(proc: subprocess.Popen, timeout: float = 120.0) -> bytes:
     return seen
 
 
+def _wait_for(condition, proc: subprocess.Popen, guard: float = 60.0) -> None:
+    """Until ``condition()`` holds (a hang guard, not a timing assertion)."""
+    deadline = time.monotonic() + guard
+    while time.monotonic() < deadline and not condition() and proc.poll() is None:
+        time.sleep(0.05)
+
+
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_correspond_stops_on_a_signal_with_its_exit_code(tmp_path, sig, code):
     meshes = sorted((ROOT / "resources" / "demo" / "meshes").glob("*.vtk"))[:6]
     if len(meshes) < 6:
         pytest.skip("demo meshes missing")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = tmp_path / "out"
     # a job runner's background job: SIGINT starts out ignored (as bash does for `cmd &`)
     proc = subprocess.Popen(
         [sys.executable, "-m", "core.cli", "correspond", *map(str, meshes), "--reference",
-         "auto", "--out", str(tmp_path / "out")], env=env, stdout=subprocess.DEVNULL,
+         "auto", "--out", str(out)], env=env, stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     head = _wait_for_progress(proc)  # into the work (the demo batch takes far longer)
     assert proc.poll() is None
@@ -54,3 +66,46 @@ def test_correspond_stops_on_a_signal_with_its_exit_code(tmp_path, sig, code):
         pytest.fail(f"correspond did not stop within 10 s of {sig.name}")
     assert proc.returncode == code
     assert "Traceback" not in err.decode()
+    report = json.loads((out / "correspondence.json").read_text())
+    assert report["interrupted"] == sig.name and report["complete"] is False
+
+
+def test_sigint_to_correspond_leaves_finished_shapes_and_a_report(tmp_path):
+    """SIGINT to one `correspond --jobs 2` process while its workers stream outputs: exit 130,
+    no traceback, the report lists the finished outputs, each reads back whole, no worker
+    (nor fork server) survives."""
+    from core.correspondence.synthetic import known_homology_shapes
+    from core.io import load_mesh, save_mesh
+
+    population = known_homology_shapes("bean", 20, seed=5, n_points=(90, 120))
+    paths = []
+    for mesh in population.meshes:
+        paths.append(tmp_path / f"{mesh.name}.vtk")
+        save_mesh(paths[-1], mesh)
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "core.cli", "correspond", *map(str, paths), "--reference",
+         str(paths[0]), "--out", str(out), "--jobs", "2", "--max-iterations", "30"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    try:
+        _wait_for(lambda: any(out.glob("bean_*.vtk")), proc)  # outputs arrive as they finish
+        workers = descendants(proc.pid)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)  # a hang guard
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "stopped by SIGINT" in err
+    report = json.loads((out / "correspondence.json").read_text())
+    assert report["interrupted"] == "SIGINT" and report["complete"] is False
+    done = [s["output"] for s in report["shapes"] if s["output"]]
+    assert 1 <= len(done) < len(paths) == len(report["shapes"])
+    assert sorted(Path(p).name for p in done) == sorted(p.name for p in out.glob("bean_*.vtk"))
+    first = load_mesh(done[0])
+    for path in done:  # every reported output is a whole mesh in the common topology
+        mesh = load_mesh(path)
+        assert mesh.vertices.shape == first.vertices.shape
+        assert (mesh.faces == first.faces).all()
+    assert len(workers) >= 2
+    assert still_alive(workers) == []

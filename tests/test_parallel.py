@@ -15,34 +15,9 @@ import pytest
 
 from core.parallel import JobError, check_scheduler, run_jobs, use_scheduler
 from core.progress import Cancelled
+from proc_tree import descendants, still_alive
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _children(pid: int) -> set[int]:
-    """All descendants of ``pid`` (from /proc)."""
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        p = todo.pop()
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                kids = [int(c) for c in (task / "children").read_text().split()]
-            except OSError:
-                continue
-            for c in kids:
-                if c not in out:
-                    out.add(c)
-                    todo.append(c)
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state not in ("Z", "X")
 
 
 def _job(arg, common):
@@ -163,7 +138,7 @@ def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
     try:
         first = proc.stdout.readline()  # a job finished: workers are up and busy
         assert first.startswith("done"), proc.stderr.read()
-        workers = _children(proc.pid)
+        workers = descendants(proc.pid)
         assert len(workers) >= 2
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=30)  # a hang guard, not a timing assertion
@@ -171,5 +146,47 @@ def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
         proc.kill()
     assert proc.returncode == 143, err
     assert "stopped after" in out
-    time.sleep(0.2)
-    assert [p for p in workers if _alive(p)] == []
+    assert still_alive(workers) == []
+
+
+@pytest.fixture(scope="module")
+def small_meshes():
+    """Five known-homology beans of ~120 vertices, own tessellations and poses."""
+    from core.correspondence.synthetic import known_homology_shapes
+
+    return known_homology_shapes("bean", 5, seed=3, n_points=(100, 140)).meshes
+
+
+def test_correspondence_on_dask_equals_the_pool(local_cluster, small_meshes):
+    from core.correspondence import establish_correspondence
+
+    with use_scheduler(None):  # the process pool, even inside the cluster fixture
+        pooled = establish_correspondence(small_meshes, 0, n_jobs=2)
+    streamed = {}
+    on_dask = establish_correspondence(small_meshes, 0,
+                                       on_shape=lambda i, m: streamed.setdefault(i, m))
+    assert sorted(streamed) == list(range(len(small_meshes)))
+    for i, (a, b) in enumerate(zip(pooled.meshes, on_dask.meshes)):
+        np.testing.assert_array_equal(a.vertices, b.vertices)  # byte-identical
+        np.testing.assert_array_equal(streamed[i].vertices, b.vertices)  # streamed = final
+        np.testing.assert_array_equal(streamed[i].faces, on_dask.faces)
+    assert pooled.residuals_mm == on_dask.residuals_mm
+
+
+def test_evaluation_on_dask_equals_the_pool(local_cluster, small_meshes):
+    from core.evaluation import evaluate_model
+
+    rng = np.random.default_rng(0)
+    base = small_meshes[0].vertices
+    shapes = np.stack([base * rng.uniform(0.9, 1.1, 3) + rng.normal(0, 0.2, base.shape)
+                       for _ in range(5)])
+    measures = ("generalisation", "sparse_reconstruction")
+    with use_scheduler(None):
+        pooled = evaluate_model("pca", shapes, None, measures=measures, n_jobs=2)
+        inline = evaluate_model("pca", shapes, None, measures=measures, n_jobs=1)
+    on_dask = evaluate_model("pca", shapes, None, measures=measures)
+    for m in measures:
+        for run in (pooled, on_dask):
+            np.testing.assert_array_equal(run[m]["avg"], inline[m]["avg"])
+            np.testing.assert_array_equal(run[m]["max"], inline[m]["max"])
+    assert np.all(inline["generalisation"]["avg"] > 0)  # real leave-one-out errors

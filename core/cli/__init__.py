@@ -98,11 +98,20 @@ def _one_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Engine-only entry point (``python -m core.cli``)."""
-    parser = argparse.ArgumentParser(prog="ssm-studio", description=__doc__)
-    parser.add_argument("--version", action="version", version=f"ssm-studio {__version__}")
-    add_commands(parser.add_subparsers(title="commands", metavar="COMMAND"))
-    args = parser.parse_args(argv)
-    if not hasattr(args, "_run"):
-        parser.print_help()
-        return 0
-    return run_command(args)
+    from core.parallel import Terminated, termination_signals
+
+    try:
+        # before the commands are imported: a signal sent while they load is not lost
+        with termination_signals():
+            parser = argparse.ArgumentParser(prog="ssm-studio", description=__doc__)
+            parser.add_argument("--version", action="version", version=f"ssm-studio {__version__}")
+            add_commands(parser.add_subparsers(title="commands", metavar="COMMAND"))
+            args = parser.parse_args(argv)
+            if not hasattr(args, "_run"):
+                parser.print_help()
+                return 0
+            return run_command(args)
+    except KeyboardInterrupt:
+        return 130
+    except Terminated as exc:
+        return exc.exit_code

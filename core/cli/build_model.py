@@ -15,6 +15,10 @@ The model file (``.npz``, format of ``core.io.save_model``) keeps the mean, fact
 variances, triangles and a world placement: the transform from the model frame to the
 training shapes' average pose, so the mean appears where the training shapes were (e.g. on
 the structure in the MRI they came from).
+
+With ``--correspond``, ``--scheduler ADDRESS`` (or ``local:N``) runs the per-shape
+correspondence jobs as Dask tasks on a cluster. The model file is written at the end only:
+SIGINT/SIGTERM stop the workers and exit 130/143 with no model written.
 """
 
 from __future__ import annotations
@@ -25,9 +29,10 @@ from pathlib import Path
 
 from core.io import save_model
 from core.models import METHODS
-from core.cli._options import add_preparation_options
+from core.cli._options import add_preparation_options, add_scheduler_option
 from core.pipeline import build_model, load_training_meshes, \
     parse_param_values
+from core.parallel import use_scheduler
 from core.progress import StderrProgress
 
 COMMAND = "build-model"
@@ -50,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="method parameter, e.g. --param lambda_=64 --param max_iter=300 "
                              "(repeatable)")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (correspondence)")
+    add_scheduler_option(parser)
 
 
 def reference_option(value: str):
@@ -79,8 +85,10 @@ def run(args: argparse.Namespace) -> int:
     with StderrProgress("read meshes") as progress:
         meshes = load_training_meshes(args.inputs, progress=progress, isolate=True,
                                       vertex_order=not args.correspond)
+    if args.scheduler is not None and not args.correspond:
+        raise ValueError("--scheduler applies to build-model --correspond (its per-shape jobs)")
     reference = reference_option(args.reference) if args.correspond else "auto"
-    with StderrProgress(f"build {args.method} model") as progress:
+    with use_scheduler(args.scheduler), StderrProgress(f"build {args.method} model") as progress:
         result = build_model(meshes, correspond=args.correspond, reference=reference,
                              align=args.align, transform=args.transform, method=args.method,
                              n_factors=args.factors, method_params=params, n_jobs=args.jobs,

@@ -17,6 +17,12 @@ surface distance to the input, mm), timings, parameters, and every failed input 
 Inputs that cannot be read or used are reported and skipped; the others are still written
 (each file is read in a child process, so a reader crash on a damaged file costs that file only).
 Exit code 0 when all succeeded, 1 when some failed.
+
+Each output is written as soon as it is final (during the last refinement pass), so a run
+stopped by SIGINT or SIGTERM leaves every finished shape and a ``correspondence.json`` saying
+``"interrupted": "SIGINT"`` (or ``"SIGTERM"``), ``"complete": false`` and which shapes were
+written; it exits 130 (143). ``--jobs N`` runs the per-shape jobs in N worker processes;
+``--scheduler ADDRESS`` (or ``local:N``) runs them as Dask tasks on a cluster.
 """
 
 from __future__ import annotations
@@ -25,10 +31,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from core.cli._options import say_changed_formats
+from core.cli._options import add_scheduler_option, say_changed_formats
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
 from core.io import DataFileError, TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
+from core.parallel import Terminated, use_scheduler
 from core.progress import StderrProgress
 
 COMMAND = "correspond"
@@ -60,6 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--selection", choices=("compactness", "residual"), default="compactness",
                         help="how --reference auto ranks candidates (default compactness)")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
+    add_scheduler_option(parser)
     parser.add_argument("--w", type=float, default=DEFAULT_CPD_PARAMS["w"],
                         help="CPD outlier weight in [0, 1) (default %(default)s)")
     parser.add_argument("--beta", type=float, default=DEFAULT_CPD_PARAMS["beta"],
@@ -84,6 +92,20 @@ def _output_path(out_dir: Path, source: Path, used: set[str]) -> Path:
         name = f"{stem}_{n}{dot}{suffix}"
     used.add(name)
     return out_dir / name
+
+
+def _write_interrupted_report(args: argparse.Namespace, paths: list[Path], written: dict,
+                              load_failures: dict, exc: BaseException) -> None:
+    """correspondence.json of a run stopped by SIGINT/SIGTERM: the shapes that were finished
+    and written (each output is complete: saves are atomic), nothing else."""
+    how = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+    report = {"interrupted": how, "complete": False, "n_written": len(written),
+              "n_inputs": len(args.meshes),
+              "shapes": [{"name": str(p), "output": written.get(str(p))} for p in paths],
+              "failures": dict(load_failures), "inputs": [str(p) for p in args.meshes]}
+    atomic_write_json(args.out / REPORT_NAME, report)
+    print(f"\nssm-studio correspond: stopped by {how}: {len(written)}/{len(paths)} shapes were "
+          f"finished and written; see {args.out / REPORT_NAME}", file=sys.stderr)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -112,21 +134,27 @@ def run(args: argparse.Namespace) -> int:
     groom: bool | dict = False if args.no_groom else {
         "largest_piece": not args.no_largest_piece, "fill_holes": not args.no_fill_holes,
         "fix_orientation": not args.no_fix_orientation, "remesh": not args.no_remesh}
-    with StderrProgress("correspond") as progress:
-        result = establish_correspondence(meshes, reference, n_references=args.n_references,
-                                          n_jobs=args.jobs, progress=progress,
-                                          selection=args.selection, groom=groom,
-                                          vertices=args.vertices, refine=args.refine, **params)
     args.out.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()
-    written = {}
-    for path, mesh in zip(loaded_paths, result.meshes):
-        if mesh is None:
-            continue
-        out_path = _output_path(args.out, path, used)
-        save_mesh(out_path, TriMesh(mesh.vertices, result.faces, out_path.stem),
+    out_paths = [_output_path(args.out, path, used) for path in loaded_paths]
+    written: dict[str, str] = {}
+
+    def write_shape(index: int, mesh: TriMesh) -> None:
+        # streaming: each output as soon as it is final, so an interrupted run keeps it
+        save_mesh(out_paths[index], TriMesh(mesh.vertices, mesh.faces, out_paths[index].stem),
                   vertex_order=True)
-        written[str(path)] = str(out_path)
+        written[str(loaded_paths[index])] = str(out_paths[index])
+
+    try:
+        with use_scheduler(args.scheduler), StderrProgress("correspond") as progress:
+            result = establish_correspondence(meshes, reference, n_references=args.n_references,
+                                              n_jobs=args.jobs, progress=progress,
+                                              selection=args.selection, groom=groom,
+                                              vertices=args.vertices, refine=args.refine,
+                                              on_shape=write_shape, **params)
+    except (KeyboardInterrupt, Terminated) as exc:
+        _write_interrupted_report(args, loaded_paths, written, load_failures, exc)
+        raise
     report = result.to_report([str(p) for p in loaded_paths])
     for entry in report["shapes"]:
         entry["output"] = written.get(entry["name"])
@@ -135,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
                                  "error": problem, "output": None})
         report["failures"][name] = problem
     report["inputs"] = [str(p) for p in args.meshes]
+    report["complete"] = True
     atomic_write_json(args.out / REPORT_NAME, report)
     n_ok = len(written)
     mean = report["mean_residual_mm"]

@@ -11,6 +11,10 @@ re-aligns its training shapes (and, with ``--correspond``, re-corresponds them a
 mesh). ``--noise-var`` fixes the sparse fit's sigma^2 for every method. ``--json`` writes all per-shape values, ``--plot`` the
 boxplots (one panel per measure, like the paper's Figure 4). A summary table (means over
 shapes) is printed.
+
+``--scheduler ADDRESS`` (or ``local:N``) runs the folds (and the correspondence) as Dask
+tasks on a cluster. Nothing is written before the end: SIGINT/SIGTERM stop the workers and exit
+130/143 with no output.
 """
 
 from __future__ import annotations
@@ -22,9 +26,10 @@ from core.evaluation import (Realign, Recorrespond, evaluate_methods, plot_metri
                              summary_table, to_json)
 from core.io import atomic_write_json
 from core.models import METHODS, model_class
-from core.cli._options import add_preparation_options
+from core.cli._options import add_preparation_options, add_scheduler_option
 from core.pipeline import align, corresponded_shapes, correspond, \
     load_training_meshes, parse_param_values
+from core.parallel import use_scheduler
 from core.progress import StderrProgress
 
 COMMAND = "evaluate"
@@ -57,9 +62,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--jobs", type=int, default=None,
                         help="processes for leave-one-out folds (default: all cores)")
+    add_scheduler_option(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    # one Dask client (or none) for the correspondence and the folds alike
+    with use_scheduler(args.scheduler):
+        return _evaluate(args)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
     methods = [model_class(m).method for m in args.methods.split(",") if m.strip()]
     if not methods:
         raise ValueError("--methods lists no method")

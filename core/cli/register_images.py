@@ -23,6 +23,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from core.cli._options import add_scheduler_option
 from core.cli.register import add_registration_options, registration_kwargs
 from core.io import atomic_write_json
 from core.multi_registration import METHODS, parse_pairs, register_images
@@ -50,9 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(and the others' spread) are dropped (default %(default)s mm)")
     add_registration_options(parser)
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
-    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                        help="run the registrations on a Dask scheduler (tcp://host:8786) or "
-                             "local:N (a local cluster of N workers)")
+    add_scheduler_option(parser)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -10,10 +10,9 @@ most of the reference's bias.
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
-import queue
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,8 +22,11 @@ from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _task, mes
                                      mirror_fit_ratio)
 from core.geometry import umeyama
 from core.grooming import DEFAULT_GROOMING, GroomingError, groom_mesh
-from core.progress import ProgressCallback, report
+from core.parallel import preload_in_workers, run_jobs, runs_inline
+from core.progress import ProgressCallback, report, sub_progress
 from core.types import TriMesh
+
+preload_in_workers(__name__)  # per-shape jobs: workers start with this module imported
 
 
 @dataclass
@@ -211,46 +213,44 @@ def _compactness(shapes: np.ndarray) -> float:
     return float(((res.aligned - res.mean) ** 2).sum(axis=2).mean() / max(size2, 1e-300))
 
 
+def _task_job(task: tuple, references: dict) -> tuple:
+    """core.parallel job: one correspondence task whose reference arrays come from
+    ``references`` (sent once per worker) -> (result or None, error or None)."""
+    key, _, _, *rest = task
+    ref_v, ref_f = references[key[0]]
+    _, out, err = _task((key, ref_v, ref_f, *rest))
+    return out, err
+
+
 def _run_tasks(tasks: list[tuple], n_jobs: int, progress: ProgressCallback | None,
-               start: float, stop: float) -> dict:
-    """Run correspondence tasks in-process or in a process pool; cancellable via progress.
+               start: float, stop: float, on_result: Callable | None = None) -> dict:
+    """Run correspondence tasks in this process or through :func:`core.parallel.run_jobs`
+    (process pool, or Dask inside :func:`core.parallel.use_scheduler`); cancellable via
+    progress. ``on_result(key, (out, err))`` sees each result as it arrives (streaming).
 
     A task is the argument tuple of :func:`core.correspondence.pair._task`; its ``parallel``
-    flag (index 6) is set here: rustcpd's own threads only when running in this process.
+    flag (index 6) is set here: rustcpd's own threads only when running in this process. The
+    reference of every task is sent once per worker, not once per task.
     """
     results = {}
     total = len(tasks)
     if total == 0:
         return results
-    if n_jobs <= 1 or total == 1:
+    if runs_inline(n_jobs, total):
         for done, t in enumerate(tasks):
             report(progress, start + (stop - start) * done / total, f"corresponding {done + 1}/{total}")
             key, out, err = _task(t[:6] + (True,) + t[7:])
             results[key] = (out, err)
+            if on_result is not None:
+                on_result(key, (out, err))
         report(progress, stop, "correspondence done")
         return results
-    ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
-    pool = ctx.Pool(processes=min(n_jobs, total))
-    done_queue: queue.SimpleQueue = queue.SimpleQueue()
-    try:
-        for t in tasks:
-            pool.apply_async(_task, (t[:6] + (False,) + t[7:],), callback=done_queue.put,
-                             error_callback=lambda exc, key=t[0]: done_queue.put((key, None, repr(exc))))
-        pool.close()
-        while len(results) < total:
-            report(progress, start + (stop - start) * len(results) / total,
-                   f"corresponding {len(results)}/{total}")
-            try:
-                key, out, err = done_queue.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            results[key] = (out, err)
-        report(progress, stop, "correspondence done")
-        pool.join()
-    except BaseException:
-        pool.terminate()  # Cancelled (or anything else): stop the workers now
-        pool.join()
-        raise
+    references = {t[0][0]: (t[1], t[2]) for t in tasks}
+    items = [(t[0], (t[0], None, None) + t[3:6] + (False,) + t[7:]) for t in tasks]
+    keep = None if on_result is None else (lambda key, value: on_result(key, value) or value)
+    results = run_jobs(_task_job, items, common=references, n_jobs=n_jobs, on_result=keep,
+                       progress=sub_progress(progress, start, stop), label="corresponding")
+    report(progress, stop, "correspondence done")
     return results
 
 
@@ -418,12 +418,14 @@ def _retry_from_mean(vertices: dict[int, np.ndarray], keys: list[int], faces: np
 
 
 def _refine(vertices: dict[int, np.ndarray], faces: np.ndarray, prepared: list, params: dict,
-            n_jobs: int, progress, passes: int, timings: dict) -> list[float]:
+            n_jobs: int, progress, passes: int, timings: dict,
+            on_last_pass: Callable | None = None) -> list[float]:
     """Groupwise refinement: correspond every shape again to the current mean shape.
 
     The mean of the similarity-aligned corresponded shapes is posed on each shape by the
     weighted Umeyama fit over the current correspondences (no rigid CPD needed), then
     corresponded to it as in the pairwise step (nonrigid CPD, assignment, fairing).
+    ``on_last_pass(key, (out, err))`` sees the last pass's results as they arrive (final).
     """
     from core.alignment import generalized_procrustes
 
@@ -441,7 +443,8 @@ def _refine(vertices: dict[int, np.ndarray], faces: np.ndarray, prepared: list, 
             posed[k] = s * gpa.mean @ r.T + t
         tasks = _tasks(mean, "mean", {k: prepared[k] for k in keys}, params, posed)
         start = 0.6 + 0.35 * it / passes
-        results = _run_tasks(tasks, n_jobs, progress, start, start + 0.35 / passes)
+        results = _run_tasks(tasks, n_jobs, progress, start, start + 0.35 / passes,
+                             on_result=on_last_pass if it == int(passes) - 1 else None)
         moved = []
         for k in keys:
             out, err = results[("mean", k)]
@@ -467,6 +470,7 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
                              progress: ProgressCallback | None = None, selection: str = "compactness",
                              selection_shapes: int = 8, groom: bool | dict = True,
                              vertices: int | None = None, refine: int = 1,
+                             on_shape: Callable[[int, TriMesh], None] | None = None,
                              **cpd_params) -> CorrespondenceResult:
     """Express every training mesh with the vertices and faces of one reference mesh.
 
@@ -498,6 +502,11 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
         Common vertex count of the groomed inputs (default :func:`default_vertex_count`).
     refine : int
         Groupwise refinement passes (0: plain reference-based correspondence).
+    on_shape : callable, optional
+        ``on_shape(index, mesh)`` for every corresponded input as soon as its result is final
+        (streaming: the command line writes each output as it arrives, so an interrupted run
+        leaves the finished ones). Results become final during the last refinement pass, as
+        its jobs complete; with ``refine=0`` after the outlier check (all at once).
     **cpd_params
         Overrides of :data:`DEFAULT_CPD_PARAMS`.
     """
@@ -535,7 +544,20 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     for k, reason in flagged.items():
         failures[names[k]] = reason
         corresponded.pop(k)
-    changes = _refine(corresponded, ref_faces, prepared, params, n_jobs, progress, refine, timings)
+    streamed: set[int] = set()
+
+    def stream(k: int, v: np.ndarray) -> None:
+        if on_shape is not None and k not in streamed:
+            streamed.add(k)
+            on_shape(k, TriMesh(v, ref_faces, names[k]))
+
+    def final(key: tuple, value: tuple) -> None:  # a last-pass failure keeps the previous result
+        stream(key[1], value[0]["vertices"] if value[0] is not None else corresponded[key[1]])
+
+    changes = _refine(corresponded, ref_faces, prepared, params, n_jobs, progress, refine, timings,
+                      on_last_pass=final if on_shape is not None else None)
+    for k in sorted(corresponded):  # shapes no refinement pass touched (refine=0, < 3 shapes)
+        stream(k, corresponded[k])
     return _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures,
                    timings, scores, params, grooming, why, changes, t_start, n_jobs, progress)
 

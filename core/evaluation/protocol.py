@@ -27,7 +27,6 @@ Per-shape results are "avg" and "max" arrays in mm; the result records the proto
 from __future__ import annotations
 
 import math
-import multiprocessing as mp
 import os
 import time
 from collections.abc import Sequence
@@ -46,12 +45,13 @@ from core.evaluation.measures import (
 )
 from core.models import make_model, model_class
 from core.models.base import check_shapes
-from core.parallel import single_threaded_children
+from core.parallel import JobError, preload_in_workers, run_jobs, runs_inline
 from core.progress import ProgressCallback, report, sub_progress
 
 MEASURES = ("reconstruction", "generalisation", "specificity", "sparse_reconstruction",
             "compactness")
 LEAVE_ONE_OUT = ("generalisation", "sparse_reconstruction")
+preload_in_workers(__name__)  # fold jobs: workers start with this module imported
 
 
 # ------------------------------------------------------------------------------------------
@@ -165,30 +165,24 @@ def _run_serial(tasks: list[dict], progress: ProgressCallback | None) -> list[di
     return results
 
 
+def _fold_job(task: dict, common: dict) -> dict:
+    """core.parallel job: one fold; the shapes, faces and fold source come once per worker."""
+    return _fold({**task, **common})
+
+
 def _run_folds(tasks: list[dict], n_jobs: int, progress: ProgressCallback | None) -> list[dict]:
-    if n_jobs <= 1 or len(tasks) <= 1:
+    """The folds in this process, or through :func:`core.parallel.run_jobs` (process pool, or
+    Dask inside :func:`core.parallel.use_scheduler`); the data every fold shares is sent once."""
+    if runs_inline(n_jobs, len(tasks)):
         return _run_serial(tasks, progress)
-    results: list[dict] = []
-    ctx = mp.get_context("spawn")  # no fork from a (possibly) multi-threaded GUI process
-    with single_threaded_children():
-        pool = ctx.Pool(processes=min(n_jobs, len(tasks)))
+    common = {key: tasks[0][key] for key in ("shapes", "faces", "folds")}
+    slim = [(t["k"], {k: v for k, v in t.items() if k not in common}) for t in tasks]
     try:
-        pending = [pool.apply_async(_fold, (task,)) for task in tasks]
-        while pending:
-            ready = [job.ready() for job in pending]
-            results.extend(job.get() for job, r in zip(pending, ready) if r)  # re-raises
-            pending = [job for job, r in zip(pending, ready) if not r]
-            report(progress, len(results) / len(tasks),
-                   f"leave-one-out folds {len(results)}/{len(tasks)}")
-            if pending:
-                pending[0].wait(0.25)
-        pool.close()
-    except BaseException:
-        pool.terminate()  # cancel: stop the workers now
-        raise
-    finally:
-        pool.join()
-    return sorted(results, key=lambda r: r["k"])
+        done = run_jobs(_fold_job, slim, common=common, n_jobs=n_jobs, progress=progress,
+                        label="leave-one-out folds")
+    except JobError as exc:  # a fold's own exception, as when it runs here
+        raise (exc.__cause__ or exc) from None
+    return [done[k] for k in sorted(done)]
 
 
 # ------------------------------------------------------------------------------------------

@@ -157,6 +157,7 @@ def _can_fork() -> bool:
 
 
 def _child_reader(paths: list[Path], conn) -> None:  # runs in the forked child
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the parent's: it kills us
     for index, path in enumerate(paths):
         conn.send(("start", index))
         with warnings.catch_warnings(record=True) as caught:
@@ -205,6 +206,9 @@ def _load_in_children(paths: list[Path], progress: Callable | None,
                     break
         except (EOFError, OSError):
             pass
+        except BaseException:  # SIGINT/SIGTERM: the reader (maybe blocked on a full pipe) goes too
+            child.kill()
+            raise
         finally:
             receiver.close()
             child.join()

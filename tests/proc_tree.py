@@ -1,0 +1,42 @@
+"""Process-tree helpers for the interruption tests (Linux /proc)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+
+def descendants(pid: int) -> set[int]:
+    """All descendants of ``pid`` (workers, fork servers, trackers)."""
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            for c in kids:
+                if c not in out:
+                    out.add(c)
+                    todo.append(c)
+    return out
+
+
+def alive(pid: int) -> bool:
+    """Whether ``pid`` is a live process (not gone, not a zombie)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+def still_alive(pids: set[int], guard: float = 10.0) -> list[int]:
+    """The processes of ``pids`` still alive once they stopped, or after a hang guard
+    (not a timing assertion: they are given their time to exit)."""
+    deadline = time.monotonic() + guard
+    while time.monotonic() < deadline and any(alive(p) for p in pids):
+        time.sleep(0.05)
+    return sorted(p for p in pids if alive(p))
