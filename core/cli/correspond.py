@@ -99,6 +99,7 @@ def _write_interrupted_report(args: argparse.Namespace, paths: list[Path], writt
     """correspondence.json of a run stopped by SIGINT/SIGTERM: the shapes that were finished
     and written (each output is complete: saves are atomic), nothing else."""
     how = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+    args.out.mkdir(parents=True, exist_ok=True)
     report = {"interrupted": how, "complete": False, "n_written": len(written),
               "n_inputs": len(args.meshes),
               "shapes": [{"name": str(p), "output": written.get(str(p))} for p in paths],
@@ -134,7 +135,6 @@ def run(args: argparse.Namespace) -> int:
     groom: bool | dict = False if args.no_groom else {
         "largest_piece": not args.no_largest_piece, "fill_holes": not args.no_fill_holes,
         "fix_orientation": not args.no_fix_orientation, "remesh": not args.no_remesh}
-    args.out.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()
     out_paths = [_output_path(args.out, path, used) for path in loaded_paths]
     written: dict[str, str] = {}
@@ -145,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
                   vertex_order=True)
         written[str(loaded_paths[index])] = str(out_paths[index])
 
-    try:
+    try:  # from the output folder's creation on, an interruption leaves a report
+        args.out.mkdir(parents=True, exist_ok=True)
         with use_scheduler(args.scheduler), StderrProgress("correspond") as progress:
             result = establish_correspondence(meshes, reference, n_references=args.n_references,
                                               n_jobs=args.jobs, progress=progress,
