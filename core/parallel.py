@@ -66,6 +66,10 @@ class Terminated(BaseException):
 
 
 _DEFERRED: list[int] | None = None  # signals held back by _signals_deferred, or None
+# The signal received under termination_signals. It stays set: a raise that got swallowed
+# (Python ignores exceptions raised in a destructor, where a signal can land) is raised again
+# by the executor's next wait.
+_SIGNALLED: int | None = None
 
 
 def _raise_for(signum: int) -> None:
@@ -75,6 +79,8 @@ def _raise_for(signum: int) -> None:
 
 
 def _on_signal(signum, frame) -> None:
+    global _SIGNALLED
+    _SIGNALLED = signum
     if _DEFERRED is not None:  # inside a critical section: raise when it ends
         _DEFERRED.append(signum)
         return
@@ -87,9 +93,11 @@ def termination_signals() -> Iterator[None]:
     ``KeyboardInterrupt`` (also when the process started with SIGINT ignored, as a shell's
     background job does). A no-op outside the main thread; a SIGINT handler someone else
     installed (e.g. a GUI's) is left alone."""
+    global _SIGNALLED
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    previous_signalled = _SIGNALLED
     previous_term = signal.signal(signal.SIGTERM, _on_signal)
     previous_int = signal.getsignal(signal.SIGINT)
     ours_int = previous_int in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler)
@@ -98,9 +106,17 @@ def termination_signals() -> Iterator[None]:
     try:
         yield
     finally:
+        _SIGNALLED = previous_signalled
         signal.signal(signal.SIGTERM, previous_term)
         if ours_int:
             signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)
+
+
+def raise_if_signalled() -> None:
+    """Raise ``KeyboardInterrupt``/:class:`Terminated` again if a signal arrived under
+    :func:`termination_signals` (its first raise may have been swallowed)."""
+    if _SIGNALLED is not None:
+        _raise_for(_SIGNALLED)
 
 
 @contextlib.contextmanager
@@ -318,6 +334,13 @@ def _message(label: str, done: int, total: int | None) -> str:
     return f"{label} {done}/{total}" if total else f"{label} {done}"
 
 
+def _tick(progress, done: int, total: int | None, label: str) -> None:
+    """Progress after a job or while waiting (a heartbeat): the GUI's Cancel is raised from
+    the callback, a swallowed signal from here."""
+    raise_if_signalled()
+    report(progress, done / total if total else 0.0, _message(label, done, total))
+
+
 def _run_inline(fn, iterator, common, total, progress, keep, label) -> dict:
     results: dict = {}
     for key, arg in iterator:
@@ -326,7 +349,7 @@ def _run_inline(fn, iterator, common, total, progress, keep, label) -> dict:
         except Exception as exc:
             raise JobError(key, exc) from exc
         results[key] = keep(key, out)
-        report(progress, len(results) / total if total else 0.0, _message(label, len(results), total))
+        _tick(progress, len(results), total, label)
     return results
 
 
@@ -390,17 +413,15 @@ def _run_pool_jobs(fn, iterator, common, n, total, progress, keep, label, window
         while in_flight:
             # short waits: SIGINT/SIGTERM are handled within a fraction of a second
             finished, _ = wait(list(in_flight), timeout=0.1, return_when=FIRST_COMPLETED)
-            if not finished:  # heartbeat: the GUI's Cancel is raised from the callback
-                report(progress, len(results) / total if total else 0.0,
-                       _message(label, len(results), total))
+            if not finished:  # heartbeat
+                _tick(progress, len(results), total, label)
             for fut in finished:
                 key = in_flight.pop(fut)
                 exc = fut.exception()
                 if exc is not None:
                     raise JobError(key, exc) from exc
                 results[key] = keep(key, fut.result()[1])
-                report(progress, len(results) / total if total else 0.0,
-                       _message(label, len(results), total))
+                _tick(progress, len(results), total, label)
             submit_more()
         executor.shutdown(wait=True)
     except BaseException:
@@ -462,8 +483,7 @@ def _run_dask(client, fn, iterator, common, total, progress, keep, label, window
             batch = pending.next_batch(block=False)
             if not batch:
                 time.sleep(0.1)  # short waits: signals are handled promptly
-                report(progress, len(results) / total if total else 0.0,  # heartbeat (Cancel)
-                       _message(label, len(results), total))
+                _tick(progress, len(results), total, label)  # heartbeat
                 continue
             for fut in batch:
                 key = keys.pop(fut.key)
@@ -473,8 +493,7 @@ def _run_dask(client, fn, iterator, common, total, progress, keep, label, window
                     raise JobError(key, exc) from exc
                 fut.release()
                 results[key] = keep(key, value)
-                report(progress, len(results) / total if total else 0.0,
-                       _message(label, len(results), total))
+                _tick(progress, len(results), total, label)
             submit_more()
     except BaseException:
         with contextlib.suppress(Exception):
