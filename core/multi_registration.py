@@ -337,13 +337,7 @@ def register_images(paths: Sequence[str | os.PathLike], transform: str = "affine
     registration : keyword arguments of :func:`core.registration.register` (levels_mm, ...).
     progress : ``progress(fraction, message)``; may raise ``Cancelled``.
     """
-    from core.registration import TRANSFORMS
-
-    if transform not in TRANSFORMS:
-        raise ValueError(f"transform must be one of {', '.join(TRANSFORMS)}; got {transform!r}")
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
-    kind, k_nn = parse_pairs(pairs)
+    kind, k_nn = _check_options(transform, method, pairs)
     paths = [str(p) for p in paths]
     n = len(paths)
     if n < 2:
@@ -353,102 +347,32 @@ def register_images(paths: Sequence[str | os.PathLike], transform: str = "affine
 
     # 1. inspect
     report(progress, 0.0, "reading images")
-    info = run_jobs(_inspect_job, [(k, (k, p)) for k, p in enumerate(paths)], n_jobs=n_jobs,
-                    progress=sub_progress(progress, 0.0, 0.05), label="images read")
-    ok = [bool(info[k]["ok"]) for k in range(n)]
-    image_errors = {k: info[k]["error"] for k in range(n) if not ok[k]}
+    info, ok, image_errors = _inspect_images(paths, n_jobs, sub_progress(progress, 0.0, 0.05))
     good = [k for k in range(n) if ok[k]]
-    if len(good) < 2:
-        raise ValueError("fewer than 2 readable images: "
-                         + "; ".join(f"{paths[k]}: {e}" for k, e in image_errors.items()))
     samples = {k: info[k]["samples"] for k in good}
     timings["inspect"] = time.perf_counter() - t_start
 
-    # 2. pair graph
-    if method == "reference":
-        ref = 0 if reference is None else int(reference)
-        if not 0 <= ref < n:
-            raise ValueError(f"reference index {ref} out of range for {n} images")
-        if not ok[ref]:
-            raise ValueError(f"the reference image {paths[ref]} cannot be used: {image_errors[ref]}")
-        graph = [(ref, k) for k in good if k != ref]
-    elif kind == "all":
-        ref = None
-        graph = [(a, b) for ai, a in enumerate(good) for b in good[ai + 1:]]
-    else:
-        ref = None
-        desc = np.stack([pose_descriptor(samples[k]) for k in good])
-        graph = [(good[a], good[b]) for a, b in knn_pairs(desc, k_nn)]
+    # 2. pair graph and pairwise registrations
+    ref, graph = _pair_graph(method, kind, k_nn, reference, paths, good, ok, image_errors,
+                             samples)
     if method == "sync" and both_directions:
         # Each pair registered both ways: registrations onto one fixed image share its noise
         # and sampling, an error common to all of them that the reverse direction balances.
         graph = graph + [(j, i) for i, j in graph]
-    inline = runs_inline(n_jobs, len(graph))
-    common = {"paths": paths, "transform": transform, "kwargs": dict(registration or {}),
-              "threads": None if inline else 1}
     t0 = time.perf_counter()
-    out = run_jobs(_pair_job, [((i, j), (i, j)) for i, j in graph], common=common, n_jobs=n_jobs,
-                   progress=sub_progress(progress, 0.05, 0.85), label="pairs registered")
+    pair_list = _register_pairs(graph, paths, transform, registration, n_jobs,
+                                sub_progress(progress, 0.05, 0.85))
     timings["pairwise"] = time.perf_counter() - t0
-    pair_list = [out[(i, j)] for i, j in graph]
-    for pr in pair_list:
-        pr["used"] = pr["transform"] is not None
-        pr["residual_mm"] = None
-        pr["note"] = None if pr["used"] else f"registration failed: {pr['error']}"
 
     # 3. synchronise (or chain to the reference)
-    transforms = np.full((n, 4, 4), np.nan)
     if method == "reference":
-        transforms[ref] = np.eye(4)
-        for pr in pair_list:
-            if pr["used"]:
-                transforms[pr["j"]] = pr["transform"]
-            else:
-                ok[pr["j"]] = False
-                image_errors[pr["j"]] = f"registration to the reference failed: {pr['error']}"
+        transforms = _chain_to_reference(pair_list, ref, n, ok, image_errors)
     else:
-        usable = [pr for pr in pair_list if pr["used"]]
-        members = sorted({pr["i"] for pr in usable} | {pr["j"] for pr in usable})
-        edges = {(pr["i"], pr["j"]) for pr in usable}
-        labels = _components(n, edges)
-        # Keep the largest connected group of images; the others cannot be placed.
-        if members:
-            sizes = np.bincount(labels[members], minlength=labels.max() + 1)
-            main = int(np.argmax(sizes))
-            members = [k for k in members if labels[k] == main]
-        for k in good:
-            if k not in members:
-                ok[k] = False
-                image_errors[k] = "no successful registration links this image to the others"
-        if len(members) < 2:
-            raise ValueError("no two images could be registered to each other")
-        index = {k: m for m, k in enumerate(members)}
-        sub = [(index[pr["i"]], index[pr["j"]], np.asarray(pr["transform"])) for pr in usable
-               if pr["i"] in index and pr["j"] in index]
-        sub_samples = [samples[k] for k in members]
-        t_sync, used, resid = robust_synchronize(len(members), sub, sub_samples, transform,
-                                                 outlier_mm=outlier_mm)
-        transforms[members] = t_sync
-        med = float(np.median(resid[used]))
-        q = 0
-        for pr in usable:
-            if pr["i"] in index and pr["j"] in index:
-                pr["residual_mm"] = float(resid[q])
-                if not used[q]:
-                    pr["used"] = False
-                    pr["note"] = (f"dropped: residual {resid[q]:.2f} mm against a median of "
-                                  f"{med:.2f} mm (disagrees with the other pairs)")
-                q += 1
-    if method == "reference":
-        for pr in pair_list:
-            if pr["used"]:
-                pr["residual_mm"] = 0.0  # the chain uses every pair as is
+        transforms = _synchronise_pairs(pair_list, good, samples, n, ok, image_errors,
+                                        transform, outlier_mm)
     result = MultiRegistrationResult(paths=paths, method=method, transform=transform,
                                      transforms=transforms, ok=ok, image_errors=image_errors,
-                                     pairs=[{k: pr[k] for k in ("i", "j", "transform", "metric",
-                                                                 "initial_metric", "seconds",
-                                                                 "residual_mm", "used", "note")}
-                                            for pr in pair_list],
+                                     pairs=[{k: pr[k] for k in _PAIR_FIELDS} for pr in pair_list],
                                      reference=ref)
     placed = [k for k in range(n) if ok[k]]
     grid_spacing = float(spacing) if spacing else min(info[k]["spacing"] for k in placed)
@@ -457,35 +381,167 @@ def register_images(paths: Sequence[str | os.PathLike], transform: str = "affine
 
     # 4. resample and average
     if out_dir is not None:
-        from core.io import load_volume, save_volume
-
-        out_dir = Path(out_dir)
-        (out_dir / "resampled").mkdir(parents=True, exist_ok=True)
-        names = _output_names(paths)
-        total = np.zeros(shape, np.float64)
-        written: dict[int, str] = {}
-
-        def accumulate(key, value):
-            vol = load_volume(value["path"])  # one volume at a time in memory
-            total[...] += np.asarray(vol.data, np.float64) / max(info[key]["scale"], 1e-12)
-            written[key] = value["path"]
-            return value["path"]
-
         t0 = time.perf_counter()
-        run_jobs(_resample_job, [(k, (k, transforms[k], str(out_dir / "resampled" / names[k])))
-                                 for k in placed],
-                 common={"paths": paths, "shape": shape, "affine": affine}, n_jobs=n_jobs,
-                 on_result=accumulate, progress=sub_progress(progress, 0.85, 1.0),
-                 label="images resampled")
-        template_path = out_dir / "template.nii.gz"
-        save_volume(template_path, (total / len(placed)).astype(np.float32), affine)
-        result.outputs = {"resampled": written, "template": str(template_path)}
+        result.outputs = _resample_and_average(Path(out_dir), paths, placed, transforms,
+                                               {k: info[k]["scale"] for k in placed},
+                                               affine, shape, n_jobs,
+                                               sub_progress(progress, 0.85, 1.0))
         timings["resample"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     timings["n_jobs"] = resolve_jobs(n_jobs)
     result.timings = timings
     report(progress, 1.0, "done")
     return result
+
+
+_PAIR_FIELDS = ("i", "j", "transform", "metric", "initial_metric", "seconds", "residual_mm",
+                "used", "note")
+
+
+def _check_options(transform: str, method: str, pairs: str) -> tuple[str, int]:
+    """The pair-graph kind and K of ``pairs``, after checking the transform and method."""
+    from core.registration import TRANSFORMS
+
+    if transform not in TRANSFORMS:
+        raise ValueError(f"transform must be one of {', '.join(TRANSFORMS)}; got {transform!r}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    return parse_pairs(pairs)
+
+
+def _inspect_images(paths: list[str], n_jobs: int | None, progress: ProgressCallback | None
+                    ) -> tuple[dict, list[bool], dict[int, str]]:
+    """Step 1: every image read in a worker; (per-image info, ok flags, errors by index)."""
+    n = len(paths)
+    info = run_jobs(_inspect_job, [(k, (k, p)) for k, p in enumerate(paths)], n_jobs=n_jobs,
+                    progress=progress, label="images read")
+    ok = [bool(info[k]["ok"]) for k in range(n)]
+    image_errors = {k: info[k]["error"] for k in range(n) if not ok[k]}
+    if sum(ok) < 2:
+        raise ValueError("fewer than 2 readable images: "
+                         + "; ".join(f"{paths[k]}: {e}" for k, e in image_errors.items()))
+    return info, ok, image_errors
+
+
+def _pair_graph(method: str, kind: str, k_nn: int, reference: int | None, paths: list[str],
+                good: list[int], ok: list[bool], image_errors: dict, samples: dict
+                ) -> tuple[int | None, list[tuple[int, int]]]:
+    """Step 2: (the reference index or None, the pairs (fixed i, moving j) to register)."""
+    if method == "reference":
+        ref = 0 if reference is None else int(reference)
+        if not 0 <= ref < len(paths):
+            raise ValueError(f"reference index {ref} out of range for {len(paths)} images")
+        if not ok[ref]:
+            raise ValueError(f"the reference image {paths[ref]} cannot be used: {image_errors[ref]}")
+        return ref, [(ref, k) for k in good if k != ref]
+    if kind == "all":
+        return None, [(a, b) for ai, a in enumerate(good) for b in good[ai + 1:]]
+    desc = np.stack([pose_descriptor(samples[k]) for k in good])
+    return None, [(good[a], good[b]) for a, b in knn_pairs(desc, k_nn)]
+
+
+def _register_pairs(graph: list[tuple[int, int]], paths: list[str], transform: str,
+                    registration: dict | None, n_jobs: int | None,
+                    progress: ProgressCallback | None) -> list[dict]:
+    """Every pair of ``graph`` registered as one job (images read by path in the workers);
+    the pair records, with ``used``/``note`` set for failed registrations."""
+    inline = runs_inline(n_jobs, len(graph))
+    common = {"paths": paths, "transform": transform, "kwargs": dict(registration or {}),
+              "threads": None if inline else 1}
+    out = run_jobs(_pair_job, [((i, j), (i, j)) for i, j in graph], common=common, n_jobs=n_jobs,
+                   progress=progress, label="pairs registered")
+    pair_list = [out[(i, j)] for i, j in graph]
+    for pr in pair_list:
+        pr["used"] = pr["transform"] is not None
+        pr["residual_mm"] = None
+        pr["note"] = None if pr["used"] else f"registration failed: {pr['error']}"
+    return pair_list
+
+
+def _chain_to_reference(pair_list: list[dict], ref: int, n: int, ok: list[bool],
+                        image_errors: dict) -> np.ndarray:
+    """Step 3, reference method: each image's transform is its registration to the reference."""
+    transforms = np.full((n, 4, 4), np.nan)
+    transforms[ref] = np.eye(4)
+    for pr in pair_list:
+        if pr["used"]:
+            transforms[pr["j"]] = pr["transform"]
+            pr["residual_mm"] = 0.0  # the chain uses every pair as is
+        else:
+            ok[pr["j"]] = False
+            image_errors[pr["j"]] = f"registration to the reference failed: {pr['error']}"
+    return transforms
+
+
+def _linked_images(usable: list[dict], good: list[int], n: int, ok: list[bool],
+                   image_errors: dict) -> list[int]:
+    """The largest group of images linked by successful registrations; the others cannot be
+    placed (marked not ok, with the reason)."""
+    members = sorted({pr["i"] for pr in usable} | {pr["j"] for pr in usable})
+    labels = _components(n, {(pr["i"], pr["j"]) for pr in usable})
+    if members:
+        sizes = np.bincount(labels[members], minlength=labels.max() + 1)
+        main = int(np.argmax(sizes))
+        members = [k for k in members if labels[k] == main]
+    for k in good:
+        if k not in members:
+            ok[k] = False
+            image_errors[k] = "no successful registration links this image to the others"
+    if len(members) < 2:
+        raise ValueError("no two images could be registered to each other")
+    return members
+
+
+def _synchronise_pairs(pair_list: list[dict], good: list[int], samples: dict, n: int,
+                       ok: list[bool], image_errors: dict, transform: str, outlier_mm: float
+                       ) -> np.ndarray:
+    """Step 3, sync method: robust synchronisation of the linked images' pairs; each pair
+    record gets its residual, and a note when it was dropped as an outlier."""
+    usable = [pr for pr in pair_list if pr["used"]]
+    members = _linked_images(usable, good, n, ok, image_errors)
+    index = {k: m for m, k in enumerate(members)}
+    inside = [pr for pr in usable if pr["i"] in index and pr["j"] in index]
+    sub = [(index[pr["i"]], index[pr["j"]], np.asarray(pr["transform"])) for pr in inside]
+    t_sync, used, resid = robust_synchronize(len(members), sub, [samples[k] for k in members],
+                                             transform, outlier_mm=outlier_mm)
+    transforms = np.full((n, 4, 4), np.nan)
+    transforms[members] = t_sync
+    med = float(np.median(resid[used]))
+    for q, pr in enumerate(inside):
+        pr["residual_mm"] = float(resid[q])
+        if not used[q]:
+            pr["used"] = False
+            pr["note"] = (f"dropped: residual {resid[q]:.2f} mm against a median of "
+                          f"{med:.2f} mm (disagrees with the other pairs)")
+    return transforms
+
+
+def _resample_and_average(out_dir: Path, paths: list[str], placed: list[int],
+                          transforms: np.ndarray, scales: dict[int, float], affine: np.ndarray,
+                          shape: tuple, n_jobs: int | None, progress: ProgressCallback | None
+                          ) -> dict:
+    """Step 4: every placed image resampled into the common grid (in the workers, written as
+    it arrives) and the mean of their normalised intensities, the template."""
+    from core.io import load_volume, save_volume
+
+    (out_dir / "resampled").mkdir(parents=True, exist_ok=True)
+    names = _output_names(paths)
+    total = np.zeros(shape, np.float64)
+    written: dict[int, str] = {}
+
+    def accumulate(key, value):
+        vol = load_volume(value["path"])  # one volume at a time in memory
+        total[...] += np.asarray(vol.data, np.float64) / max(scales[key], 1e-12)
+        written[key] = value["path"]
+        return value["path"]
+
+    run_jobs(_resample_job, [(k, (k, transforms[k], str(out_dir / "resampled" / names[k])))
+                             for k in placed],
+             common={"paths": paths, "shape": shape, "affine": affine}, n_jobs=n_jobs,
+             on_result=accumulate, progress=progress, label="images resampled")
+    template_path = out_dir / "template.nii.gz"
+    save_volume(template_path, (total / len(placed)).astype(np.float32), affine)
+    return {"resampled": written, "template": str(template_path)}
 
 
 def _output_names(paths: Sequence[str]) -> list[str]:
