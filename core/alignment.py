@@ -604,10 +604,20 @@ def synchronize_sparse(n: int, pairs: np.ndarray, transforms: np.ndarray,
         ``T[k]`` maps item k into the common frame (the convention of
         :func:`synchronize_transforms`); the graph must be connected.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import LinearOperator, eigsh, lobpcg, splu
-
     _check_transform(transform)
+    pairs, t, w = _sparse_pairs_both_ways(n, pairs, transforms, weights)
+    i, j = pairs[:, 0], pairs[:, 1]
+    z = _gauge_and_project(_sparse_linear_parts(n, i, j, t[:, :3, :3], w), transform)
+    out = np.tile(np.eye(4), (n, 1, 1))
+    out[:, :3, :3] = z
+    out[:, :3, 3] = _sparse_translations(n, i, j, z, t[:, :3, 3], w)
+    return np.linalg.inv(out)
+
+
+def _sparse_pairs_both_ways(n: int, pairs, transforms, weights
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Checked (pairs, transforms, weights) of :func:`synchronize_sparse`, with the reverse of
+    every pair measured one way only added (its block the inverse)."""
     pairs = np.asarray(pairs, dtype=np.int64)
     t = np.asarray(transforms, dtype=np.float64)
     if pairs.ndim != 2 or pairs.shape[1] != 2 or t.shape != (len(pairs), 4, 4):
@@ -617,33 +627,50 @@ def synchronize_sparse(n: int, pairs: np.ndarray, transforms: np.ndarray,
     w = np.ones(len(pairs)) if weights is None else np.asarray(weights, dtype=np.float64)
     if w.shape != (len(pairs),) or np.any(w < 0):
         raise ValueError("weights must be one non-negative number per pair")
-    # A pair measured one way only also gives the reverse block, as its inverse.
     code = pairs[:, 0] * n + pairs[:, 1]
     missing = ~np.isin(pairs[:, 1] * n + pairs[:, 0], code)
     if missing.any():
         pairs = np.vstack([pairs, pairs[missing][:, ::-1]])
         t = np.concatenate([t, np.linalg.inv(t[missing])])
         w = np.concatenate([w, w[missing]])
-    i, j = pairs[:, 0], pairs[:, 1]
-    lin = t[:, :3, :3]
+    return pairs, t, w
+
+
+def _block_sparse(n: int, brow: np.ndarray, bcol: np.ndarray, blocks: np.ndarray, fmt: str):
+    """The (3n, 3n) sparse matrix with the 3x3 ``blocks`` at block positions (brow, bcol)
+    (repeated positions add up)."""
+    import scipy.sparse as sp
+
+    r3, c3 = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+    rows = (3 * brow[:, None, None] + r3).ravel()
+    cols = (3 * bcol[:, None, None] + c3).ravel()
+    return sp.coo_matrix((blocks.ravel(), (rows, cols)), shape=(3 * n, 3 * n)).asformat(fmt)
+
+
+def _sparse_linear_parts(n: int, i: np.ndarray, j: np.ndarray, lin: np.ndarray, w: np.ndarray
+                         ) -> np.ndarray:
+    """(n, 3, 3) linear parts before the gauge: the 3 smallest eigenvectors of the edge
+    least-squares matrix M (shift-invert Lanczos), refined by LOBPCG to the CVPR 2015
+    objective (preconditioned by M^-1)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import LinearOperator, eigsh, lobpcg, splu
+
     eye = np.broadcast_to(np.eye(3), lin.shape)
     # Blocks of M: (i,i) += w I, (j,j) += w L^T L, (i,j) += -w L, (j,i) += -w L^T.
     blocks = np.concatenate([w[:, None, None] * eye,
                              w[:, None, None] * np.swapaxes(lin, 1, 2) @ lin,
                              -w[:, None, None] * lin,
                              -w[:, None, None] * np.swapaxes(lin, 1, 2)])
-    brow = np.concatenate([i, j, i, j])
-    bcol = np.concatenate([i, j, j, i])
-    r3, c3 = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-    rows = (3 * brow[:, None, None] + r3).ravel()
-    cols = (3 * bcol[:, None, None] + c3).ravel()
-    m = sp.csc_matrix((blocks.ravel(), (rows, cols)), shape=(3 * n, 3 * n))
+    m = _block_sparse(n, np.concatenate([i, j, i, j]), np.concatenate([i, j, j, i]), blocks,
+                      "csc")
     scale = float(m.diagonal().mean())
     # Shift slightly below 0: M is PSD and (for exact data) singular.
     # Minimum-degree ordering on the symmetric pattern: a third of COLAMD's fill on kNN graphs.
     shifted = splu(m + 1e-6 * scale * sp.identity(3 * n, format="csc"),
                    permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+    # a seeded start vector: ARPACK's own random one made results vary run to run (~1e-5)
     vals, vecs = eigsh(m, k=3, sigma=-1e-6 * scale, which="LM",
+                       v0=np.random.default_rng(0).standard_normal(3 * n),
                        OPinv=LinearOperator(m.shape, matvec=shifted.solve, dtype=np.float64))
     start = vecs[:, np.argsort(vals)]
     # Refine to the CVPR 2015 objective itself: the null space of Z = D^-1 W - I (each block
@@ -651,21 +678,26 @@ def synchronize_sparse(n: int, pairs: np.ndarray, transforms: np.ndarray,
     # of Z^T Z, applied as two sparse products (Z^T Z itself would have 2-hop fill). LOBPCG
     # from the edge solution, preconditioned by M^-1 (the same graph Laplacian structure).
     deg = np.bincount(i, weights=w, minlength=n)
-    zb = (w / deg[i])[:, None, None] * lin  # block (i, j) of D^-1 W
-    zr = (3 * i[:, None, None] + r3).ravel()
-    zc = (3 * j[:, None, None] + c3).ravel()
-    zmat = (sp.csr_matrix((zb.ravel(), (zr, zc)), shape=(3 * n, 3 * n))
+    zmat = (_block_sparse(n, i, j, (w / deg[i])[:, None, None] * lin, "csr")  # D^-1 W
             - sp.identity(3 * n, format="csr"))
     zt = zmat.T.tocsr()
     op = LinearOperator(m.shape, matvec=lambda v: zt @ (zmat @ v),
                         matmat=lambda v: zt @ (zmat @ v), dtype=np.float64)
     pre = LinearOperator(m.shape, matvec=shifted.solve, matmat=shifted.solve, dtype=np.float64)
     vals, vecs = lobpcg(op, start, M=pre, largest=False, tol=1e-8, maxiter=200)
-    z = vecs[:, np.argsort(vals)].reshape(n, 3, 3)
-    z = _gauge_and_project(z, transform)
-    # Translations: a_i - L'_e a_j = t_e with L'_e = Z_i Z_j^-1 (consistent).
+    return vecs[:, np.argsort(vals)].reshape(n, 3, 3)
+
+
+def _sparse_translations(n: int, i: np.ndarray, j: np.ndarray, z: np.ndarray,
+                         shifts: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(n, 3) translations a by weighted sparse least squares on a_i - L'_e a_j = t_e, with
+    the consistent L'_e = Z_i Z_j^-1 (the numerically stable variant)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
     rel = z[i] @ np.linalg.inv(z[j])
-    e = len(pairs)
+    e = len(i)
+    _, c3 = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
     er = (3 * np.arange(e)[:, None] + np.arange(3)).ravel()
     a_rows = np.concatenate([er, np.repeat(er, 3)])
     a_cols = np.concatenate([(3 * np.repeat(i, 3) + np.tile(np.arange(3), e)),
@@ -677,11 +709,8 @@ def synchronize_sparse(n: int, pairs: np.ndarray, transforms: np.ndarray,
     # The translations are defined up to a common shift: a small ridge picks the small-norm one.
     ridge = 1e-10 * max(float(normal.diagonal().mean()), 1e-300)
     trans = splu(normal + ridge * sp.identity(3 * n, format="csc"), permc_spec="MMD_AT_PLUS_A",
-                 options={"SymmetricMode": True}).solve(a.T @ (sw * t[:, :3, 3].reshape(-1)))
-    out = np.tile(np.eye(4), (n, 1, 1))
-    out[:, :3, :3] = z
-    out[:, :3, 3] = trans.reshape(n, 3)
-    return np.linalg.inv(out)
+                 options={"SymmetricMode": True}).solve(a.T @ (sw * shifts.reshape(-1)))
+    return trans.reshape(n, 3)
 
 
 def align_shapes_sparse(shapes, transform: str = "similarity", *, n_neighbors: int = 10,

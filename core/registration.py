@@ -46,7 +46,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.progress import Cancelled, ProgressCallback, report
+from core.progress import Cancelled, ProgressCallback, report, sub_progress
 
 TRANSFORMS = ("rigid", "similarity", "affine")
 DEFAULT_LEVELS_MM = (8.0, 4.0, 2.0)
@@ -252,80 +252,31 @@ def register_sitk(fixed, moving, transform: str = "affine", *,
     mass aligned). ``polish`` repeats the finest level once with half the step and new samples.
     """
     sitk = _sitk()
-    if transform not in TRANSFORMS:
-        raise ValueError(f"transform must be one of {', '.join(TRANSFORMS)}; got {transform!r}")
-    levels = [float(r) for r in levels_mm]
-    if not levels or any(not r > 0 for r in levels):
-        raise ValueError(f"levels_mm must be positive resolutions in mm, got {list(levels_mm)}")
     t0 = time.perf_counter()
-    fixed = sitk.Cast(fixed, sitk.sitkFloat32)
-    moving = sitk.Cast(moving, sitk.sitkFloat32)
-    for name, img in (("fixed", fixed), ("moving", moving)):
-        stats = sitk.StatisticsImageFilter()
-        stats.Execute(img)
-        if not stats.GetVariance() > 0:
-            raise ValueError(f"the {name} image is constant: nothing to register")
+    fixed, moving, levels = _checked_inputs(fixed, moving, transform, levels_mm)
     if threads is not None:
         sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(threads))
-
-    if initial is not None:
-        start = ras_to_itk(initial)
-        current = _make_transform("affine" if transform == "affine" else transform, start)
-    else:
-        current = sitk.CenteredTransformInitializer(
-            fixed, moving, _make_transform("rigid"),
-            sitk.CenteredTransformInitializerFilter.MOMENTS)
-        current = sitk.Euler3DTransform(current)
-
+    current = _initial_transform(fixed, moving, transform, initial)
     fixed_pyramid = _pyramid(fixed, levels)
     moving_pyramid = _pyramid(moving, levels)
     iterations: list[int] = []
     stops: list[str] = []
-    n_levels = len(levels)
-    cancelled: list[BaseException] = []
-    metric = np.nan
-    initial_metric = np.nan
-    # Every level, then the finest once more from where it stopped with a smaller step and a
-    # fresh sample set: regular-step descent on a sampled metric stops early in a sampling
-    # artefact's shallow minimum, and the restart leaves it (measured: mean error over the
-    # brain 1.0-1.3 mm instead of 1.6-3.1 mm for pairs of 4 mm images).
-    schedule = [(li, res, res / 2.0) for li, res in enumerate(levels)]
-    if polish:
-        schedule.append((n_levels - 1, levels[-1], levels[-1] / 4.0))
-    n_stages = len(schedule)
+    metric = initial_metric = np.nan
+    schedule = _stage_schedule(levels, polish)
     for stage, (li, res, step) in enumerate(schedule):
         kind = transform
-        if transform == "affine" and li == 0 and n_levels > 1 and initial is None:
+        if transform == "affine" and li == 0 and len(levels) > 1 and initial is None:
             kind = "similarity"  # pose first, then the 12 parameters
         current = _make_transform(kind, current)
         f_l, m_l = fixed_pyramid[li], moving_pyramid[li]
-        n_vox = int(np.prod(f_l.GetSize()))
-        method = sitk.ImageRegistrationMethod()
-        method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=int(n_bins))
-        method.SetMetricSamplingStrategy(method.RANDOM)
-        method.SetMetricSamplingPercentage(min(1.0, n_samples / max(n_vox, 1)),
-                                           int(random_state) + stage + 1)
-        method.SetInterpolator(sitk.sitkLinear)
-        method.SetOptimizerAsRegularStepGradientDescent(
-            learningRate=step, minStep=res / 200.0, numberOfIterations=int(max_iterations),
-            relaxationFactor=0.6, gradientMagnitudeTolerance=1e-8)
-        method.SetOptimizerScalesFromPhysicalShift()
-        method.SetInitialTransform(current, inPlace=True)
+        method = _stage_method(current, int(np.prod(f_l.GetSize())), res, step, n_bins=n_bins,
+                               n_samples=n_samples, seed=int(random_state) + stage + 1,
+                               max_iterations=max_iterations)
         if stage == 0:
             initial_metric = float(method.MetricEvaluate(f_l, m_l))
-
-        def on_iteration(method=method, stage=stage, res=res) -> None:
-            frac = (stage + min(method.GetOptimizerIteration() / max_iterations, 1.0)) / n_stages
-            try:
-                report(progress, frac, f"{res:g} mm: metric {method.GetMetricValue():.4f}")
-            except BaseException as exc:  # Cancelled (or anything): stop the optimiser now
-                cancelled.append(exc)
-                method.StopRegistration()
-
-        method.AddCommand(sitk.sitkIterationEvent, on_iteration)
-        method.Execute(f_l, m_l)
-        if cancelled:
-            raise cancelled[0]
+        _run_stage(method, f_l, m_l, sub_progress(progress, stage / len(schedule),
+                                                  (stage + 1) / len(schedule)),
+                   f"{res:g} mm", max_iterations)
         iterations.append(int(method.GetOptimizerIteration()))
         stops.append(method.GetOptimizerStopConditionDescription())
         metric = float(method.GetMetricValue())
@@ -334,6 +285,91 @@ def register_sitk(fixed, moving, transform: str = "affine", *,
                               metric=metric, initial_metric=initial_metric,
                               iterations=iterations, levels_mm=levels, stop_conditions=stops,
                               seconds=time.perf_counter() - t0)
+
+
+def _checked_inputs(fixed, moving, transform: str, levels_mm: Sequence[float]
+                    ) -> tuple[Any, Any, list[float]]:
+    """Float32 images (neither constant) and the pyramid levels (mm), checked."""
+    sitk = _sitk()
+    if transform not in TRANSFORMS:
+        raise ValueError(f"transform must be one of {', '.join(TRANSFORMS)}; got {transform!r}")
+    levels = [float(r) for r in levels_mm]
+    if not levels or any(not r > 0 for r in levels):
+        raise ValueError(f"levels_mm must be positive resolutions in mm, got {list(levels_mm)}")
+    fixed = sitk.Cast(fixed, sitk.sitkFloat32)
+    moving = sitk.Cast(moving, sitk.sitkFloat32)
+    for name, img in (("fixed", fixed), ("moving", moving)):
+        stats = sitk.StatisticsImageFilter()
+        stats.Execute(img)
+        if not stats.GetVariance() > 0:
+            raise ValueError(f"the {name} image is constant: nothing to register")
+    return fixed, moving, levels
+
+
+def _initial_transform(fixed, moving, transform: str, initial):
+    """The given RAS start matrix as an ITK transform, else the centres of mass aligned
+    (moments: scanner coordinates far from the template's)."""
+    sitk = _sitk()
+    if initial is not None:
+        return _make_transform("affine" if transform == "affine" else transform,
+                               ras_to_itk(initial))
+    current = sitk.CenteredTransformInitializer(
+        fixed, moving, _make_transform("rigid"), sitk.CenteredTransformInitializerFilter.MOMENTS)
+    return sitk.Euler3DTransform(current)
+
+
+def _stage_schedule(levels: list[float], polish: bool) -> list[tuple[int, float, float]]:
+    """(level index, resolution mm, first step mm) of every optimisation stage.
+
+    Every level, then the finest once more from where it stopped with a smaller step and a
+    fresh sample set: regular-step descent on a sampled metric stops early in a sampling
+    artefact's shallow minimum, and the restart leaves it (measured: mean error over the
+    brain 1.0-1.3 mm instead of 1.6-3.1 mm for pairs of 4 mm images).
+    """
+    schedule = [(li, res, res / 2.0) for li, res in enumerate(levels)]
+    if polish:
+        schedule.append((len(levels) - 1, levels[-1], levels[-1] / 4.0))
+    return schedule
+
+
+def _stage_method(current, n_voxels: int, res: float, step: float, *, n_bins: int,
+                  n_samples: int, seed: int, max_iterations: int):
+    """The ITK registration method of one stage: Mattes MI on ``n_samples`` seeded random
+    samples, linear interpolation, regular-step gradient descent with physical-shift scales,
+    optimising ``current`` in place."""
+    sitk = _sitk()
+    method = sitk.ImageRegistrationMethod()
+    method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=int(n_bins))
+    method.SetMetricSamplingStrategy(method.RANDOM)
+    method.SetMetricSamplingPercentage(min(1.0, n_samples / max(n_voxels, 1)), seed)
+    method.SetInterpolator(sitk.sitkLinear)
+    method.SetOptimizerAsRegularStepGradientDescent(
+        learningRate=step, minStep=res / 200.0, numberOfIterations=int(max_iterations),
+        relaxationFactor=0.6, gradientMagnitudeTolerance=1e-8)
+    method.SetOptimizerScalesFromPhysicalShift()
+    method.SetInitialTransform(current, inPlace=True)
+    return method
+
+
+def _run_stage(method, fixed, moving, progress: ProgressCallback | None, label: str,
+               max_iterations: int) -> None:
+    """Execute one stage, reporting every iteration; an exception from ``progress``
+    (``Cancelled``) stops the optimiser at once and is raised here."""
+    sitk = _sitk()
+    cancelled: list[BaseException] = []
+
+    def on_iteration() -> None:
+        frac = min(method.GetOptimizerIteration() / max_iterations, 1.0)
+        try:
+            report(progress, frac, f"{label}: metric {method.GetMetricValue():.4f}")
+        except BaseException as exc:  # Cancelled (or anything): stop the optimiser now
+            cancelled.append(exc)
+            method.StopRegistration()
+
+    method.AddCommand(sitk.sitkIterationEvent, on_iteration)
+    method.Execute(fixed, moving)
+    if cancelled:
+        raise cancelled[0]
 
 
 def register(moving_data: np.ndarray, moving_affine: np.ndarray, fixed_data: np.ndarray,
