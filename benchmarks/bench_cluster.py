@@ -1,15 +1,20 @@
 """Benchmark: cohort scale -- the Dask executor against the process pool, and sparse synchronisation.
 
-A. Executor throughput (issue 15): ``--shapes`` (default 500) synthetic closed meshes
-   (ellipsoid-like surfaces of 300-420 vertices, random axes, pose and tessellation) are
-   corresponded to one reference by :func:`core.correspondence.establish_correspondence`
-   through the same :func:`core.parallel.run_jobs` call, once on the process pool
-   (``n_jobs=2``) and once as Dask tasks on a ``LocalCluster`` of 2 single-threaded worker
-   processes (the same cores). Peers configured as documented: the pool spawns one process per
-   core with one BLAS thread each; the LocalCluster has ``threads_per_worker=1``,
-   ``processes=True`` (Dask's advice for GIL-holding numeric code). Reported: wall time,
-   shapes per second, the ratio, whether the outputs are identical, and the measured cost per
-   shape (CPU seconds), from which the README projects a 50,000-shape cohort.
+A. Executor throughput (issue 15): ``--shapes`` (default 500) synthetic known-homology shapes
+   (``core.correspondence.synthetic``, "bean", 160-220 vertices, own tessellation and pose
+   each) are corresponded to one reference (shape 0, external reference, no grooming, no
+   refinement: exactly one per-shape job each) by
+   :func:`core.correspondence.establish_correspondence`, whose per-shape jobs go through
+   :func:`core.parallel.run_jobs`: on the process pool (``n_jobs=2``) and as Dask tasks on a
+   ``LocalCluster`` of 2 single-threaded worker processes (the same cores). Peers configured as
+   documented: the pool has one process per core with one BLAS thread each; the LocalCluster
+   ``threads_per_worker=1, processes=True`` (Dask's advice for GIL-holding numeric code). The
+   shapes go in chunks of ``--chunk`` (50), the executors alternating chunk by chunk (pool,
+   Dask, pool, Dask, ...) so that a change of the machine's load hits both alike; both are
+   warmed up first (worker start-up and imports are not throughput). Reported per executor:
+   wall time, shapes per second, CPU seconds per shape (the whole process tree: client,
+   workers, fork server, from /proc and getrusage), and whether the outputs of both are
+   identical. The CPU cost per shape is what the README's 50,000-shape projection uses.
 
 B. Sparse synchronisation (``core.alignment.align_shapes_sparse``): synthetic corresponded
    shapes (300 vertices: a base shape, 3 random modes, vertex noise, a random similarity pose
@@ -19,13 +24,15 @@ B. Sparse synchronisation (``core.alignment.align_shapes_sparse``): synthetic co
    the mean vertex displacement (mm) between the recovered relative map T_i^-1 T_j and the
    true one.
 
-Run: ``.venv/bin/python benchmarks/bench_cluster.py [--shapes 500] [--part AB]``
-The machine is shared (2 cores): times are upper bounds.
+Run: ``.venv/bin/python benchmarks/bench_cluster.py [--shapes 500] [--chunk 50] [--part AB]``
+(about 5 minutes on 2 quiet cores). The machine is shared: times are upper bounds; the load
+is printed before and after each part.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import resource
 import subprocess
@@ -39,53 +46,84 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from core.io import TriMesh  # noqa: E402
 
-
-def synthetic_meshes(n: int, seed: int = 0) -> list[TriMesh]:
-    from scipy.spatial import ConvexHull
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(seed)
-    out = []
-    for k in range(n):
-        m = int(rng.integers(300, 420))
-        u = rng.normal(size=(m, 3))
-        u /= np.linalg.norm(u, axis=1, keepdims=True)
-        faces = ConvexHull(u).simplices
-        v = u[faces]
-        flip = np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v.mean(1)) < 0
-        faces[flip] = faces[flip][:, ::-1]
-        bump = 1.0 + 0.15 * np.sin(3 * u[:, 0] + rng.uniform(0, 6)) * u[:, 1]
-        pts = u * bump[:, None] * np.array([12.0, 8.0, 6.0]) * rng.uniform(0.9, 1.1, 3)
-        pts = pts @ Rotation.from_rotvec(rng.normal(0, 0.15, 3)).as_matrix().T + rng.normal(0, 2, 3)
-        out.append(TriMesh(pts, faces, f"shape{k:04d}"))
+def _descendants(pid: int) -> set[int]:
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            todo.extend(c for c in kids if c not in out)
+            out.update(kids)
     return out
 
 
-def part_a(n_shapes: int) -> None:
+def tree_cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process, its reaped children and every live
+    descendant with the children it reaped (pool workers are reaped by the fork server)."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    total = sum(getattr(resource.getrusage(who), f)
+                for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+                for f in ("ru_utime", "ru_stime"))
+    for pid in _descendants(os.getpid()):
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += sum(int(x) for x in fields[11:15]) / ticks  # utime stime cutime cstime
+    return total
+
+
+def part_a(n_shapes: int, chunk: int) -> None:
     from core.correspondence import establish_correspondence
+    from core.correspondence.synthetic import known_homology_shapes
     from core.parallel import use_scheduler
 
-    meshes = synthetic_meshes(n_shapes)
-    print(f"\nA. correspondence of {n_shapes} synthetic shapes to one reference, 2 workers")
-    rows = {}
-    for name, scheduler in (("process pool", None), ("Dask LocalCluster", "local:2")):
-        with use_scheduler(scheduler):
-            # warm-up on 4 shapes (5 meshes): worker start-up and imports are not throughput
-            establish_correspondence(meshes[:5], 0, n_jobs=2)
-            t0 = time.perf_counter()
-            res = establish_correspondence(meshes, 0, n_jobs=2)
-            wall = time.perf_counter() - t0
-        rows[name] = (wall, res)
-    print(f"{'executor':<20} {'wall s':>8} {'shapes/s':>9} {'CPU s/shape':>12}")
-    for name, (wall, res) in rows.items():
-        cpu = res.timings["cpu_total"] / max(res.timings["n_registrations"], 1)
-        print(f"{name:<20} {wall:8.1f} {(n_shapes - 1) / wall:9.2f} {cpu:12.3f}")
-    (w_pool, r_pool), (w_dask, r_dask) = rows.values()
-    same = all(np.array_equal(a.vertices, b.vertices) for a, b in zip(r_pool.meshes, r_dask.meshes)
-               if a is not None and b is not None)
-    print(f"Dask/pool throughput ratio: {w_pool / w_dask:.3f} (1.0 = equal); outputs identical: {same}")
+    meshes = known_homology_shapes("bean", n_shapes + 1, seed=0, n_points=(160, 220)).meshes
+    reference, shapes = meshes[0], meshes[1:]
+    chunks = [shapes[k:k + chunk] for k in range(0, len(shapes), chunk)]
+    print(f"\nA. correspondence of {n_shapes} synthetic shapes (160-220 vertices) to one "
+          f"reference, 2 workers, chunks of {chunk} alternating (load "
+          f"{os.getloadavg()[0]:.1f})")
+    options = dict(groom=False, refine=0)
+    executors = {"process pool": None, "Dask LocalCluster": "local:2"}
+    wall = dict.fromkeys(executors, 0.0)
+    cpu = dict.fromkeys(executors, 0.0)
+    outputs: dict[str, list] = {name: [] for name in executors}
+    with use_scheduler("local:2"):  # the cluster stays up; the pool runs inside use_scheduler(None)
+        for name, scheduler in executors.items():  # warm-up: start-up and imports
+            with _on(scheduler):
+                establish_correspondence(shapes[:4], reference, n_jobs=2, **options)
+        for part in chunks:
+            for name, scheduler in executors.items():
+                with _on(scheduler):
+                    c0, t0 = tree_cpu_seconds(), time.perf_counter()
+                    res = establish_correspondence(part, reference, n_jobs=2, **options)
+                    wall[name] += time.perf_counter() - t0
+                    cpu[name] += tree_cpu_seconds() - c0
+                outputs[name] += [None if m is None else m.vertices for m in res.meshes]
+    (pool_out, dask_out) = outputs.values()
+    same = len(pool_out) == len(dask_out) == n_shapes and all(
+        a is not None and b is not None and np.array_equal(a, b) for a, b in zip(pool_out, dask_out))
+    print(f"{'executor':<20} {'shapes':>6} {'wall s':>8} {'shapes/s':>9} {'CPU s/shape':>12} "
+          f"{'outputs identical':>18}")
+    for name in executors:
+        print(f"{name:<20} {n_shapes:6d} {wall[name]:8.1f} {n_shapes / wall[name]:9.3f} "
+              f"{cpu[name] / n_shapes:12.3f} {'yes' if same else 'NO':>18}")
+    ratio = wall["process pool"] / wall["Dask LocalCluster"]
+    print(f"Dask/pool throughput ratio {ratio:.3f} (within 15%: {'yes' if abs(ratio - 1) <= 0.15 else 'no'}); "
+          f"load after {os.getloadavg()[0]:.1f}")
+
+
+def _on(scheduler: str | None):
+    """The pool (inside the cluster's use_scheduler) or the enclosing LocalCluster."""
+    from core.parallel import use_scheduler
+
+    return use_scheduler(None) if scheduler is None else contextlib.nullcontext()
 
 
 def _sync_child(n_shapes: int) -> None:
@@ -95,7 +133,8 @@ def _sync_child(n_shapes: int) -> None:
     shapes, _ = synthetic_shapes(n_shapes, 300, np.random.default_rng(0))
     t0 = time.perf_counter()
     align_shapes_sparse(shapes, "similarity", n_neighbors=10)
-    print(f"{time.perf_counter() - t0:.2f}")
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
+    print(f"{time.perf_counter() - t0:.2f} {peak_mb:.0f}")
 
 
 def synthetic_shapes(k: int, n: int, rng: np.random.Generator, noise: float = 0.5):
@@ -132,13 +171,13 @@ def relative_error(transforms, poses, shapes, n_pairs=4000, seed=1) -> float:
 def part_b(n_large: int) -> None:
     from core.alignment import align_shapes, align_shapes_sparse
 
-    print(f"\nB. sparse synchronisation (K = 10 nearest), similarity, 300 vertices per shape")
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    print(f"\nB. sparse synchronisation (K = 10 nearest), similarity, 300 vertices per shape "
+          f"(load {os.getloadavg()[0]:.1f})")
     out = subprocess.run([sys.executable, __file__, "--sync-child", str(n_large)],
                          capture_output=True, text=True, check=True)
-    peak_mb = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before) / 1024
-    print(f"{n_large} shapes: {float(out.stdout.strip()):.1f} s, peak memory of the process "
-          f"{peak_mb:.0f} MB (shapes included)")
+    seconds, peak_mb = (float(x) for x in out.stdout.split())
+    print(f"{n_large} shapes: {seconds:.1f} s, peak memory of the process {peak_mb:.0f} MB "
+          f"(shapes included; targets < 60 s on a quiet machine, < 2048 MB)")
     shapes, poses = synthetic_shapes(200, 300, np.random.default_rng(2))
     t0 = time.perf_counter()
     sparse = align_shapes_sparse(shapes, "similarity", n_neighbors=10)
@@ -151,12 +190,14 @@ def part_b(n_large: int) -> None:
     print(f"{'200 shapes':<26} {'seconds':>8} {'error mm':>9}")
     print(f"{'dense all pairs':<26} {t_dense:8.1f} {e_d:9.4f}")
     print(f"{'sparse K=10':<26} {t_sparse:8.1f} {e_s:9.4f}")
-    print(f"sparse / dense error: {e_s / e_d:.3f}")
+    print(f"sparse / dense error: {e_s / e_d:.3f} (within 5%: {'yes' if e_s <= 1.05 * e_d else 'no'}); "
+          f"load after {os.getloadavg()[0]:.1f}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", type=int, default=500)
+    parser.add_argument("--chunk", type=int, default=50)
     parser.add_argument("--large", type=int, default=5000)
     parser.add_argument("--part", default="AB")
     parser.add_argument("--sync-child", type=int, default=None, help=argparse.SUPPRESS)
@@ -166,7 +207,7 @@ def main() -> None:
         return
     print(f"shared 2-core machine (load {os.getloadavg()[0]:.1f}): times are upper bounds")
     if "A" in args.part:
-        part_a(args.shapes)
+        part_a(args.shapes, args.chunk)
     if "B" in args.part:
         part_b(args.large)
 
