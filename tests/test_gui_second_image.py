@@ -163,3 +163,15 @@ def test_second_image_shortcuts_are_in_help_and_the_readme(window):
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
     assert "| Ctrl+Shift+I |" in readme and "| K / Ctrl+B |" in readme
     assert "docs/second-image.png" in readme
+
+
+def test_unreadable_second_image_is_a_one_line_error_naming_the_file(window, qtbot, tmp_path):
+    bad = tmp_path / "broken_t2.nii.gz"
+    bad.write_bytes(b"this is not an image")
+    errors = []
+    window.second_image.error.connect(errors.append)
+    assert window.load_second_image(bad)
+    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
+    assert not window.second_image.model.loaded
+    assert len(errors) == 1 and "broken_t2.nii.gz" in errors[0] and "\n" not in errors[0]
+    assert "Traceback" not in errors[0]
