@@ -137,6 +137,14 @@ class SecondImage:
             self.other_window = (max(float(window), 1e-6), float(level))
             self.events.display()
 
+    def value_at(self, world: np.ndarray) -> float | None:
+        """The second image's intensity at a world point (its voxel on the first grid;
+        None outside it or where the second image has no data)."""
+        if not self.loaded:
+            return None
+        value = self.coregistered.volume.value_at(world)
+        return None if value is None or not np.isfinite(value) else value
+
     def describe(self) -> str:
         """One line for the panel: file, how it was placed, what is drawn on."""
         if not self.loaded:

@@ -55,6 +55,10 @@ def test_second_image_blends_checkers_and_drawing_works_on_either(window, qtbot,
     assert not model.coregistered.registered            # same grid: nothing to register
     np.testing.assert_array_equal(model.transform, np.eye(4))
     assert "t2like" in window.second_image_panel.info.text()
+    voxel = np.rint(state.volume.world_to_voxel(state.crosshair)).astype(int)
+    window.cursor_label.refresh()                      # both intensities in the status bar
+    assert f"second {inverted(np.asarray(state.volume.data))[tuple(voxel)]:.4g}" in \
+        window.cursor_label.text()
     # blend: (1 - a) first + a second, each in its own window
     first = window_to_uint8(view._slice.data, state.window, state.level)
     second_slice = model.sampler.sample(view.frame, view._slice.depth).data

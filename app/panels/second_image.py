@@ -243,6 +243,14 @@ def install_second_image(window) -> SecondImageController:
     side = window.side_dock
     side.panel.layout().insertWidget(min(2, side.panel.layout().count()), box)
     side.boxes["Second image"] = box
+    before = window.cursor_label.extra               # the status bar: its value too
+
+    def extra(world) -> str:
+        value = model.value_at(world)
+        text = before(world)
+        return text if value is None else (f"second {value:.4g}" + (f"   {text}" if text else ""))
+
+    window.cursor_label.extra = extra
     window.sessions.info_providers["second_image"] = model.to_document
     window.sessions.info_readers["second_image"] = controller.restore
     return controller
