@@ -179,3 +179,23 @@ def test_unreadable_second_image_is_a_one_line_error_naming_the_file(window, qtb
     assert not window.second_image.model.loaded
     assert len(errors) == 1 and "broken_t2.nii.gz" in errors[0] and "\n" not in errors[0]
     assert "Traceback" not in errors[0]
+
+
+def test_session_drawn_on_the_second_image_reopens_with_the_first_images_window(
+        window, qtbot, second_path, tmp_path):
+    """The saved window/level is the base's; with the second image missing on reopening, the
+    first image still gets its own window back (and the missing file is said)."""
+    state = window.state
+    _load(window, qtbot, second_path)
+    first_window = (state.window, state.level)
+    window.second_image.model.set_base("second")
+    assert (state.window, state.level) != first_window
+    session = tmp_path / "s.json"
+    assert window.save_session(path=session)
+    second_path.unlink()
+    errors = []
+    window.second_image.error.connect(errors.append)
+    window.open_session(session)
+    assert not window.second_image.model.loaded
+    assert errors and "t2like.nii.gz" in errors[0] and "not found" in errors[0]
+    np.testing.assert_allclose((state.window, state.level), first_window)

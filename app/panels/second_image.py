@@ -94,7 +94,7 @@ class SecondImageController(QObject):
         resolved = self.w.files.resolve_image(path, None if show_dialog else False, notes)
         if resolved is None:
             return False
-        self._pending = (str(resolved), display)
+        self._pending = (str(resolved), display, self.w.state.volume)
         return self.task.start(_load, str(resolved), self.w.state.volume, transform,
                                show_dialog=show_dialog)
 
@@ -105,8 +105,12 @@ class SecondImageController(QObject):
         return self.task.wait(msecs)
 
     def _on_loaded(self, coregistered) -> None:
-        path, display = self._pending or ("second image", None)
+        path, display, reference = self._pending or ("second image", None, None)
         self._pending = None
+        if reference is not self.w.state.volume:      # another first image meanwhile
+            self.error.emit(f"{path}: the first image changed while the second one was "
+                            "loading; open the second image again")
+            return
         try:
             self.model.set_image(coregistered, path)
         except ValueError as exc:                      # the first image changed meanwhile
@@ -122,6 +126,8 @@ class SecondImageController(QObject):
             self.model.clear()
             return
         path = Path(document.get("path", ""))
+        if document.get("first_window"):              # the session's window may be the
+            self.w.state.set_window(*document["first_window"])   # second image's (its base)
         if not path.exists():
             self.error.emit(f"{path}: the session's second image was not found; not shown")
             return
