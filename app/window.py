@@ -44,6 +44,7 @@ from app.refit import RefitController
 from app.state import WorkspaceState
 from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
+from app.tools_install import install_segment_tools
 from app.workers import error_message
 from core.model_library import list_library
 
@@ -139,20 +140,7 @@ class MainWindow(QMainWindow):
         self.fit_panel.refit_requested.connect(lambda: self.schedule_refit(force=True))
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
-        from app.panels.editing import install_editing   # issue 17 tools (label map, brush, move)
-        from app.panels.navigation import install_navigation   # zoom, layouts, colour maps...
-
-        from app.panels.measurements import install_measurements   # ruler and angle
-
-        self.labels = install_editing(self)
-        install_navigation(self)
-        self.measurements = install_measurements(self)
-        from app.panels.second_image import install_second_image   # T2/FLAIR/CT over the T1
-
-        self.second_image = install_second_image(self)
-        from app.demo_tour import install_demo_tour   # Help > Demo tour
-
-        install_demo_tour(self)
+        install_segment_tools(self)  # labels, measurements, second_image, navigation, tour
 
     @property
     def runner(self):
