@@ -33,15 +33,20 @@ def _contour_pixels(rgb: np.ndarray) -> int:
     return int(np.sum(np.all(np.abs(rgb.astype(int) - target) <= [12, 25, 30], axis=-1)))
 
 
-def test_window_screenshot_shows_contours_in_each_slice_view(qtbot, tmp_path, monkeypatch):
+def _demo_window_with_3d(qtbot, tmp_path, monkeypatch, size=(1400, 900)) -> MainWindow:
     _need_demo()
     monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
     window = MainWindow(recovery=False)
     qtbot.addWidget(window)
-    window.resize(1400, 900)
+    window.resize(*size)
     window.load_demo()
     window.show()
     qtbot.waitExposed(window)
+    return window
+
+
+def test_window_screenshot_shows_contours_in_each_slice_view(qtbot, tmp_path, monkeypatch):
+    window = _demo_window_with_3d(qtbot, tmp_path, monkeypatch)
     path = tmp_path / "window.png"
     window.save_screenshot(path)
     rgb = _rgb(QImage(str(path)))
@@ -123,16 +128,9 @@ def test_3d_view_follows_a_slice_step_without_waiting_for_the_scroll_to_end(qtbo
     """Issue 17: a slice step schedules the 3D render at once (RENDER_DELAY_MS, not the old
     60 ms debounce restarted by every step); an edit keeps the longer coalescing delay, and a
     pending slice render is not postponed by it. The new plane is what gets rendered."""
-    _need_demo()
     from app.views import volume_view as vv_module
 
-    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
-    window = MainWindow(recovery=False)
-    qtbot.addWidget(window)
-    window.resize(1200, 800)
-    window.load_demo()
-    window.show()
-    qtbot.waitExposed(window)
+    window = _demo_window_with_3d(qtbot, tmp_path, monkeypatch, (1200, 800))
     window.render_now()
     vv = window.workspace.volume_view
     renders = []
