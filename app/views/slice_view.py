@@ -29,6 +29,7 @@ from app.state import FRAME_NAMES, Structure, WorkspaceState
 from core.planes import FRAMES, SliceImage, window_to_uint8
 from core.slicing import intersect_plane
 
+from app.views import slice_points
 from app.views.slice_overlays import (CONTOUR_COLOR, POINT_COLOR, VIEW_COLORS,  # noqa: F401
                                       label_layout, outlined_text, paint_contours,
                                       paint_crosshair, paint_labels, paint_points)
@@ -379,44 +380,17 @@ class SliceView(QWidget):
         self.update()
         super().focusOutEvent(event)
 
-    # -- drawing -------------------------------------------------------------------------------
+    # -- contour points (app.views.slice_points) ------------------------------------------
     def add_point_at(self, x: float, y: float, checkpoint: bool = True,
                      stroke: str = "click") -> np.ndarray | None:
         """Add a contour point on this slice under widget pixel (x, y); returns it (world)."""
-        world = self.screen_to_world(x, y)
-        active = self.state.active
-        if active.locked or not active.visible:
-            self.message.emit(f"{active.label} is {'locked' if active.locked else 'hidden'}: "
-                              "unlock or show it in the structure list to draw")
-            return None
-        if self.state.volume is not None:
-            lo, hi = self.state.volume.world_bounds()
-            if np.any(world < lo - 1e-6) or np.any(world > hi + 1e-6):
-                self.message.emit("Point outside the image: not added")
-                return None
-        self.state.add_point(world, self.frame_name, self.depth, checkpoint=checkpoint, stroke=stroke)
-        return world
+        return slice_points.add_point_at(self, x, y, checkpoint, stroke)
 
     def points_here(self) -> np.ndarray:
-        """Indices of the active structure's points drawn on this view's slice, in order."""
-        return np.flatnonzero(self.state.points.on_slice(self.frame_index, self.depth,
-                                                         self._step() / 2))
+        return slice_points.points_here(self)
 
     def point_near(self, x: float, y: float, radius_px: float = 8.0) -> int | None:
-        """Index of the contour point on this slice nearest to pixel (x, y), within the radius."""
-        pts = self.state.points
-        if len(pts) == 0:
-            return None
-        here = np.flatnonzero(pts.on_slice(self.frame_index, self.depth, self._step() / 2))
-        if here.size == 0:
-            return None
-        d = np.hypot(*(self.world_to_screen(pts.xyz[here]) - [x, y]).T)
-        best = int(np.argmin(d))
-        return int(here[best]) if d[best] <= radius_px else None
+        return slice_points.point_near(self, x, y, radius_px)
 
     def delete_point_near(self, x: float, y: float) -> bool:
-        index = self.point_near(x, y)
-        if index is None or self.state.active.locked:
-            return False
-        self.state.remove_point(index)
-        return True
+        return slice_points.delete_point_near(self, x, y)
