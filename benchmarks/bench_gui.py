@@ -199,20 +199,22 @@ def main() -> int:
         return 0 if args.skip_scroll else bench_scroll_table(app)
     from core.model_library import list_library
 
-    window = MainWindow(recovery=False)
-    window.resize(1600, 1000)
-    window.load_demo()
-    added = [window.add_structure(e.path) for e in list_library()
-             if e.structure is not None and e.path.stem in ("right_caudate", "left_thalamus")]
-    window.state.set_active(0)
-    window.show()
-    window.render_now()
-    print(f"  three structures loaded ({len(window.state.structures)}: demo + {sum(added)} "
-          "library models), refitting the active one, window with the 3D view:")
-    for row in bench_refit(window, app, args.edits, ("gmm-aniso", "icp")):
-        _print_row(*row)
-    window.close()
-    app.processEvents()
+    for with_3d in (True, False):
+        window = MainWindow(recovery=False, with_3d=with_3d)
+        window.resize(1600, 1000)
+        window.load_demo()
+        added = [window.add_structure(e.path) for e in list_library()
+                 if e.structure is not None and e.path.stem in ("right_caudate", "left_thalamus")]
+        window.state.set_active(0)
+        window.show()
+        window.render_now()
+        print(f"  three structures loaded ({len(window.state.structures)}: demo + {sum(added)} "
+              "library models), refitting the active one, window "
+              f"{'with the 3D view' if with_3d else 'without the 3D view'}:")
+        for row in bench_refit(window, app, args.edits, ("gmm-aniso", "icp")):
+            _print_row(*row)
+        window.close()
+        app.processEvents()
     if args.skip_scroll:
         return 0
     return bench_scroll_table(app)
