@@ -117,17 +117,17 @@ def _segment_name(path: Path, value: int) -> str | None:
 
 
 def _vtk_image(mask: np.ndarray):
-    import vtk
-    from vtk.util.numpy_support import numpy_to_vtk
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonDataModel import vtkImageData
 
-    image = vtk.vtkImageData()
+    image = vtkImageData()
     image.SetDimensions(*mask.shape)
     image.GetPointData().SetScalars(numpy_to_vtk(np.asfortranarray(mask).ravel(order="F"), deep=True))
     return image
 
 
 def _polydata_arrays(poly) -> tuple[np.ndarray, np.ndarray]:
-    from vtk.util.numpy_support import vtk_to_numpy
+    from vtkmodules.util.numpy_support import vtk_to_numpy
 
     if poly.GetNumberOfPoints() == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
@@ -142,16 +142,17 @@ def mask_surface(mask: np.ndarray, affine: np.ndarray, *, smoothing_iterations: 
 
     Surface Nets + windowed-sinc smoothing (module docstring, steps 2-4), before remeshing.
     """
-    import vtk
+    # The two filters' own module, not the whole of ``vtk`` (about 1 s less to import).
+    from vtkmodules.vtkFiltersCore import vtkSurfaceNets3D, vtkWindowedSincPolyDataFilter
 
     padded = np.pad(np.asarray(mask, dtype=np.uint8), 1)
-    nets = vtk.vtkSurfaceNets3D()
+    nets = vtkSurfaceNets3D()
     nets.SetInputData(_vtk_image(padded))
     nets.SetValue(0, 1)
     nets.SetOutputMeshTypeToTriangles()
     nets.SetSmoothing(False)
     nets.Update()
-    smoother = vtk.vtkWindowedSincPolyDataFilter()
+    smoother = vtkWindowedSincPolyDataFilter()
     smoother.SetInputData(nets.GetOutput())
     smoother.SetNumberOfIterations(int(smoothing_iterations))
     smoother.SetPassBand(float(pass_band))
@@ -186,9 +187,11 @@ def label_surface(volume: Volume, value: int, *, n_vertices: int | None = 2000,
         shown = ", ".join(str(int(p)) for p in present[:20]) + (" ..." if len(present) > 20 else "")
         raise LabelError(f"{source}: label {label_name or value} (value {value}) has no voxel "
                          f"(values present: {shown})")
-    idx = np.argwhere(mask)
-    lo = np.maximum(idx.min(axis=0) - 1, 0)
-    hi = np.minimum(idx.max(axis=0) + 2, mask.shape)
+    # Bounding box from the three axis projections (argwhere would list every voxel).
+    spans = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis)))
+             for axis in range(3)]
+    lo = np.maximum([s[0] - 1 for s in spans], 0)
+    hi = np.minimum([s[-1] + 2 for s in spans], mask.shape)
     crop = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
     shift = np.eye(4)
     shift[:3, 3] = lo
@@ -196,7 +199,7 @@ def label_surface(volume: Volume, value: int, *, n_vertices: int | None = 2000,
     v, f, _, _ = weld(v, f)
     v, f, dropped, _, share = largest_piece(v, f)
     if info is not None:
-        info.update(voxels=int(mask.sum()), dropped_pieces=int(dropped),
+        info.update(voxels=int(np.count_nonzero(crop)), dropped_pieces=int(dropped),
                     dropped_area_share=float(share))
     if n_vertices is not None and len(v) >= 4:
         v, f = remesh(v, f, int(n_vertices))
