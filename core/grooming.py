@@ -251,8 +251,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
     """Closed surface with about ``n_vertices`` vertices of even density, on the input surface.
 
     Linear subdivision (the shape is unchanged) until there are at least twice as many
-    faces as the target needs, quadric clustering first when there are more than eight
-    times as many (:func:`_cluster`), quadric decimation with volume preservation to the target,
+    faces as the target needs, quadric decimation with volume preservation to the target,
     then tangential relaxation towards a uniform vertex distribution, each step projected
     back onto the (subdivided) input surface (:func:`core.mesh.fair_mesh` with no rest
     shape).
@@ -268,8 +267,6 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
         poly = poly.subdivide(1, subfilter="linear")
     dense_v = np.asarray(poly.points, dtype=np.float64)
     dense_f = np.asarray(poly.faces).reshape(-1, 4)[:, 1:]
-    if poly.n_cells > 8 * target_faces:
-        poly = _cluster(poly, 4 * target_faces, euler)
     reduction = 1.0 - target_faces / poly.n_cells
     out = poly.decimate(reduction, volume_preservation=True) if reduction > 0 else poly
     out = out.clean().triangulate()
@@ -279,35 +276,6 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
     projector = SurfaceProjector(dense_v, dense_f, exact=False, candidates="centroids")
     rv = meshops.fair_mesh(rv, rf, projector, iterations=relax_iterations, step=0.5)
     return rv, rf
-
-
-def _cluster(poly, n_faces: int, euler: int):
-    """Quadric clustering (Lindstrom, "Out-of-core simplification of large polygonal
-    models", SIGGRAPH 2000) of a dense closed surface to about ``n_faces`` faces, a cheap
-    first cut before quadric decimation (which costs ~1 s on a 70,000-face Surface Nets
-    mesh); the input is returned unchanged when the clustered surface is not a closed
-    manifold of the same Euler characteristic (thin parts can merge)."""
-    from vtkmodules.vtkFiltersCore import vtkQuadricClustering
-
-    import pyvista as pv
-
-    area = float(poly.area)
-    spacing = np.sqrt(3.0 * area / max(n_faces, 1))  # ~ n_faces / 2 occupied cells
-    extent = np.ptp(np.asarray(poly.points), axis=0)
-    divisions = np.maximum(np.ceil(extent / spacing).astype(int), 1)
-    clustering = vtkQuadricClustering()
-    clustering.SetInputData(poly)
-    clustering.SetNumberOfDivisions(*[int(d) for d in divisions])
-    clustering.Update()
-    out = pv.wrap(clustering.GetOutput()).clean().triangulate()
-    f = np.asarray(out.faces).reshape(-1, 4)[:, 1:]
-    if len(f) < 8:
-        return poly
-    _, counts, _ = meshops.edge_table(f)
-    n_used = len(np.unique(f))
-    if np.any(counts != 2) or n_used - len(counts) + len(f) != euler:
-        return poly
-    return out
 
 
 def needs_remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int) -> bool:
