@@ -388,3 +388,15 @@ def test_rigid_pose_still_finds_a_far_rotated_target():
     pop.meshes[1] = turned
     assert _homology_error(pop, 0, 1, identity) > 5.0
     assert _homology_error(pop, 0, 1, out) < unturned + 0.3, unturned
+
+
+def test_subsampled_cpd_moves_every_vertex_as_accurately():
+    # Nonrigid CPD on a 300-point subsample of each ~800-vertex shape (the pivoted-Cholesky
+    # kernel's displacement field then moves all vertices) against CPD on all points.
+    pop = known_homology_shapes("bean", 2, seed=21, n_points=(780, 820))
+    full = corr.correspond_pair(pop.meshes[0], pop.meshes[1], {"cpd_points": None})
+    sub = corr.correspond_pair(pop.meshes[0], pop.meshes[1], {"cpd_points": 300})
+    assert sub["vertices"].shape == full["vertices"].shape
+    e_full, e_sub = _homology_error(pop, 0, 1, full), _homology_error(pop, 0, 1, sub)
+    # Measured 1.33 vs 1.11 mm; without the nonrigid step (1 iteration) 2.5 mm.
+    assert e_sub < e_full + 0.4 and e_sub < 1.8, (e_sub, e_full)
