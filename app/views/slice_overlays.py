@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 from PySide6.QtCore import QLineF, QPointF, QRect, QRectF, Qt
-from PySide6.QtGui import QColor, QFont, QFontMetricsF, QPainter, QPen
+from PySide6.QtGui import QColor, QFont, QFontMetricsF, QImage, QPainter, QPen
 
 CONTOUR_COLOR = QColor(255, 170, 0)          # model cross-section (orange: the first structure)
 INACTIVE_ALPHA = 120                         # other structures' contours are dimmed
@@ -101,11 +101,39 @@ def outlined_text(painter: QPainter, rect: QRectF, flags, text: str, color: QCol
     painter.drawText(rect, flags, text)
 
 
+_SPRITES: dict[tuple, QImage] = {}     # outlined label texts, rendered once
+_SPRITE_PAD = 3
+
+
+def _sprite(text: str, color: QColor, font: QFont, width: float, height: float,
+            ratio: float) -> QImage:
+    """The outlined text as a transparent image (five text draws once, then one blit)."""
+    key = (text, color.rgba(), font.key(), round(width, 2), round(height, 2), ratio)
+    image = _SPRITES.get(key)
+    if image is None:
+        if len(_SPRITES) > 512:
+            _SPRITES.clear()
+        pad = _SPRITE_PAD
+        w, h = width + 2 * pad, height + 2 * pad
+        image = QImage(max(1, int(np.ceil(w * ratio))), max(1, int(np.ceil(h * ratio))),
+                       QImage.Format.Format_ARGB32_Premultiplied)
+        image.setDevicePixelRatio(ratio)
+        image.fill(0)
+        p = QPainter(image)
+        p.setFont(font)
+        outlined_text(p, QRectF(pad, pad, width, height), Qt.AlignmentFlag.AlignCenter, text,
+                      color)
+        p.end()
+        _SPRITES[key] = image
+    return image
+
+
 def paint_labels(view, painter: QPainter) -> None:
-    center = Qt.AlignmentFlag.AlignCenter
+    ratio = float(view.devicePixelRatioF())
     for rect, text, color, font in view.label_layout().values():
-        painter.setFont(font)
-        outlined_text(painter, rect.adjusted(-2, 0, 2, 0), center, text, color)
+        rect = rect.adjusted(-2, 0, 2, 0)
+        image = _sprite(text, color, font, rect.width(), rect.height(), ratio)
+        painter.drawImage(QPointF(rect.left() - _SPRITE_PAD, rect.top() - _SPRITE_PAD), image)
     if view.hasFocus():
         w, h = view.width(), view.height()
         painter.setPen(QPen(VIEW_COLORS[view.frame_name], 2))
