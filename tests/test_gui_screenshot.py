@@ -136,7 +136,7 @@ def test_3d_view_follows_a_slice_step_without_waiting_for_the_scroll_to_end(qtbo
     renders = []
     real = vv.plotter.render
     vv.plotter.render = lambda *a, **k: (real(*a, **k), renders.append(1))
-    qtbot.wait(300)                                   # past the throttle of the last render
+    vv._last_render = (-1e9, 0.0)                     # no recent render: no throttling
     window.state.step_slice("axial", 3)
     assert vv._timer.isActive() and vv._timer.interval() == vv_module.RENDER_DELAY_MS
     vv._mark("surface")                               # an edit meanwhile: not postponed
@@ -144,7 +144,8 @@ def test_3d_view_follows_a_slice_step_without_waiting_for_the_scroll_to_end(qtbo
     qtbot.waitUntil(lambda: len(renders) > 0, timeout=5000)
     z = window.state.crosshair[2]
     np.testing.assert_allclose(vv._plane_meshes["axial"].points[:, 2], z, atol=1e-6)
-    qtbot.wait(300)
+    qtbot.waitUntil(lambda: not vv._timer.isActive(), timeout=5000)
+    vv._last_render = (-1e9, 0.0)
     vv._mark("surface")
     assert vv._timer.interval() == vv_module.COALESCE_MS
     window.close()
