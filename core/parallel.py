@@ -23,8 +23,9 @@ within a fraction of a second; the pool's workers are then terminated (and ignor
 themselves, so a Ctrl-C to the terminal's process group does not spray tracebacks), outstanding
 Dask futures are cancelled, and the exception propagates to the command, which writes what
 completed and exits 130 (SIGINT) or 143 (SIGTERM). On Linux, pool workers also ask the kernel
-for SIGTERM when their parent dies (``PR_SET_PDEATHSIG``), so even a SIGKILLed parent leaves
-no worker computing.
+for SIGTERM when their parent dies (``PR_SET_PDEATHSIG``), and so does the fork server they
+are forked from (it dies with the process that started it), so even a SIGKILLed command
+leaves no worker computing and no idle server behind.
 
 Dask. ``scheduler`` is ``"local:N"`` (a ``LocalCluster`` of N single-threaded worker processes
 on this machine) or the address of a running scheduler (``tcp://host:8786``, started with
@@ -51,6 +52,9 @@ from core.progress import ProgressCallback, report
 _SCHEDULER: contextvars.ContextVar = contextvars.ContextVar("ssm_studio_scheduler", default=None)
 _COMMON: Any = None  # a pool worker's copy of ``common``
 _WORKER_MODULES: list[str] = []  # imported once by the fork server (see preload_in_workers)
+# pid of the process that starts the fork server (inherited by the server through its
+# environment: the server and the processes it forks only ever import this module once)
+_SERVER_CLIENT_ENV = "SSM_STUDIO_POOL_CLIENT"
 
 
 class Terminated(BaseException):
@@ -247,6 +251,25 @@ def _die_with_parent() -> None:
         libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
 
 
+def _server_dies_with_its_client() -> None:
+    """In a process started by this module's pool (the fork server): exit when the process
+    that started it is gone, as the workers die with the server. Run when the module is
+    imported; a no-op elsewhere (its parent is not the recorded client).
+
+    A watch of the parent pid rather than ``PR_SET_PDEATHSIG``: that signal comes when the
+    *thread* that started the server ends (a GUI worker thread), not the process."""
+    client = os.environ.get(_SERVER_CLIENT_ENV, "")
+    if not client.isdigit() or os.getppid() != int(client):
+        return
+
+    def watch() -> None:
+        while os.getppid() == int(client):
+            time.sleep(0.2)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="ssm-studio-client-watch", daemon=True).start()
+
+
 def _pool_init(common: Any, parent_pid: int) -> None:
     global _COMMON
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it terminates us
@@ -371,6 +394,7 @@ def _pool_context(fn: Callable):
     if "forkserver" not in mp.get_all_start_methods():
         return mp.get_context("spawn")
     context = mp.get_context("forkserver")
+    os.environ[_SERVER_CLIENT_ENV] = str(os.getpid())   # read by the server it may start
     module = getattr(fn, "__module__", None)
     extra = [module] if module and module != "__main__" and module not in _WORKER_MODULES else []
     # effective when the server (re)starts; '__main__' is multiprocessing's default
@@ -504,3 +528,6 @@ def _run_dask(client, fn, iterator, common, total, progress, keep, label, window
             with contextlib.suppress(Exception):
                 common_future.release()
     return results
+
+
+_server_dies_with_its_client()

@@ -109,3 +109,33 @@ def test_sigint_to_correspond_leaves_finished_shapes_and_a_report(tmp_path):
         assert (mesh.faces == first.faces).all()
     assert len(workers) >= 2
     assert still_alive(workers) == []
+
+
+def test_a_killed_command_leaves_no_worker_or_fork_server(tmp_path):
+    """SIGKILL cannot be handled: the workers die with the fork server, and the server (and
+    the resource tracker) with the command."""
+    meshes = sorted((ROOT / "resources" / "demo" / "meshes").glob("*.vtk"))[:6]
+    if len(meshes) < 6:
+        pytest.skip("demo meshes missing")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "core.cli", "correspond", *map(str, meshes), "--jobs", "2",
+         "--out", str(tmp_path / "out")], env=env, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, start_new_session=True)
+    _wait_for_progress(proc)
+
+    def session() -> list[str]:
+        found = subprocess.run(["ps", "-o", "pid=", "-s", str(proc.pid)], capture_output=True,
+                               text=True).stdout.split()
+        return [pid for pid in found if int(pid) != proc.pid]
+
+    deadline = time.monotonic() + 60
+    while len(session()) < 2 and time.monotonic() < deadline:   # the server and a worker
+        time.sleep(0.2)
+    assert len(session()) >= 2
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 20
+    while session() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert session() == []
