@@ -56,9 +56,10 @@ class SecondImage:
         """Second world -> first world (4x4 RAS), or None."""
         return None if self.coregistered is None else self.coregistered.transform
 
-    def set_image(self, coregistered, path: str | os.PathLike) -> None:
+    def set_image(self, coregistered, path: str | os.PathLike, edited: bool = True) -> None:
         """Show ``coregistered`` (on the first image's grid) from file ``path``; the first
-        image stays the base."""
+        image stays the base. ``edited``: a change of the work (False: restored from the
+        session file, which already holds it)."""
         volume = self.workspace.volume
         if volume is None or tuple(coregistered.volume.shape) != tuple(volume.shape):
             raise ValueError(f"{path}: the second image is not on the first image's grid")
@@ -69,7 +70,8 @@ class SecondImage:
         self.path = Path(path)
         self.other_window = auto_window(coregistered.volume.data)
         self.events.loaded()
-        self.workspace.events.edited("second image")
+        if edited:
+            self.workspace.events.edited("second image")
 
     def clear(self) -> None:
         if not self.loaded:

@@ -116,6 +116,7 @@ def test_second_image_is_kept_with_the_session(window, qtbot, second_path, tmp_p
     qtbot.waitUntil(lambda: model.loaded and not window.second_image.is_running, timeout=30000)
     assert (model.mode, model.checker_mm, model.base) == ("checkerboard", 6.0, "second")
     np.testing.assert_allclose(model.transform, np.eye(4))
+    assert not window.unsaved                # restored from the file: nothing to save
 
 
 def test_second_image_on_another_grid_is_registered_in_a_worker_and_can_be_cancelled(

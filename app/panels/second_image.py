@@ -64,7 +64,7 @@ class SecondImageController(QObject):
         self.task.failed.connect(lambda m: self.error.emit(f"Second image not opened: {m}"))
         self.task.cancelled.connect(
             lambda: self.message.emit("Second image cancelled: nothing changed"))
-        self._pending: tuple[str, dict | None] | None = None
+        self._pending: tuple | None = None            # (path, session display, first image)
         views = list(window.workspace.views.values())
         for view in views:
             view.layers.insert(0, self.layer)         # under the label fill and the contours
@@ -112,12 +112,13 @@ class SecondImageController(QObject):
                             "loading; open the second image again")
             return
         try:
-            self.model.set_image(coregistered, path)
+            self.model.set_image(coregistered, path, edited=display is None)
         except ValueError as exc:                      # the first image changed meanwhile
             self.error.emit(str(exc))
             return
-        if display:
-            self.model.apply_display(display)
+        if display:                                    # a session's: restored, not edited
+            with self.w.state.events.edited.blocked():
+                self.model.apply_display(display)
         self.message.emit(f"Second image {self.model.describe()}")
 
     def restore(self, document: dict | None) -> None:
