@@ -116,3 +116,22 @@ def test_checkerboard_squares_are_fixed_in_mm_and_blend_weights_the_top_image(t1
     assert blend(bottom, top, 0.25)[0, 0] == 175
     with pytest.raises(ValueError):
         checkerboard_mask(sl, 0.0)
+
+
+def test_other_field_of_view_in_the_same_scanner_frame_stays_in_place(t1, caudate):
+    """A FLAIR-like series of the same session: other contrast, coarser voxels and only the
+    upper part of the head, already aligned in world space. The registration starts from the
+    centres of mass, which differ here, and must still leave the image where it is."""
+    from core.registration import resample
+
+    grid = t1.affine @ np.diag([4.0 / 3.0, 4.0 / 3.0, 4.0 / 3.0, 1.0])
+    shape = tuple(int(s * 3 / 4) for s in t1.shape)
+    grid[:3, 3] += t1.affine[:3, :3] @ np.array([0.0, 0.0, 0.35 * t1.shape[2]])
+    shape = (shape[0], shape[1], int(0.55 * shape[2]))   # top of the head only
+    data = resample(remap(t1.data), t1.affine, np.eye(4), shape, grid)
+    flair = Volume(data, grid)
+    assert not same_grid(t1, flair)
+    result = coregister(t1, flair, levels_mm=(8.0, 4.0), n_samples=8000, threads=1)
+    err = np.linalg.norm(_apply(result.transform, caudate) - caudate, axis=1)
+    print(f"caudate moved by {err.max():.2f} mm")
+    assert err.max() < 1.5, err.max()
