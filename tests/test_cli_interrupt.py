@@ -107,6 +107,15 @@ def test_sigint_to_correspond_leaves_finished_shapes_and_a_report(tmp_path):
         mesh = load_mesh(path)
         assert mesh.vertices.shape == first.vertices.shape
         assert (mesh.faces == first.faces).all()
+    # the others are left as their reference-based results, in provisional/
+    for shape in report["shapes"]:
+        assert (shape["output"] is None) != (shape["provisional"] is None), shape
+    provisional = [s["provisional"] for s in report["shapes"] if s["provisional"]]
+    assert report["n_provisional"] == len(provisional) == len(paths) - len(done)
+    for path in provisional:
+        assert Path(path).parent == out / "provisional"
+        mesh = load_mesh(path)
+        assert mesh.vertices.shape == first.vertices.shape and (mesh.faces == first.faces).all()
     assert len(workers) >= 2
     assert still_alive(workers) == []
 

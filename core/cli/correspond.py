@@ -21,7 +21,9 @@ Exit code 0 when all succeeded, 1 when some failed.
 Each output is written as soon as it is final (during the last refinement pass), so a run
 stopped by SIGINT or SIGTERM leaves every finished shape and a ``correspondence.json`` saying
 ``"interrupted": "SIGINT"`` (or ``"SIGTERM"``), ``"complete": false`` and which shapes were
-written; it exits 130 (143). ``--jobs N`` runs the per-shape jobs in N worker processes;
+written; it exits 130 (143). Stopped after the reference-based pass but before a shape's
+refinement finished, that shape's reference-based result is written to ``DIR/provisional/``
+(listed as ``"provisional"`` in the report: usable, but not refined groupwise). ``--jobs N`` runs the per-shape jobs in N worker processes;
 ``--scheduler ADDRESS`` (or ``local:N``) runs them as Dask tasks on a cluster.
 """
 
@@ -94,19 +96,42 @@ def _output_path(out_dir: Path, source: Path, used: set[str]) -> Path:
     return out_dir / name
 
 
+PROVISIONAL_DIR = "provisional"
+
+
 def _write_interrupted_report(args: argparse.Namespace, paths: list[Path], written: dict,
-                              load_failures: dict, exc: BaseException) -> None:
+                              load_failures: dict, exc: BaseException,
+                              provisional: dict | None = None) -> None:
     """correspondence.json of a run stopped by SIGINT/SIGTERM: the shapes that were finished
-    and written (each output is complete: saves are atomic), nothing else."""
+    and written (each output is complete: saves are atomic), and the reference-based results
+    written to ``provisional/`` for shapes whose refinement had not finished."""
     how = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
     args.out.mkdir(parents=True, exist_ok=True)
+    provisional = provisional or {}
     report = {"interrupted": how, "complete": False, "n_written": len(written),
-              "n_inputs": len(args.meshes),
-              "shapes": [{"name": str(p), "output": written.get(str(p))} for p in paths],
+              "n_provisional": len(provisional), "n_inputs": len(args.meshes),
+              "shapes": [{"name": str(p), "output": written.get(str(p)),
+                          "provisional": provisional.get(str(p))} for p in paths],
               "failures": dict(load_failures), "inputs": [str(p) for p in args.meshes]}
     atomic_write_json(args.out / REPORT_NAME, report)
+    extra = (f", {len(provisional)} more as reference-based results in "
+             f"{args.out / PROVISIONAL_DIR}" if provisional else "")
     print(f"\nssm-studio correspond: stopped by {how}: {len(written)}/{len(paths)} shapes were "
-          f"finished and written; see {args.out / REPORT_NAME}", file=sys.stderr)
+          f"finished and written{extra}; see {args.out / REPORT_NAME}", file=sys.stderr)
+
+
+def _write_provisional(args: argparse.Namespace, out_paths: list[Path], paths: list[Path],
+                       pending: dict[int, TriMesh], written: dict) -> dict[str, str]:
+    """The reference-based results of the shapes not written as final, in ``provisional/``."""
+    done: dict[str, str] = {}
+    for index, mesh in sorted(pending.items()):
+        if str(paths[index]) in written:
+            continue
+        target = args.out / PROVISIONAL_DIR / out_paths[index].name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        save_mesh(target, TriMesh(mesh.vertices, mesh.faces, target.stem), vertex_order=True)
+        done[str(paths[index])] = str(target)
+    return done
 
 
 def run(args: argparse.Namespace) -> int:
@@ -138,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
     used: set[str] = set()
     out_paths = [_output_path(args.out, path, used) for path in loaded_paths]
     written: dict[str, str] = {}
+    pending: dict[int, TriMesh] = {}   # reference-based results, kept for an interruption
 
     def write_shape(index: int, mesh: TriMesh) -> None:
         # streaming: each output as soon as it is final, so an interrupted run keeps it
@@ -152,9 +178,11 @@ def run(args: argparse.Namespace) -> int:
                                               n_jobs=args.jobs, progress=progress,
                                               selection=args.selection, groom=groom,
                                               vertices=args.vertices, refine=args.refine,
-                                              on_shape=write_shape, **params)
+                                              on_shape=write_shape,
+                                              on_provisional=pending.__setitem__, **params)
     except (KeyboardInterrupt, Terminated) as exc:
-        _write_interrupted_report(args, loaded_paths, written, load_failures, exc)
+        provisional = _write_provisional(args, out_paths, loaded_paths, pending, written)
+        _write_interrupted_report(args, loaded_paths, written, load_failures, exc, provisional)
         raise
     report = result.to_report([str(p) for p in loaded_paths])
     for entry in report["shapes"]:

@@ -471,6 +471,7 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
                              selection_shapes: int = 8, groom: bool | dict = True,
                              vertices: int | None = None, refine: int = 1,
                              on_shape: Callable[[int, TriMesh], None] | None = None,
+                             on_provisional: Callable[[int, TriMesh], None] | None = None,
                              **cpd_params) -> CorrespondenceResult:
     """Express every training mesh with the vertices and faces of one reference mesh.
 
@@ -507,6 +508,10 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
         (streaming: the command line writes each output as it arrives, so an interrupted run
         leaves the finished ones). Results become final during the last refinement pass, as
         its jobs complete; with ``refine=0`` after the outlier check (all at once).
+    on_provisional : callable, optional
+        ``on_provisional(index, mesh)`` for every shape's reference-based result (before the
+        refinement passes, after the outlier check; only when ``refine`` > 0): what an
+        interrupted run can still hand over for the shapes not yet final.
     **cpd_params
         Overrides of :data:`DEFAULT_CPD_PARAMS`.
     """
@@ -554,6 +559,9 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     def final(key: tuple, value: tuple) -> None:  # a last-pass failure keeps the previous result
         stream(key[1], value[0]["vertices"] if value[0] is not None else corresponded[key[1]])
 
+    if on_provisional is not None and refine > 0:
+        for k in sorted(corresponded):
+            on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
     changes = _refine(corresponded, ref_faces, prepared, params, n_jobs, progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)
     for k in sorted(corresponded):  # shapes no refinement pass touched (refine=0, < 3 shapes)
