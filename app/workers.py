@@ -208,10 +208,14 @@ class DialogTask(QObject):
         return self.worker.wait(msecs) if self.worker is not None else True
 
     def _on_progress(self, fraction: float, message: str) -> None:
-        if self.dialog is not None:
-            self.dialog.setValue(int(100 * fraction))
-            if message:
-                self.dialog.setLabelText(f"{self.label}\n{message}")
+        dialog = self.dialog
+        if dialog is None:
+            return
+        if message:
+            dialog.setLabelText(f"{self.label}\n{message}")
+        # last: a modal dialog's setValue processes events, which may deliver the end of the
+        # job and close the dialog (self.dialog is None afterwards)
+        dialog.setValue(int(100 * fraction))
 
     def _finish(self, signal, *args) -> None:
         self.worker = None
