@@ -20,7 +20,7 @@ from core.simulated_user import pca_model, synthetic_shapes
 
 ROOT = Path(__file__).resolve().parents[1]
 QT_MODULES = ("PySide6", "PyQt5", "PyQt6", "pyvistaqt", "qtpy", "vtk", "pyvista")
-QT_FREE = ("app/state.py", "app/events.py", "app/controllers.py")
+QT_FREE = ("app/state.py", "app/events.py", "app/controllers.py", "app/second_image.py")
 
 
 def _imports(path: Path) -> list[str]:
@@ -38,7 +38,7 @@ def test_workspace_model_imports_no_qt():
         bad = [n for n in _imports(ROOT / rel) if n.split(".")[0] in QT_MODULES]
         assert bad == [], rel
     # and nothing it imports pulls Qt or VTK in
-    code = ("import sys, app.state, app.events, app.controllers; "
+    code = ("import sys, app.state, app.events, app.controllers, app.second_image; "
             f"bad = [m for m in sys.modules if m.split('.')[0] in {QT_MODULES!r}]; "
             "print(bad); sys.exit(1 if bad else 0)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
@@ -248,3 +248,30 @@ def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
     assert b.label == "other (right)" and b.coef[1] == pytest.approx(0.5)
     assert np.array_equal(b.points.frame, second.points.frame)
     assert a.model_path == path and b.model is a.model          # one file, loaded once
+
+
+def test_second_image_state_swaps_the_window_with_the_base_and_keeps_its_settings():
+    """app.second_image is plain Python: the base image owns the workspace's window/level."""
+    from app.second_image import SecondImage
+    from core.coregistration import coregister
+
+    state = WorkspaceState()
+    data = np.arange(4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6)
+    state.set_image(Volume(data, np.eye(4)))
+    second = SecondImage(state)
+    with pytest.raises(ValueError):
+        second.set_base("second")                      # nothing loaded yet
+    second.set_image(coregister(state.volume, Volume(100.0 - data, np.eye(4))), "t2.nii")
+    first_window = (state.window, state.level)
+    second.set_window_of("second", 30.0, 70.0)
+    second.set_base("second")
+    assert (state.window, state.level) == (30.0, 70.0)
+    assert second.window_of("first") == first_window
+    doc = second.to_document()
+    assert doc["base"] == "second" and doc["first_window"] == list(first_window)
+    second.swap_base()
+    assert (state.window, state.level) == first_window
+    with pytest.raises(ValueError):
+        second.set_opacity(1.5)
+    state.set_image(Volume(data, np.eye(4)))           # a new first image drops the second
+    assert not second.loaded and second.to_document() is None
