@@ -200,3 +200,14 @@ def test_session_drawn_on_the_second_image_reopens_with_the_first_images_window(
     assert not window.second_image.model.loaded
     assert errors and "t2like.nii.gz" in errors[0] and "not found" in errors[0]
     np.testing.assert_allclose((state.window, state.level), first_window)
+
+
+def test_a_second_load_while_one_runs_is_refused_and_the_first_one_completes(window, qtbot,
+                                                                          second_path):
+    errors = []
+    window.second_image.error.connect(errors.append)
+    assert window.load_second_image(second_path)
+    assert not window.load_second_image(second_path.with_name("other.nii.gz"))
+    assert errors and "still loading" in errors[0]
+    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
+    assert window.second_image.model.path.name == "t2like.nii.gz"

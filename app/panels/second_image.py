@@ -64,7 +64,8 @@ class SecondImageController(QObject):
         self.task.failed.connect(lambda m: self.error.emit(f"Second image not opened: {m}"))
         self.task.cancelled.connect(
             lambda: self.message.emit("Second image cancelled: nothing changed"))
-        self._pending: tuple | None = None            # (path, session display, first image)
+        # (path, session display settings, first image, notes on the DICOM series choice)
+        self._pending: tuple | None = None
         views = list(window.workspace.views.values())
         for view in views:
             view.layers.insert(0, self.layer)         # under the label fill and the contours
@@ -90,11 +91,14 @@ class SecondImageController(QObject):
         if self.w.state.volume is None:
             self.error.emit("Open the first image before a second one")
             return False
+        if self.task.is_running:
+            self.error.emit(f"{path}: a second image is still loading; wait or cancel it first")
+            return False
         notes: list[str] = []
         resolved = self.w.files.resolve_image(path, None if show_dialog else False, notes)
         if resolved is None:
             return False
-        self._pending = (str(resolved), display, self.w.state.volume)
+        self._pending = (str(resolved), display, self.w.state.volume, notes)
         return self.task.start(_load, str(resolved), self.w.state.volume, transform,
                                show_dialog=show_dialog)
 
@@ -105,7 +109,7 @@ class SecondImageController(QObject):
         return self.task.wait(msecs)
 
     def _on_loaded(self, coregistered) -> None:
-        path, display, reference = self._pending or ("second image", None, None)
+        path, display, reference, notes = self._pending or ("second image", None, None, [])
         self._pending = None
         if reference is not self.w.state.volume:      # another first image meanwhile
             self.error.emit(f"{path}: the first image changed while the second one was "
@@ -119,7 +123,8 @@ class SecondImageController(QObject):
         if display:                                    # a session's: restored, not edited
             with self.w.state.events.edited.blocked():
                 self.model.apply_display(display)
-        self.message.emit(f"Second image {self.model.describe()}")
+        self.message.emit(f"Second image {self.model.describe()}"
+                          + (f" ({notes[0]})" if notes else ""))
 
     def restore(self, document: dict | None) -> None:
         """A session's ``info.second_image``: load it again with its transform."""
