@@ -71,10 +71,16 @@ class FactorsPanel(QWidget):
         share = model.explained_variance_share()          # the builder's read-out (core)
         of_what = ("of the training shapes' variance"
                    if "explained_variance_ratio" in model.info else "of the model's variance")
-        self.summary.setText(f"{model.method.upper()} model: {model.n_factors} factors, "
-                             f"{model.n_vertices} vertices; together they explain "
-                             f"{100 * float(share.sum()):.1f}% {of_what}. Sliders span "
-                             "\u00b13 SD; the percentage is each factor's share.")
+        head = (f"{model.method.upper()} model: {model.n_factors} factors, "
+                f"{model.n_vertices} vertices")
+        if "explained_variance_ratio" in model.info:
+            self.summary.setText(f"{head}; together they explain {100 * float(share.sum()):.1f}% "
+                                 f"{of_what}. Sliders span \u00b13 SD; the percentage is each "
+                                 "factor's share.")
+        else:
+            self.summary.setText(f"{head}. Sliders span \u00b13 SD; the percentage is each "
+                                 "factor's share of the model's own variance (this file does "
+                                 "not store the training shapes' variance).")
         for m in range(model.n_factors):
             name = QLabel(f"{m + 1}")
             tip = (f"Factor {m + 1}: explains {100 * share[m]:.1f}% {of_what}; "
