@@ -149,3 +149,32 @@ def test_3d_view_follows_a_slice_step_without_waiting_for_the_scroll_to_end(qtbo
     vv._mark("surface")
     assert vv._timer.interval() == vv_module.COALESCE_MS
     window.close()
+
+
+def test_3d_planes_show_the_second_images_composite(qtbot, tmp_path, monkeypatch):
+    """With a second image, the 3D view's planes carry the same blend or checkerboard as the
+    slice views (the first image alone, in its own window, without one)."""
+    from core.io import save_volume
+    from core.planes import FRAMES, window_to_uint8
+
+    window = _demo_window_with_3d(qtbot, tmp_path, monkeypatch, (1200, 800))
+    volume = window.state.volume
+    path = tmp_path / "inverted.nii.gz"
+    save_volume(path, (float(np.max(volume.data)) - np.asarray(volume.data)).astype(np.float32),
+                volume.affine)
+    assert window.load_second_image(path)
+    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
+    model, layer = window.second_image.model, window.second_image.layer
+    model.set_mode("checkerboard")
+    vv = window.workspace.volume_view
+    vv.flush()
+    sl = window.state.sampler.sample(FRAMES["axial"], FRAMES["axial"].depth(window.state.crosshair))
+    texture = np.asarray(vv._plane_actors["axial"].texture.to_array())
+    expected = layer.composite_slice(FRAMES["axial"], sl)[::-1]          # rows go bottom-up
+    np.testing.assert_array_equal(texture.reshape(expected.shape), expected)
+    model.clear()
+    vv.flush()
+    texture = np.asarray(vv._plane_actors["axial"].texture.to_array())
+    plain = window_to_uint8(sl.data, window.state.window, window.state.level)[::-1]
+    np.testing.assert_array_equal(texture.reshape(plain.shape), plain)
+    window.close()

@@ -27,6 +27,7 @@ from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QGroupBox, QHBoxLayout
 from app.second_image import SecondImage
 from app.views.second_image_layer import SecondImageLayer
 from app.workers import DialogTask
+from core.planes import window_to_uint8
 
 SHORTCUTS = [("Ctrl+Shift+I", "Open a second image (T2, FLAIR, CT) over the first"),
              ("K", "Second image: checkerboard / blend"),
@@ -76,10 +77,19 @@ class SecondImageController(QObject):
             self._wire_volume_view()
 
     def _wire_volume_view(self) -> None:
-        """The 3D planes keep showing the first image in its own window."""
-        view = self.w.workspace.volume_view
-        view.plane_window = lambda: self.model.window_of("first")
-        self.model.events.display.connect(view._on_planes)
+        """The 3D planes show the same composite as the slice views (the first image alone,
+        in its own window, without a second image)."""
+        view, layer, model = self.w.workspace.volume_view, self.layer, self.model
+
+        def grey(frame, sl):
+            composite = layer.composite_slice(frame, sl)
+            return composite if composite is not None else \
+                window_to_uint8(sl.data, *model.window_of("first"))
+
+        view.plane_key = layer.display_key
+        view.plane_grey = grey
+        for event in (model.events.display, model.events.loaded):
+            event.connect(view._on_planes)
 
     @property
     def is_running(self) -> bool:

@@ -30,25 +30,34 @@ class SecondImageLayer:
         second.events.loaded.connect(self._cache.clear)
 
     def _key(self, view) -> tuple:
-        s = self.second
         return (view.frame_name, round(float(view._slice.depth), 6), view._slice.data.shape,
-                id(view._slice), s.window_of("first"), s.window_of("second"), s.mode, s.opacity,
-                s.checker_mm, s.base, id(view.colormap), id(s.sampler))
+                id(view._slice), id(view.colormap), self.display_key())
 
     def composite(self, view) -> np.ndarray | None:
         """(H, W) uint8 composite on the view's current slice (None without a second image)."""
+        return None if view._slice is None else self.composite_slice(view.frame, view._slice)
+
+    def composite_slice(self, frame, first_slice) -> np.ndarray | None:
+        """The composite on a slice of the first image (``core.planes.SliceImage`` on
+        ``frame``), e.g. the 3D view's planes; None without a second image."""
         s = self.second
-        if s.sampler is None or view._slice is None:
+        if s.sampler is None:
             return None
-        first = window_to_uint8(view._slice.data, *s.window_of("first"))
-        other = s.sampler.sample(view.frame, view._slice.depth)
+        first = window_to_uint8(first_slice.data, *s.window_of("first"))
+        other = s.sampler.sample(frame, first_slice.depth)
         if other.data.shape != first.shape:          # not on the first image's grid
             return None
         second = window_to_uint8(other.data, *s.window_of("second"))
         bottom, top = (first, second) if s.base == "first" else (second, first)
         if s.mode == "checkerboard":
-            return np.where(checkerboard_mask(view._slice, s.checker_mm), bottom, top)
+            return np.where(checkerboard_mask(first_slice, s.checker_mm), bottom, top)
         return blend(bottom, top, s.opacity)
+
+    def display_key(self) -> tuple:
+        """Changes whenever the composite of a given slice would."""
+        s = self.second
+        return (s.window_of("first"), s.window_of("second"), s.mode, s.opacity, s.checker_mm,
+                s.base, id(s.sampler))
 
     def image(self, view) -> QImage | None:
         key = self._key(view) if view._slice is not None else None

@@ -62,9 +62,10 @@ class VolumeView(QWidget):
         self._points_mesh: pv.PolyData | None = None
         self._plane_keys: dict[str, tuple] = {}
         self.defer = lambda: False      # e.g. "a refit is running": postpone non-urgent renders
-        # (window, level) of the image on the planes (the second image's tools keep the first
-        # image's own window here while the second one is the base of the slice views)
-        self.plane_window = lambda: (state.window, state.level)
+        # what the planes show: a cache key of the display settings and the grey image of a
+        # slice (the second image's tools put their blend or checkerboard here)
+        self.plane_key = lambda: (state.window, state.level)
+        self.plane_grey = lambda frame, sl: window_to_uint8(sl.data, state.window, state.level)
         self._pending_since: float | None = None
         self._factor: int | None = None
         self._plane_actors: dict[str, object] = {}
@@ -209,13 +210,12 @@ class VolumeView(QWidget):
             return
         for name in FRAME_NAMES:
             frame = FRAMES[name]
-            window, level = self.plane_window()
-            key = (frame.depth(state.crosshair), window, level, id(state.sampler))
+            key = (frame.depth(state.crosshair), id(state.sampler), self.plane_key())
             if self._plane_keys.get(name) == key:
                 continue
             self._plane_keys[name] = key
             sl = state.sampler.sample(frame, frame.depth(state.crosshair))
-            grey = window_to_uint8(sl.data, window, level)
+            grey = self.plane_grey(frame, sl)
             left, right, top, bottom = sl.extent()
             corners_uv = np.array([[left, bottom], [right, bottom], [right, top], [left, top]])
             corners = frame.to_world(np.column_stack([corners_uv, np.full(4, sl.depth)]))
