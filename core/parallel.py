@@ -167,8 +167,11 @@ def _dask_client(scheduler: str):
     import logging
 
     if scheduler.startswith("local:"):
+        # no dashboard; the scheduler's HTTP server on a free port (its default 8787 may be
+        # taken by another cluster, which Dask would warn about)
         cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1,
                                processes=True, dashboard_address=None,
+                               scheduler_kwargs={"dashboard": False, "dashboard_address": ":0"},
                                silence_logs=logging.ERROR)
         return Client(cluster), cluster
     try:
