@@ -22,7 +22,7 @@ from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _task, mes
                                      mirror_fit_ratio)
 from core.geometry import umeyama
 from core.grooming import DEFAULT_GROOMING, GroomingError, groom_mesh
-from core.parallel import preload_in_workers, run_jobs, runs_inline
+from core.parallel import JobError, preload_in_workers, run_jobs, runs_inline
 from core.progress import ProgressCallback, report, sub_progress
 from core.types import TriMesh
 
@@ -132,31 +132,46 @@ def default_vertex_count(meshes: list[TriMesh]) -> int:
     return max(int(np.median(counts)), 20) if counts else 2000
 
 
+def _groom_job(mesh: TriMesh, options: dict) -> tuple:
+    """core.parallel job: (groomed mesh, its report as a dict, None) or (None, None, problem)."""
+    try:
+        groomed, rep = groom_mesh(mesh, options)
+    except GroomingError as exc:
+        return None, None, f"grooming: {exc}"
+    return groomed, rep.to_dict(), None
+
+
 def _prepare(meshes: list[TriMesh], names: list[str], groom: bool | dict, vertices: int | None,
-             progress: ProgressCallback | None = None) -> tuple[list, dict, dict]:
-    """Groomed (or checked) inputs, per-shape failures and grooming reports."""
+             progress: ProgressCallback | None = None, n_jobs: int | None = 1
+             ) -> tuple[list, dict, dict]:
+    """Groomed (or checked) inputs, per-shape failures and grooming reports. Grooming is a
+    per-shape job too (:func:`core.parallel.run_jobs`: pool or Dask)."""
     prepared: list[TriMesh | None] = [None] * len(meshes)
     failures: dict[str, str] = {}
     reports: dict[str, dict] = {}
-    options = dict(groom) if isinstance(groom, dict) else {}
-    options.setdefault("vertices", int(vertices) if vertices else default_vertex_count(meshes))
-    for i, m in enumerate(meshes):
-        report(progress, 0.1 * i / max(len(meshes), 1), f"grooming {i + 1}/{len(meshes)}")
-        if groom is False:
+    if groom is False:
+        for i, m in enumerate(meshes):
             problem = mesh_problem(m)
             if problem:
                 failures[names[i]] = problem
             else:
                 prepared[i] = m
-            continue
-        try:
-            groomed, rep = groom_mesh(m, options)
-        except GroomingError as exc:
-            failures[names[i]] = f"grooming: {exc}"
+        return prepared, failures, reports
+    options = dict(groom) if isinstance(groom, dict) else {}
+    options.setdefault("vertices", int(vertices) if vertices else default_vertex_count(meshes))
+    try:
+        done = run_jobs(_groom_job, list(enumerate(meshes)), common=options, n_jobs=n_jobs,
+                        progress=sub_progress(progress, 0.0, 0.1), label="grooming")
+    except JobError as exc:  # an unexpected error of one input: raised as it is, as inline
+        raise (exc.__cause__ or exc) from None
+    for i in range(len(meshes)):
+        groomed, rep, problem = done[i]
+        if problem is not None:
+            failures[names[i]] = problem
             continue
         groomed.name = names[i]
         prepared[i] = groomed
-        reports[names[i]] = rep.to_dict()
+        reports[names[i]] = rep
     return prepared, failures, reports
 
 
@@ -521,12 +536,12 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     t_start = time.perf_counter()
     names = [_mesh_name(m, i) for i, m in enumerate(meshes)]
     report(progress, 0.0, "grooming")
-    prepared, failures, grooming = _prepare(meshes, names, groom, vertices, progress)
+    n_jobs = (os.cpu_count() or 1) if n_jobs is None else int(n_jobs)
+    prepared, failures, grooming = _prepare(meshes, names, groom, vertices, progress, n_jobs)
     t_groom = time.perf_counter() - t_start
     usable = [i for i, m in enumerate(prepared) if m is not None]
     candidates, external, why = _resolve_reference(reference, prepared, names, failures, usable,
                                                    meshes, n_references, grooming)
-    n_jobs = (os.cpu_count() or 1) if n_jobs is None else int(n_jobs)
     chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
                                                    params, n_jobs, progress, selection,
                                                    selection_shapes)
