@@ -107,13 +107,17 @@ def part_a(n_shapes: int, chunk: int) -> None:
                     cpu[name] += tree_cpu_seconds() - c0
                 outputs[name] += [None if m is None else m.vertices for m in res.meshes]
     (pool_out, dask_out) = outputs.values()
+    # identical: the same shapes failed (flagged by the batch's checks) and the same vertices
     same = len(pool_out) == len(dask_out) == n_shapes and all(
-        a is not None and b is not None and np.array_equal(a, b) for a, b in zip(pool_out, dask_out))
-    print(f"{'executor':<20} {'shapes':>6} {'wall s':>8} {'shapes/s':>9} {'CPU s/shape':>12} "
-          f"{'outputs identical':>18}")
+        (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+        for a, b in zip(pool_out, dask_out))
+    failed = {name: sum(v is None for v in out) for name, out in outputs.items()}
+    print(f"{'executor':<20} {'shapes':>6} {'failed':>6} {'wall s':>8} {'shapes/s':>9} "
+          f"{'CPU s/shape':>12} {'outputs identical':>18}")
     for name in executors:
-        print(f"{name:<20} {n_shapes:6d} {wall[name]:8.1f} {n_shapes / wall[name]:9.3f} "
-              f"{cpu[name] / n_shapes:12.3f} {'yes' if same else 'NO':>18}")
+        print(f"{name:<20} {n_shapes:6d} {failed[name]:6d} {wall[name]:8.1f} "
+              f"{n_shapes / wall[name]:9.3f} {cpu[name] / n_shapes:12.3f} "
+              f"{'yes' if same else 'NO':>18}")
     ratio = wall["process pool"] / wall["Dask LocalCluster"]
     print(f"Dask/pool throughput ratio {ratio:.3f} (within 15%: {'yes' if abs(ratio - 1) <= 0.15 else 'no'}); "
           f"load after {os.getloadavg()[0]:.1f}")
