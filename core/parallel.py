@@ -475,7 +475,7 @@ def _terminate_executor(executor) -> None:
 
 
 def _run_dask(client, fn, iterator, common, total, progress, keep, label, window, retries) -> dict:
-    from distributed import as_completed
+    from distributed import wait
 
     n_workers = max(1, len(client.scheduler_info().get("workers", {})))
     limit = max(1, int(window) if window else 4 * n_workers)
@@ -483,15 +483,14 @@ def _run_dask(client, fn, iterator, common, total, progress, keep, label, window
     # One future for the whole object (scattering a dict or list would scatter its items).
     common_future = (client.scatter([common], broadcast=True, hash=False)[0]
                      if common is not None else None)
-    keys: dict = {}
+    in_flight: dict = {}  # future -> key
     results: dict = {}
-    pending = as_completed()
     counter = 0
     exhausted = False
 
     def submit_more() -> None:
         nonlocal counter, exhausted
-        while not exhausted and pending.count() < limit:
+        while not exhausted and len(in_flight) < limit:
             try:
                 key, arg = next(iterator)
             except StopIteration:
@@ -500,20 +499,23 @@ def _run_dask(client, fn, iterator, common, total, progress, keep, label, window
             fut = client.submit(_dask_call, fn, arg, common_future, pure=False,
                                 key=f"ssm-{label.replace(' ', '_')}-{tag}-{counter}",
                                 retries=int(retries))
-            keys[fut.key] = key
+            in_flight[fut] = key
             counter += 1
-            pending.add(fut)
 
     try:
         submit_more()
-        while not pending.is_empty():
-            batch = pending.next_batch(block=False)
-            if not batch:
-                time.sleep(0.1)  # short waits: signals are handled promptly
+        while in_flight:
+            # woken by the first completion (no polling delay), at least every 0.1 s so that
+            # signals and the GUI's Cancel are handled promptly
+            try:
+                finished = wait(list(in_flight), timeout=0.1, return_when="FIRST_COMPLETED").done
+            except TimeoutError:
+                finished = set()
+            if not finished:
                 _tick(progress, len(results), total, label)  # heartbeat
                 continue
-            for fut in batch:
-                key = keys.pop(fut.key)
+            for fut in finished:
+                key = in_flight.pop(fut)
                 try:
                     value = fut.result()
                 except Exception as exc:
@@ -524,7 +526,7 @@ def _run_dask(client, fn, iterator, common, total, progress, keep, label, window
             submit_more()
     except BaseException:
         with contextlib.suppress(Exception):
-            client.cancel(list(pending.futures), force=True)
+            client.cancel(list(in_flight), force=True)
         raise
     finally:
         if common_future is not None:
