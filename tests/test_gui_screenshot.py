@@ -134,8 +134,7 @@ def test_3d_view_follows_a_slice_step_without_waiting_for_the_scroll_to_end(qtbo
     window.render_now()
     vv = window.workspace.volume_view
     renders = []
-    real = vv.plotter.render
-    vv.plotter.render = lambda *a, **k: (real(*a, **k), renders.append(1))
+    vv.plotter.ren_win.AddObserver("EndEvent", lambda *_: renders.append(1))
     vv._last_render = (-1e9, 0.0)                     # no recent render: no throttling
     window.state.step_slice("axial", 3)
     assert vv._timer.isActive() and vv._timer.interval() == vv_module.RENDER_DELAY_MS
@@ -177,4 +176,23 @@ def test_3d_planes_show_the_second_images_composite(qtbot, tmp_path, monkeypatch
     texture = np.asarray(vv._plane_actors["axial"].texture.to_array())
     plain = window_to_uint8(sl.data, window.state.window, window.state.level)[::-1]
     np.testing.assert_array_equal(texture.reshape(plain.shape), plain)
+    window.close()
+
+
+def test_a_3d_update_renders_once(qtbot, tmp_path, monkeypatch):
+    """pyvistaqt's widget renders in its paint: the 3D view asks for that paint instead of
+    also calling plotter.render() (which rendered every update twice)."""
+    window = _demo_window_with_3d(qtbot, tmp_path, monkeypatch, (1200, 800))
+    window.render_now()
+    vv = window.workspace.volume_view
+    renders = []
+    vv.plotter.ren_win.AddObserver("EndEvent", lambda *_: renders.append(1))
+    qtbot.wait(300)
+    renders.clear()
+    window.state.step_slice("axial", 2)
+    qtbot.waitUntil(lambda: len(renders) > 0, timeout=5000)
+    qtbot.wait(300)                                   # no second render follows
+    assert len(renders) == 1
+    z = window.state.crosshair[2]
+    np.testing.assert_allclose(vv._plane_meshes["axial"].points[:, 2], z, atol=1e-6)
     window.close()
