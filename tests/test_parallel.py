@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -190,3 +191,60 @@ def test_evaluation_on_dask_equals_the_pool(local_cluster, small_meshes):
             np.testing.assert_array_equal(run[m]["avg"], inline[m]["avg"])
             np.testing.assert_array_equal(run[m]["max"], inline[m]["max"])
     assert np.all(inline["generalisation"]["avg"] > 0)  # real leave-one-out errors
+
+
+def test_cluster_started_with_the_dask_command_line(tmp_path):
+    """A user's cluster: `dask scheduler` + `dask worker --nworkers 2 --nthreads 1` as separate
+    processes; run_jobs on it equals the pool, and a worker SIGKILLed mid-run costs nothing."""
+    pytest.importorskip("distributed")
+    dask_cli = Path(sys.executable).with_name("dask")
+    if not dask_cli.exists():
+        pytest.skip("the dask command line is not installed")
+    (tmp_path / "cli_jobs.py").write_text("import os, time\n\ndef square(arg, common):\n"
+                                          "    time.sleep(0.1)\n    return arg * arg + common, os.getpid()\n")
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}")
+    sched_file = tmp_path / "scheduler.json"
+    common = ["--no-dashboard"]
+    procs = [subprocess.Popen([str(dask_cli), "scheduler", "--scheduler-file", str(sched_file),
+                               "--port", "0", *common], env=env, start_new_session=True,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs.append(subprocess.Popen([str(dask_cli), "worker", "--scheduler-file", str(sched_file),
+                                   "--nworkers", "2", "--nthreads", "1", *common], env=env,
+                                  start_new_session=True, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL))
+    sys.path.insert(0, str(tmp_path))
+    try:
+        import cli_jobs
+
+        deadline = time.monotonic() + 60  # a hang guard
+        while not sched_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        import json
+
+        address = json.loads(sched_file.read_text())["address"]
+        items = [(i, i) for i in range(16)]
+        with use_scheduler(None):  # the process pool, even inside another test's cluster
+            pooled = run_jobs(cli_jobs.square, items, common=3, n_jobs=2)
+        with use_scheduler(address) as client:
+            client.wait_for_workers(2, timeout=60)
+            worker_pids = list(client.run(os.getpid).values())
+            killed = []
+
+            def on_result(key, value):
+                if not killed:  # the first result is in: kill the other worker
+                    victim = next(p for p in worker_pids if p != value[1])
+                    os.kill(victim, signal.SIGKILL)
+                    killed.append(victim)
+                return value
+
+            on_dask = run_jobs(cli_jobs.square, items, common=3, on_result=on_result, window=8)
+        assert killed
+        assert {k: v[0] for k, v in on_dask.items()} == {k: v[0] for k, v in pooled.items()}
+        assert {k: v[0] for k, v in pooled.items()} == {i: i * i + 3 for i in range(16)}
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("cli_jobs", None)
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=30)
