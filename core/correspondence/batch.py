@@ -341,7 +341,7 @@ def _select(candidates: list, external, prepared: list, names: list[str], usable
         shapes = [o["vertices"] for o in outs if o is not None]
         if c is not None:
             shapes.append(np.asarray(prepared[c].vertices, float))
-        resid = [o["residual_mm"] for o in outs if o is not None]
+        resid = [o["residual_mm"] for o in outs if o is not None and o["residual_mm"] is not None]
         if selection == "compactness" and len(candidates) > 1:
             score = _compactness(np.stack(shapes)) if len(shapes) >= 2 else np.inf
         else:
@@ -542,13 +542,19 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     usable = [i for i, m in enumerate(prepared) if m is not None]
     candidates, external, why = _resolve_reference(reference, prepared, names, failures, usable,
                                                    meshes, n_references, grooming)
+    # The batch measures its final outputs itself; before a refinement pass the first pass
+    # only has to give the mean shape, so it skips labelling and fairing (plain
+    # CPD-then-project; the refinement labels and fairs every shape).
+    first = dict(params, pair_residual=selection == "residual" and len(candidates) > 1)
+    if refine >= 1 and len(usable) >= 4:
+        first["labelling"] = False
     chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
-                                                   params, n_jobs, progress, selection,
+                                                   first, n_jobs, progress, selection,
                                                    selection_shapes)
     n_trial = scores.pop("_n_registrations") - len(results)  # trial runs of the losers
     ref = external if chosen is None else prepared[chosen]
     results.update({k[1]: v for k, v in _run_tasks(
-        _tasks(ref, chosen, {i: prepared[i] for i in rest}, params), n_jobs, progress,
+        _tasks(ref, chosen, {i: prepared[i] for i in rest}, first), n_jobs, progress,
         split, 0.6).items()})
     ref_faces = np.asarray(ref.faces).copy()
     timings: dict = {"grooming": t_groom, "n_registrations": n_trial}
@@ -558,7 +564,7 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
         corresponded.pop(k, None)
     flagged = _flag_outliers(corresponded, names, chosen)
     if flagged:  # a wrong pose looks like a wrong shape: once more from the others' mean
-        _retry_from_mean(corresponded, list(flagged), ref_faces, prepared, params, n_jobs, timings)
+        _retry_from_mean(corresponded, list(flagged), ref_faces, prepared, first, n_jobs, timings)
         flagged = {k: r for k, r in _flag_outliers(corresponded, names, chosen).items()
                    if k in flagged}
     for k, reason in flagged.items():
@@ -577,7 +583,8 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     if on_provisional is not None and refine > 0:
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
-    changes = _refine(corresponded, ref_faces, prepared, params, n_jobs, progress, refine, timings,
+    changes = _refine(corresponded, ref_faces, prepared, dict(params, pair_residual=False), n_jobs,
+                      progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)
     for k in sorted(corresponded):  # shapes no refinement pass touched (refine=0, < 3 shapes)
         stream(k, corresponded[k])

@@ -35,6 +35,10 @@ DEFAULT_CPD_PARAMS = {
     "mirror_check": True,     # rigid fit of the mirrored target too (a left/right mix-up)
     "pose_switch": 0.35,      # "auto": a principal-axes start replaces the identity only when
                               # its rigid sigma^2 is below this fraction of the identity's
+    "labelling": True,        # bijective labelling + fairing (False: nearest surface points,
+                              # as plain CPD-then-project; a first pass before refinement)
+    "pair_residual": True,    # the symmetric surface distance of each output (the batch
+                              # measures its final outputs itself)
     "fairing_iterations": 30,
     "fairing_step": 0.5,
 }
@@ -194,7 +198,8 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     Returns
     -------
     dict
-        ``vertices`` (M, 3) on the target, with the reference's vertex order; ``residual_mm``;
+        ``vertices`` (M, 3) on the target, with the reference's vertex order; ``residual_mm``
+        (None with ``pair_residual=False``);
         ``sigma2`` (CPD, mm^2); ``n_iter``; ``mirror_ratio`` (:func:`mirror_fit_ratio`, None
         when not checked); ``timings`` (seconds per step).
     """
@@ -221,17 +226,22 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     moved, nonrigid = _deform(xn, y_posed, p, parallel)
     t2 = time.perf_counter()
     times["nonrigid"] = t2 - t1
-    labelled = label_points(moved, xn, tgt_f, nonrigid.sigma2, p["w"])
+    if p["labelling"]:
+        labelled = label_points(moved, xn, tgt_f, nonrigid.sigma2, p["w"])
     t3 = time.perf_counter()
     times["assignment"] = t3 - t2
-    projector = SurfaceProjector(xn, tgt_f, exact=False, candidates="centroids")
-    faired = meshops.fair_mesh(labelled, ref_f, projector, rest_vertices=y_posed,
-                               iterations=p["fairing_iterations"], step=p["fairing_step"])
-    faired, _ = SurfaceProjector(xn, tgt_f)(faired)  # final exact projection
+    if p["labelling"]:
+        projector = SurfaceProjector(xn, tgt_f, exact=False, candidates="centroids")
+        faired = meshops.fair_mesh(labelled, ref_f, projector, rest_vertices=y_posed,
+                                   iterations=p["fairing_iterations"], step=p["fairing_step"])
+        faired, _ = SurfaceProjector(xn, tgt_f)(faired)  # final exact projection
+    else:
+        faired, _ = SurfaceProjector(xn, tgt_f)(moved)
     t4 = time.perf_counter()
     times["fairing"] = t4 - t3
     vertices = faired * scale + centre
-    residual = symmetric_surface_distance(vertices, ref_f, tgt_v, tgt_f)
+    residual = (symmetric_surface_distance(vertices, ref_f, tgt_v, tgt_f)
+                if p["pair_residual"] else None)
     times["residual"] = time.perf_counter() - t4
     times["total"] = time.perf_counter() - t0
     return {"vertices": vertices, "residual_mm": residual, "sigma2": nonrigid.sigma2 * scale ** 2,
