@@ -47,21 +47,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
-def _descendants(pid: int) -> set[int]:
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        p = todo.pop()
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                kids = [int(c) for c in (task / "children").read_text().split()]
-            except OSError:
-                continue
-            todo.extend(c for c in kids if c not in out)
-            out.update(kids)
-    return out
-
-
 def tree_cpu_seconds() -> float:
     """CPU seconds (user + system) of this process, its reaped children and every live
     descendant with the children it reaped (pool workers are reaped by the fork server)."""
@@ -69,7 +54,9 @@ def tree_cpu_seconds() -> float:
     total = sum(getattr(resource.getrusage(who), f)
                 for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
                 for f in ("ru_utime", "ru_stime"))
-    for pid in _descendants(os.getpid()):
+    from core.parallel import descendants
+
+    for pid in descendants(os.getpid()):
         try:
             fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
         except OSError:

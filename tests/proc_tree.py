@@ -5,23 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-
-def descendants(pid: int) -> set[int]:
-    """All descendants of ``pid`` (workers, fork servers, trackers)."""
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        p = todo.pop()
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                kids = [int(c) for c in (task / "children").read_text().split()]
-            except OSError:
-                continue
-            for c in kids:
-                if c not in out:
-                    out.add(c)
-                    todo.append(c)
-    return out
+from core.parallel import descendants  # noqa: F401  (re-exported for the tests)
 
 
 def alive(pid: int) -> bool:
