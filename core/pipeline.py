@@ -34,7 +34,7 @@ from core.models.base import ShapeModelEstimator
 from core.progress import ProgressCallback, report, sub_progress
 from core.shape_model import ShapeModel
 
-ALIGN_METHODS = ("sync", "gpa", "none")
+ALIGN_METHODS = ("sync", "sync-sparse", "gpa", "none")
 TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
 
 
@@ -123,7 +123,10 @@ def align(shapes: np.ndarray, *, method: str = "sync", transform: str = "similar
     """Stage 2: remove pose from corresponded shapes (K, N, 3).
 
     method "sync" (transformation synchronisation) or "gpa" (generalised Procrustes) via
-    ``core.alignment.align_shapes``; "none" keeps the shapes as they are (identity transforms).
+    ``core.alignment.align_shapes``; "sync-sparse" the same synchronisation on the graph of
+    each shape's 10 nearest (``core.alignment.align_shapes_sparse``: cohort scale, time and
+    memory linear in the number of shapes); "none" keeps the shapes as they are (identity
+    transforms).
     """
     if method not in ALIGN_METHODS:
         raise ValueError(f"alignment must be one of {', '.join(ALIGN_METHODS)}; got {method!r}")
@@ -134,9 +137,12 @@ def align(shapes: np.ndarray, *, method: str = "sync", transform: str = "similar
         report(progress, 1.0, "no alignment")
         return AlignedShapes(shapes.copy(), np.tile(np.eye(4), (len(shapes), 1, 1)),
                              shapes.mean(axis=0), "none", transform)
-    from core.alignment import align_shapes
+    from core.alignment import align_shapes, align_shapes_sparse
 
-    res = align_shapes(shapes, method=method, transform=transform, progress=progress)
+    if method == "sync-sparse":
+        res = align_shapes_sparse(shapes, transform, progress=progress)
+    else:
+        res = align_shapes(shapes, method=method, transform=transform, progress=progress)
     return AlignedShapes(res.aligned, res.transforms, res.mean, method, transform)
 
 
@@ -181,7 +187,7 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
     meshes : list of TriMesh, or (K, N, 3) corresponded shapes (then ``faces`` is required)
     correspond : run the correspondence stage first (raw meshes of any topology)
     reference, n_references, n_jobs : correspondence options
-    align : "sync", "gpa" or "none"; transform : "similarity", "euclidean", "rigid", "affine"
+    align : "sync", "sync-sparse", "gpa" or "none"; transform : "similarity", "euclidean", "rigid", "affine"
     method : "pca", "lsf", "splocs", "varimax"; n_factors; method_params : other parameters
     progress : progress(fraction, message); may raise ``core.progress.Cancelled``
 

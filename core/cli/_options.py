@@ -22,7 +22,8 @@ def add_preparation_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--correspond", action="store_true",
                         help="inputs are raw meshes: establish correspondence first")
     parser.add_argument("--align", choices=ALIGN_METHODS, default="sync",
-                        help="alignment: sync (default), gpa or none")
+                        help="alignment: sync (default), sync-sparse (synchronisation on each "
+                             "shape's 10 nearest: thousands of shapes), gpa or none")
     parser.add_argument("--transform", choices=TRANSFORMS, default="similarity",
                         help="alignment transform class (default similarity)")
 

@@ -3,7 +3,9 @@
 Inputs must be corresponded (same vertex count, vertex i homologous; e.g. the output of
 ``ssm-studio correspond``), in a format that keeps vertex order (STL inputs are refused). ``--method sync`` (default) makes all pairwise least-squares
 transforms transitively consistent with the spectral method of Bernard et al., CVPR 2015 (no
-reference shape); ``--method gpa`` runs iterative generalised Procrustes analysis.
+reference shape); ``--method sync-sparse`` does the same on the graph of each shape's 10
+nearest (time and memory linear in the number of shapes: thousands of them); ``--method gpa``
+runs iterative generalised Procrustes analysis.
 ``--transform``: similarity (default), rigid (rotation det +1 and translation), euclidean
 (orthogonal, reflections allowed) or affine.
 
@@ -21,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.alignment import METHODS, TRANSFORMS, align_shapes
+from core.alignment import METHODS, TRANSFORMS, align_shapes, align_shapes_sparse
 from core.cli._options import say_changed_formats
 from core.correspondence import mesh_problem
 from core.io import TriMesh, atomic_write_json, load_meshes, save_mesh
@@ -36,8 +38,9 @@ REPORT_NAME = "transforms.json"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("meshes", nargs="+", metavar="MESH", help="corresponded meshes")
-    parser.add_argument("--method", choices=METHODS, default="sync",
-                        help="sync (default, reference-free) or gpa")
+    parser.add_argument("--method", choices=(*METHODS, "sync-sparse"), default="sync",
+                        help="sync (default, reference-free), sync-sparse (sync on each shape's "
+                             "10 nearest, for thousands of shapes) or gpa")
     parser.add_argument("--transform", choices=TRANSFORMS, default="similarity",
                         help="transformation class (default similarity)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
@@ -66,8 +69,11 @@ def run(args: argparse.Namespace) -> int:
                          + ("; " + "; ".join(f"{k}: {v}" for k, v in failures.items()) if failures else ""))
     shapes = np.stack([m.vertices for _, m in meshes])
     with StderrProgress("align") as progress:
-        result = align_shapes(shapes, method=args.method, transform=args.transform,
-                              progress=progress)
+        if args.method == "sync-sparse":
+            result = align_shapes_sparse(shapes, args.transform, progress=progress)
+        else:
+            result = align_shapes(shapes, method=args.method, transform=args.transform,
+                                  progress=progress)
     args.out.mkdir(parents=True, exist_ok=True)
     entries = []
     used: set[str] = set()
