@@ -31,11 +31,14 @@ class RefitController(QObject):
         The newest fit of a structure failed (one-line message); its surface is kept.
     busy(bool)
         A fit started while none was running / no fit is running any more.
+    submitted()
+        A refit was submitted (its result, or a newer one's, will be applied or fail).
     """
 
     applied = Signal(object)
     failed = Signal(str)
     busy = Signal(bool)
+    submitted = Signal()
 
     def __init__(self, state: WorkspaceState, settings: Callable[[], dict],
                  auto: Callable[[], bool] = lambda: True, parent: QObject | None = None):
@@ -164,7 +167,9 @@ class RefitController(QObject):
                                 init=init, callback=callback)
             return result, edit_time, version
 
-        return runner.submit(job)
+        generation = runner.submit(job)
+        self.submitted.emit()
+        return generation
 
     @staticmethod
     def _warm_start(s: Structure):

@@ -40,6 +40,7 @@ from app.panels.status import CursorReadout, FitReadout
 from app.panels.structures import StructuresPanel
 from app.panels.tools import WINDOW_PRESETS, ToolsPanel
 from app.plan_controller import install_planning
+from app.paint_gate import PaintGate
 from app.refit import RefitController
 from app.state import WorkspaceState
 from app.tabs import WorkspaceTabs
@@ -87,8 +88,7 @@ class MainWindow(QMainWindow):
         self.fit_panel = FitPanel(self.state)
         self.refit = RefitController(self.state, lambda: self.fit_panel.settings,
                                      self.fit_panel.auto.isChecked, self)
-        for view in self.workspace.views.values():
-            view.defer_point_paint = lambda: self.refit.is_busy
+        self.paint_gate = PaintGate(self, self.refit)   # one repaint per edit and its refit
         self.refit.applied.connect(self._on_refit_applied)
         self.refit.failed.connect(lambda m: self.statusBar().showMessage(f"Fit not updated: {m}", 8000))
         self.factors_panel = FactorsPanel(self.state)

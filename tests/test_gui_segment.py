@@ -497,12 +497,12 @@ class _PaintCounter:
 
 def test_a_click_with_a_quick_refit_is_painted_once_with_its_new_contours(window, qtbot,
                                                                           monkeypatch):
-    """The new point waits for its refit (one repaint per click instead of two); a slow
-    refit does not hold it back for more than POINT_PAINT_WAIT_S."""
+    """The window's repaints wait for the edit's refit (app.paint_gate: one repaint per click
+    instead of several); a slow refit does not hold the point back for more than HOLD_S."""
     import time
 
     import core.reconstruction as reconstruction
-    from app.views import slice_view
+    from app import paint_gate
 
     window.set_tool("draw")
     view = window.workspace.views["axial"]
@@ -514,7 +514,7 @@ def test_a_click_with_a_quick_refit_is_painted_once_with_its_new_contours(window
         click(view, view.world_to_screen(centre + (6 * np.cos(i), 6 * np.sin(i), 0)))
         window.wait_for_refit()
     qtbot.wait(100)
-    monkeypatch.setattr(slice_view, "POINT_PAINT_WAIT_S", 30.0)   # however slow the machine
+    monkeypatch.setattr(paint_gate, "HOLD_S", 30.0)   # however slow the machine
     counter = _PaintCounter(view)
     fits = []
     window.refit_applied.connect(fits.append)
@@ -530,7 +530,7 @@ def test_a_click_with_a_quick_refit_is_painted_once_with_its_new_contours(window
         return fit(*args, **kwargs)
 
     monkeypatch.setattr(reconstruction, "fit_points", slow_fit)
-    monkeypatch.setattr(slice_view, "POINT_PAINT_WAIT_S", 0.05)
+    monkeypatch.setattr(paint_gate, "HOLD_S", 0.05)
     counter.count, fits[:] = 0, []
     click(view, view.world_to_screen(centre + (0.0, 7.0, 0.0)))
     qtbot.waitUntil(lambda: counter.count >= 1, timeout=10000)

@@ -18,10 +18,9 @@ slice, Ctrl+wheel = zoom. Keys: Page Up/Down and Up/Down arrows step slices.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
-from PySide6.QtCore import QRectF, Qt, QTimer, Signal
+from PySide6.QtCore import QRectF, Qt, Signal
 from PySide6.QtGui import QColor, QFont, QImage, QPainter
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
@@ -36,11 +35,6 @@ from app.views.slice_overlays import (CONTOUR_COLOR, POINT_COLOR, VIEW_COLORS,  
 
 TOOLS = ("navigate", "draw", "window")
 DRAW_SPACING_MM = 1.5
-# A point edit starts a refit that repaints the views ~20-40 ms later with the new contours.
-# Painting the new point at once as well doubles the repaints per click (each one composed
-# with the 3D view's OpenGL surface: ~15-30 ms on a software GL stack) and competes with the
-# refit for the interpreter; so the point waits for the refit, at most this long.
-POINT_PAINT_WAIT_S = 0.05
 
 
 class SliceView(QWidget):
@@ -81,12 +75,6 @@ class SliceView(QWidget):
         self.setMouseTracking(True)
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
         self.setAttribute(Qt.WidgetAttribute.WA_OpaquePaintEvent)
-        # "a refit of the edited points is running" (set by the window): see POINT_PAINT_WAIT_S
-        self.defer_point_paint = lambda: False
-        self._points_since: float | None = None
-        self._points_timer = QTimer(self)
-        self._points_timer.setSingleShot(True)
-        self._points_timer.timeout.connect(self._points_due)
         events = state.events
         events.image.connect(self._on_image)
         events.crosshair.connect(self._on_crosshair)
@@ -125,26 +113,8 @@ class SliceView(QWidget):
         if what in ("surface", "model"):
             self._recompute_contours(structure)
             self.update()
-        elif what == "points":
-            # decided once the event loop runs again, when the edit's refit has been submitted
-            if self._points_since is None:
-                self._points_since = time.perf_counter()
-            self._points_timer.start(0)
-        elif what == "properties":
+        elif what in ("points", "properties"):
             self.update()
-
-    def _points_due(self) -> None:
-        waited = time.perf_counter() - (self._points_since or 0.0)
-        if self.defer_point_paint() and waited < POINT_PAINT_WAIT_S:
-            self._points_timer.start(5)
-            return
-        self.update()
-
-    def update(self, *args) -> None:  # noqa: D102 - QWidget.update; a paint covers the points
-        if not args:
-            self._points_since = None
-            self._points_timer.stop()
-        super().update(*args)
 
     @property
     def _segments_uv(self) -> np.ndarray | None:
