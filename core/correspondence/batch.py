@@ -583,7 +583,8 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     if on_provisional is not None and refine > 0:
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
-    changes = _refine(corresponded, ref_faces, prepared, dict(params, pair_residual=False), n_jobs,
+    passes = dict(params, pair_residual=False, max_iterations=int(params["refine_iterations"]))
+    changes = _refine(corresponded, ref_faces, prepared, passes, n_jobs,
                       progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)
     for k in sorted(corresponded):  # shapes no refinement pass touched (refine=0, < 3 shapes)

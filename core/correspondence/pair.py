@@ -23,6 +23,10 @@ DEFAULT_CPD_PARAMS = {
     "lam": 2.0,               # motion coherence regularisation (lambda)
     "tolerance": 1e-5,        # relative change of the CPD objective to stop at
     "max_iterations": 100,    # nonrigid CPD iterations
+    "refine_iterations": 20,  # nonrigid CPD iterations in a groupwise refinement pass (warm
+                              # start from the current correspondence; the late iterations
+                              # mostly add CPD's density-driven sliding: on tuning seeds the
+                              # spread fell 6-16 % on beans and tubes against 100)
     "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
     "rigid_points": 500,      # subsample size for the rigid pose's starts
     "rigid_fine_points": 1000,  # subsample size for the chosen start's final refinement
