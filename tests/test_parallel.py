@@ -248,3 +248,19 @@ def test_cluster_started_with_the_dask_command_line(tmp_path):
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(p.pid, signal.SIGKILL)
             p.wait(timeout=30)
+
+
+def test_a_job_error_is_one_line_on_the_command_line(capsys):
+    """A job failing in a worker (not a per-shape problem the job reports itself) ends the
+    command with one line naming the job, exit 2, not a traceback."""
+    import argparse
+
+    from core.cli import run_command
+
+    def command(args):
+        return run_jobs(_failing_job, [(i, i) for i in range(6)], n_jobs=1)
+
+    code = run_command(argparse.Namespace(_run=command, _command="correspond"))
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.strip().count("\n") == 0 and "job 3 failed" in err and "bad item three" in err

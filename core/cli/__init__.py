@@ -65,7 +65,7 @@ def one_line_warnings(command: str) -> Iterator[None]:
 
 def run_command(args: argparse.Namespace) -> int:
     """Run a parsed subcommand, turning user-fixable errors into one-line messages."""
-    from core.parallel import Terminated, termination_signals
+    from core.parallel import JobError, Terminated, termination_signals
 
     try:
         # SIGTERM raises Terminated; SIGINT interrupts even when the shell started us with it
@@ -81,6 +81,9 @@ def run_command(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"\nssm-studio {args._command}: interrupted", file=sys.stderr)
         return 130
+    except JobError as exc:  # a worker-side failure (e.g. a Dask cluster lost): which job, why
+        print(f"ssm-studio {args._command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
     except (ValueError, OSError) as exc:  # DataFileError is a ValueError
         print(f"ssm-studio {args._command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
