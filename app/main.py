@@ -73,9 +73,16 @@ def _rerun_under_xvfb(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from core.parallel import Terminated, termination_signals
+
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:  # a signal while the commands are imported is not lost (nor a traceback)
+        with termination_signals():
+            args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        return 130
+    except Terminated as exc:
+        return exc.exit_code
     if hasattr(args, "_run"):  # an engine command: no Qt
         return run_command(args)
     screenshot = getattr(args, "screenshot", None)
