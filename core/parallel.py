@@ -70,7 +70,7 @@ class Terminated(BaseException):
         return 128 + self.signum
 
 
-_DEFERRED: list[int] | None = None  # signals held back by _signals_deferred, or None
+_DEFERRED: list[int] | None = None  # signals held back by signals_deferred, or None
 # The signal received under termination_signals. It stays set: a raise that got swallowed
 # (Python ignores exceptions raised in a destructor, where a signal can land) is raised again
 # by the executor's next wait.
@@ -125,10 +125,11 @@ def raise_if_signalled() -> None:
 
 
 @contextlib.contextmanager
-def _signals_deferred() -> Iterator[None]:
+def signals_deferred() -> Iterator[None]:
     """Hold SIGINT/SIGTERM (as installed by :func:`termination_signals`) back until the block
-    ends: starting a worker process must not be cut in half (a worker started but not yet
-    registered could not be stopped, and would print a traceback on its own)."""
+    ends, for steps that must not be cut in half: starting a worker process (one started but
+    not yet registered could not be stopped, and would print a traceback on its own), or
+    writing an output and recording that it was written."""
     global _DEFERRED
     if _DEFERRED is not None or threading.current_thread() is not threading.main_thread():
         yield
@@ -450,7 +451,7 @@ def _run_pool_jobs(fn, iterator, common, n, total, progress, keep, label, window
             except StopIteration:
                 exhausted = True
                 return
-            with _signals_deferred():  # submit may start a worker process
+            with signals_deferred():  # submit may start a worker process
                 in_flight[executor.submit(_pool_call, fn, key, arg)] = key
 
     try:

@@ -37,7 +37,7 @@ from core.cli._options import add_scheduler_option, say_changed_formats
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
 from core.io import DataFileError, TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
-from core.parallel import Terminated, use_scheduler
+from core.parallel import Terminated, signals_deferred, use_scheduler
 from core.progress import StderrProgress
 
 COMMAND = "correspond"
@@ -166,10 +166,12 @@ def run(args: argparse.Namespace) -> int:
     pending: dict[int, TriMesh] = {}   # reference-based results, kept for an interruption
 
     def write_shape(index: int, mesh: TriMesh) -> None:
-        # streaming: each output as soon as it is final, so an interrupted run keeps it
-        save_mesh(out_paths[index], TriMesh(mesh.vertices, mesh.faces, out_paths[index].stem),
-                  vertex_order=True)
-        written[str(loaded_paths[index])] = str(out_paths[index])
+        # streaming: each output as soon as it is final, so an interrupted run keeps it; the
+        # file and its entry in the report go together (a signal waits for both)
+        with signals_deferred():
+            save_mesh(out_paths[index], TriMesh(mesh.vertices, mesh.faces, out_paths[index].stem),
+                      vertex_order=True)
+            written[str(loaded_paths[index])] = str(out_paths[index])
 
     try:  # from the output folder's creation on, an interruption leaves a report
         args.out.mkdir(parents=True, exist_ok=True)
