@@ -13,8 +13,8 @@ machine load hits both equally:
 - correspondence: ``core.correspondence.establish_correspondence`` of 6 known-homology bean
   shapes (own tessellations, ~1,000 vertices) to the first one, one process (``n_jobs=1``),
   after an untimed warm-up call (imports);
-  the current tree twice: with its defaults (grooming and the groupwise refinement of
-  issue 13 on: more work by design) and with both off (the same work as before).
+  the current tree twice: with its defaults (grooming, the mirror check and the groupwise
+  refinement of issue 13 on: more work by design) and with them off (the same work as before).
 
 Run: ``.venv/bin/python benchmarks/bench_redesign.py [--before caedcf2] [--rounds 2]``
 """
@@ -113,7 +113,7 @@ def main() -> int:
     args = parser.parse_args()
     from app.demo import demo_model
 
-    same_work = {"groom": False, "refine": 0}
+    same_work = {"groom": False, "refine": 0, "mirror_check": False}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         before = _export_tree(args.before, tmp)
@@ -137,7 +137,8 @@ def main() -> int:
     for text, kb, ka, scale in rows:
         vb, va = scale * np.median(b[kb]), scale * np.median(a[ka])
         print(f"  {text:<46} {vb:10.1f} {va:10.1f} {va / vb:13.2f}")
-    print("  (same work: grooming and groupwise refinement off, the steps the earlier tree lacks)")
+    print("  (same work: grooming, mirror check and groupwise refinement off: the steps the earlier "
+          "tree lacks)")
     return 0
 
 
