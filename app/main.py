@@ -73,6 +73,13 @@ def _rerun_under_xvfb(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``ssm-studio`` program: an engine command, or the GUI."""
+    from core.cli import exit_if_interrupted
+
+    return exit_if_interrupted(_main(argv), as_program=argv is None)
+
+
+def _main(argv: list[str] | None = None) -> int:
     from core.parallel import Terminated, termination_signals
 
     argv = list(sys.argv[1:] if argv is None else argv)

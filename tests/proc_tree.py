@@ -24,3 +24,16 @@ def still_alive(pids: set[int], guard: float = 10.0) -> list[int]:
     while time.monotonic() < deadline and any(alive(p) for p in pids):
         time.sleep(0.05)
     return sorted(p for p in pids if alive(p))
+
+
+def session_members(sid: int) -> list[int]:
+    """Live processes of session ``sid`` (from /proc: no ``ps`` on a minimal system)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] not in ("Z", "X"):  # state, ppid, pgrp, session
+            out.append(int(stat.parent.name))
+    return sorted(out)

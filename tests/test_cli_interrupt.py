@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from proc_tree import descendants, still_alive
+from proc_tree import descendants, session_members, still_alive
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -133,10 +133,8 @@ def test_a_killed_command_leaves_no_worker_or_fork_server(tmp_path):
         stderr=subprocess.PIPE, start_new_session=True)
     _wait_for_progress(proc)
 
-    def session() -> list[str]:
-        found = subprocess.run(["ps", "-o", "pid=", "-s", str(proc.pid)], capture_output=True,
-                               text=True).stdout.split()
-        return [pid for pid in found if int(pid) != proc.pid]
+    def session() -> list[int]:
+        return [pid for pid in session_members(proc.pid) if pid != proc.pid]
 
     deadline = time.monotonic() + 60
     while len(session()) < 2 and time.monotonic() < deadline:   # the server and a worker

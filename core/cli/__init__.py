@@ -14,6 +14,7 @@ import argparse
 import importlib
 import contextlib
 import pkgutil
+import os
 import sys
 import warnings
 from collections.abc import Iterator
@@ -99,8 +100,27 @@ def _one_line(exc: BaseException) -> str:
     return display_path(" ".join(str(exc).split()))
 
 
+def exit_if_interrupted(code: int, as_program: bool) -> int:
+    """A command stopped by SIGINT/SIGTERM (exit 130/143) that runs as the program ends here,
+    without the interpreter's shutdown: that joins the process pool's management thread, which
+    can wait for a worker still being started by the fork server (seconds on a fresh machine,
+    before its modules are compiled), so the exit came long after the report. The report and
+    the finished outputs are written by then; the fork server and its workers follow their
+    parent (core.parallel)."""
+    if as_program and code in (130, 143):
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(code)
+    return code
+
+
 def main(argv: list[str] | None = None) -> int:
     """Engine-only entry point (``python -m core.cli``)."""
+    return exit_if_interrupted(_main(argv), as_program=argv is None)
+
+
+def _main(argv: list[str] | None = None) -> int:
     from core.parallel import Terminated, termination_signals
 
     try:
