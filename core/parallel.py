@@ -478,6 +478,10 @@ def _run_pool_jobs(fn, iterator, common, n, total, progress, keep, label, window
 
 def _terminate_executor(executor) -> None:
     """Stop the workers now: SIGTERM, SIGKILL for any still alive after 1 s, no waiting on jobs."""
+    # The call queue's feeder thread may be blocked writing a job to a worker killed here; the
+    # executor's shutdown (and the interpreter's exit after it) would join it forever.
+    with contextlib.suppress(Exception):
+        executor._call_queue.cancel_join_thread()
     procs = list((getattr(executor, "_processes", None) or {}).values())
     for p in procs:
         with contextlib.suppress(Exception):
