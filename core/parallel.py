@@ -478,10 +478,7 @@ def _run_pool_jobs(fn, iterator, common, n, total, progress, keep, label, window
 
 def _terminate_executor(executor) -> None:
     """Stop the workers now: SIGTERM, SIGKILL for any still alive after 1 s, no waiting on jobs."""
-    # The call queue's feeder thread may be blocked writing a job to a worker killed here; the
-    # executor's shutdown (and the interpreter's exit after it) would join it forever.
-    with contextlib.suppress(Exception):
-        executor._call_queue.cancel_join_thread()
+    queue = getattr(executor, "_call_queue", None)   # shutdown() drops it
     procs = list((getattr(executor, "_processes", None) or {}).values())
     for p in procs:
         with contextlib.suppress(Exception):
@@ -495,6 +492,48 @@ def _terminate_executor(executor) -> None:
                 p.join(0.5)
     with contextlib.suppress(Exception):
         executor.shutdown(wait=False, cancel_futures=True)
+    if queue is not None:
+        _unblock_call_queue(queue)
+        _keep_for_exit(queue)
+
+
+_STOPPED_QUEUES: list = []   # call queues of pools stopped by _terminate_executor
+
+
+def _keep_for_exit(queue) -> None:
+    """Keep a stopped pool's call queue (its manager thread may outlive the pool) so that the
+    interpreter's exit drains it first (see :func:`_unblock_call_queue`)."""
+    if not _STOPPED_QUEUES:
+        # threading's exit hooks run in reverse order of registration: this one runs before
+        # concurrent.futures' own, which joins the pools' manager threads
+        with contextlib.suppress(Exception):
+            threading._register_atexit(_unblock_at_exit)
+    _STOPPED_QUEUES.append(queue)
+
+
+def _unblock_at_exit() -> None:
+    for queue in _STOPPED_QUEUES:
+        _unblock_call_queue(queue)
+
+
+def _unblock_call_queue(queue) -> None:
+    """Read away what a stopped pool's call queue still sends to its killed workers.
+
+    Its feeder thread can be blocked writing a job into the pipe (this process holds the
+    other end, so the write neither fails nor completes), and the executor's manager thread
+    joins that feeder when it tears the broken pool down; the interpreter's exit then joins
+    the manager thread, and the process never ends (seen after a cancelled build). Draining
+    the pipe lets the feeder reach the queue's close and end.
+    """
+    reader = getattr(queue, "_reader", None)
+    if reader is None:
+        return
+    with contextlib.suppress(Exception):
+        queue.cancel_join_thread()
+    deadline = time.monotonic() + 5.0
+    with contextlib.suppress(Exception):
+        while time.monotonic() < deadline and reader.poll(0.2):
+            reader.recv_bytes()
 
 
 def _run_dask(client, fn, iterator, common, total, progress, keep, label, window, retries) -> dict:
