@@ -97,7 +97,7 @@ def _legacy_3d(volume_view) -> None:
     volume_view._gl_checked = True
     volume_view.plotter.ren_win.SetMultiSamples(4)
     # and plotter.render() per update: a render, then another in the widget's paint
-    volume_view.render = lambda now=False: volume_view.plotter.render()
+    volume_view._present = lambda now=False: volume_view.plotter.render()
 
 
 def _render_log(volume_view) -> list[float]:

@@ -498,17 +498,28 @@ def _terminate_executor(executor) -> None:
 
 
 _STOPPED_QUEUES: list = []   # call queues of pools stopped by _terminate_executor
+_EXIT_HOOK = False
 
 
 def _keep_for_exit(queue) -> None:
     """Keep a stopped pool's call queue (its manager thread may outlive the pool) so that the
     interpreter's exit drains it first (see :func:`_unblock_call_queue`)."""
-    if not _STOPPED_QUEUES:
+    global _EXIT_HOOK
+    if not _EXIT_HOOK:
         # threading's exit hooks run in reverse order of registration: this one runs before
         # concurrent.futures' own, which joins the pools' manager threads
         with contextlib.suppress(Exception):
             threading._register_atexit(_unblock_at_exit)
-    _STOPPED_QUEUES.append(queue)
+        _EXIT_HOOK = True
+    # only queues whose feeder still runs can block: the others (and their pipes) are let go
+    _STOPPED_QUEUES[:] = [q for q in _STOPPED_QUEUES if _feeder_alive(q)]
+    if _feeder_alive(queue):
+        _STOPPED_QUEUES.append(queue)
+
+
+def _feeder_alive(queue) -> bool:
+    thread = getattr(queue, "_thread", None)
+    return thread is not None and thread.is_alive()
 
 
 def _unblock_at_exit() -> None:

@@ -32,23 +32,6 @@ def _need_demo():
         pytest.skip("demo image or model missing from resources/")
 
 
-@pytest.fixture
-def window(qtbot, tmp_path, monkeypatch):
-    _need_demo()
-    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
-    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
-    win = MainWindow(with_3d=False, recovery=False)
-    qtbot.addWidget(win)
-    win.resize(1300, 900)
-    win.load_demo()
-    win.show()
-    qtbot.waitExposed(win)
-    yield win
-    win.runner.cancel()
-    win.runner.wait()
-    win.close()
-
-
 def click(view, xy, modifier=NO_MOD, button=LEFT):
     QTest.mouseClick(view, button, modifier, QPoint(int(round(xy[0])), int(round(xy[1]))))
 

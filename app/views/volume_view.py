@@ -203,9 +203,9 @@ class VolumeView(QWidget):
         self.apply_visibility()
         if not self._gl_checked:                # the OpenGL context exists by now
             self._gl_checked = _no_multisampling_in_software(self.plotter)
-        self.render(now)
+        self._present(now)
 
-    def render(self, now: bool = False) -> None:
+    def _present(self, now: bool = False) -> None:
         """Render the scene once. pyvistaqt's widget renders in its paint (its paintGL always
         renders, since pyvista changes the scene without telling it), so ``plotter.render()``
         renders here and again in that paint: ~25-60 ms twice on a software GL stack. Unless
