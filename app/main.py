@@ -16,10 +16,12 @@ import subprocess
 import sys
 
 from core import __version__
-from core.cli import add_commands, run_command
+from core.cli import add_commands, requested_command, run_command
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The program's parser. Given the command line, only the engine command it runs is
+    imported (or none, for the GUI): the listing in ``--help`` needs them all."""
     parser = argparse.ArgumentParser(
         prog="ssm-studio",
         description="Shape-model-based interactive segmentation of deep brain structures. "
@@ -44,8 +46,24 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--record", metavar="DIR",
                       help="write the frames as PNG files into DIR and quit at the end")
     tour.set_defaults(_command="demo")
-    add_commands(sub)
+    if argv is None or not _runs_the_gui(argv):
+        add_commands(sub, only=None if argv is None else requested_command(argv))
     return parser
+
+
+def _runs_the_gui(argv: list[str]) -> bool:
+    """Whether the command line opens the window (no command, ``view`` or ``demo``): then no
+    engine command needs importing. Help, or anything else, lists or checks them all."""
+    values_of = {"--screenshot", "--tab"}
+    tokens = iter(argv)
+    for token in tokens:
+        if token in ("-h", "--help"):
+            return False
+        if token in values_of:
+            next(tokens, None)
+        elif not token.startswith("-"):
+            return token in ("view", "demo")
+    return True
 
 
 def _add_gui_options(parser: argparse.ArgumentParser, suppress: bool = False) -> None:
@@ -85,7 +103,7 @@ def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:  # a signal while the commands are imported is not lost (nor a traceback)
         with termination_signals():
-            args = build_parser().parse_args(argv)
+            args = build_parser(argv).parse_args(argv)
     except KeyboardInterrupt:
         return 130
     except Terminated as exc:

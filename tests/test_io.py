@@ -926,7 +926,9 @@ def test_failed_mesh_save_keeps_previous_file(tmp_path, monkeypatch):
         def __getattr__(self, name):  # the other setters do nothing
             return lambda *args: None
 
-    monkeypatch.setattr(vtk, "vtkPolyDataWriter", FailingWriter)
+    from core.io import vtk_meshes
+
+    monkeypatch.setattr(vtk_meshes.vtk, "vtkPolyDataWriter", FailingWriter)
     with pytest.raises(OSError, match="disk full"):
         io.save_mesh(target, sphere_mesh())
     assert target.read_bytes() == before

@@ -45,6 +45,30 @@ def test_engine_commands_do_not_import_qt():
     assert out.returncode == 0, out.stdout + out.stderr
 
 
+def test_a_command_imports_only_its_own_module(tmp_path):
+    """``ssm-studio mesh-labels`` (or any engine command) loads that command, not the other
+    commands nor the whole of VTK: both cost about a second of start-up. The help listing still
+    shows every command."""
+    import nibabel as nib
+    import numpy as np
+
+    labels = np.zeros((12, 12, 12), np.uint8)
+    labels[3:9, 4:8, 3:9] = 5
+    nib.save(nib.Nifti1Image(labels, np.eye(4)), tmp_path / "labels.nii.gz")
+    code = ("import sys; from app.main import main; "
+            f"code = main(['mesh-labels', {str(tmp_path / 'labels.nii.gz')!r}, '--label', '5', "
+            f"'--vertices', '60', '--out', {str(tmp_path / 'out')!r}]); "
+            "loaded = [m for m in ('vtk', 'core.cli.correspond', 'core.cli.evaluate', 'PySide6') "
+            "if m in sys.modules]; print(loaded); sys.exit(code or (1 if loaded else 0))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert len(list((tmp_path / "out").glob("*.vtk"))) == 1
+    for program in (["app.main"], ["core.cli"]):
+        listing = subprocess.run([sys.executable, "-m", *program, "--help"], capture_output=True,
+                                 text=True, cwd=ROOT).stdout
+        assert all(name in listing for name in ("mesh-labels", "correspond", "register-images"))
+
+
 def _code_lines(node: ast.FunctionDef) -> int:
     """Lines of a function without its docstring."""
     lines = node.end_lineno - node.lineno + 1

@@ -24,21 +24,42 @@ from core import __version__
 from core.progress import Cancelled
 
 
-def command_modules() -> dict[str, ModuleType]:
-    """Subcommand modules of this package by command name."""
+def command_names() -> dict[str, str]:
+    """Subcommand names -> module names of this package, without importing any of them (a
+    command module ``mesh_labels`` holds the command ``mesh-labels``)."""
+    return {info.name.replace("_", "-"): info.name for info in pkgutil.iter_modules(__path__)
+            if not info.name.startswith("_")}
+
+
+def requested_command(argv: list[str]) -> str | None:
+    """The engine command ``argv`` runs (its first token naming one), or None. Help options
+    before the command ask for the full listing, so they return None too."""
+    names = command_names()
+    for token in argv:
+        if token in ("-h", "--help"):
+            return None
+        if token in names:
+            return token
+    return None
+
+
+def command_modules(only: str | None = None) -> dict[str, ModuleType]:
+    """Subcommand modules of this package by command name; with ``only``, just that one
+    (importing every command costs about a second of start-up: scipy.spatial, VTK, ...)."""
+    modules = command_names()
+    if only is not None:
+        modules = {only: modules[only]}
     found = {}
-    for info in pkgutil.iter_modules(__path__):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
+    for module_name in modules.values():
+        module = importlib.import_module(f"{__name__}.{module_name}")
         if hasattr(module, "COMMAND") and hasattr(module, "run"):
             found[module.COMMAND] = module
     return dict(sorted(found.items()))
 
 
-def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    """Register every engine subcommand on ``subparsers``."""
-    for name, module in command_modules().items():
+def add_commands(subparsers: argparse._SubParsersAction, only: str | None = None) -> None:
+    """Register the engine subcommands on ``subparsers``: every one, or just ``only``."""
+    for name, module in command_modules(only).items():
         parser = subparsers.add_parser(name, help=module.HELP, description=module.__doc__)
         module.add_arguments(parser)
         parser.set_defaults(_run=module.run, _command=name)
@@ -128,7 +149,9 @@ def _main(argv: list[str] | None = None) -> int:
         with termination_signals():
             parser = argparse.ArgumentParser(prog="ssm-studio", description=__doc__)
             parser.add_argument("--version", action="version", version=f"ssm-studio {__version__}")
-            add_commands(parser.add_subparsers(title="commands", metavar="COMMAND"))
+            argv = list(sys.argv[1:] if argv is None else argv)
+            add_commands(parser.add_subparsers(title="commands", metavar="COMMAND"),
+                         only=requested_command(argv))
             args = parser.parse_args(argv)
             if not hasattr(args, "_run"):
                 parser.print_help()

@@ -237,9 +237,7 @@ def _read_ply_body(path: Path, raw: bytes, fmt: str, elements: list[_PlyElement]
 def save_ply(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
              space: str = "RAS") -> None:
     """Binary PLY through VTK's writer, with a ``comment SPACE=<space>`` line."""
-    import vtk
-
-    from core.io.vtk_meshes import vtk_errors
+    from core.io.vtk_meshes import vtk, vtk_errors
 
     writer = vtk.vtkPLYWriter()
     writer.SetFileTypeToBinary()

@@ -21,6 +21,7 @@ Also the polydata -> triangles conversion used by :meth:`TriMesh.from_polydata`.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import re
 import tempfile
@@ -37,13 +38,38 @@ from core.io.registry import file_suffix
 from core.types.trimesh import TriMesh
 
 
+class _VTKClasses:
+    """The VTK classes the readers and writers use, each imported from its own ``vtkmodules``
+    library on first use: ``import vtk`` loads every VTK library, about half a second of each
+    command's start-up."""
+
+    _LIBRARY = {
+        "vtkLogger": "vtkCommonCore", "vtkOutputWindow": "vtkCommonCore",
+        "vtkStringOutputWindow": "vtkCommonCore", "vtkStringArray": "vtkCommonCore",
+        "vtkDataSet": "vtkCommonDataModel", "vtkPolyData": "vtkCommonDataModel",
+        "vtkUnstructuredGrid": "vtkCommonDataModel", "vtkTriangleFilter": "vtkFiltersCore",
+        "vtkDataSetSurfaceFilter": "vtkFiltersGeometry", "vtkDataSetReader": "vtkIOLegacy",
+        "vtkPolyDataWriter": "vtkIOLegacy", "vtkXMLPolyDataReader": "vtkIOXML",
+        "vtkXMLPolyDataWriter": "vtkIOXML", "vtkXMLUnstructuredGridReader": "vtkIOXML",
+        "vtkSTLReader": "vtkIOGeometry", "vtkSTLWriter": "vtkIOGeometry",
+        "vtkPLYWriter": "vtkIOPLY",
+    }
+
+    def __getattr__(self, name: str):
+        value = getattr(importlib.import_module(f"vtkmodules.{self._LIBRARY[name]}"), name)
+        setattr(self, name, value)
+        return value
+
+
+vtk = _VTKClasses()
+
+
 def triangles_of(poly) -> np.ndarray:
     """Triangles (F, 3) of a vtkPolyData: polygons and triangle strips, triangulated by VTK.
 
     Vertex and line cells are ignored; polygons with more than 3 corners and strips go through
     ``vtkTriangleFilter``. Point ids are unchanged.
     """
-    import vtk
 
     if poly.GetNumberOfPolys() == 0 and poly.GetNumberOfStrips() == 0:
         return np.zeros((0, 3), np.int64)
@@ -94,7 +120,6 @@ def vtk_errors() -> Iterator[list[str]]:
     VTK readers do not raise: they print errors (through the output window and the
     vtkLogger stderr sink) and return partial data. The list is filled when the block exits.
     """
-    import vtk
 
     errors: list[str] = []
     with _VTK_LOCK:
@@ -228,7 +253,7 @@ def _check_xml_sizes(path: Path) -> None:
 
 
 def _cell_arrays(cells) -> tuple[np.ndarray, np.ndarray]:
-    from vtk.util.numpy_support import vtk_to_numpy
+    from vtkmodules.util.numpy_support import vtk_to_numpy
 
     offsets = vtk_to_numpy(cells.GetOffsetsArray()).astype(np.int64)
     connectivity = vtk_to_numpy(cells.GetConnectivityArray()).astype(np.int64)
@@ -281,7 +306,7 @@ def _compare_declared(path: Path, section: str, declared: dict, n_cells: int,
 
 
 def _validate_unstructured(path: Path, data, declared: dict | None) -> None:
-    from vtk.util.numpy_support import vtk_to_numpy
+    from vtkmodules.util.numpy_support import vtk_to_numpy
 
     n_points = data.GetNumberOfPoints()
     sizes = _validate_cell_array(path, data.GetCells(), n_points, "cells")
@@ -327,8 +352,7 @@ def _read_space_tag(path: Path, suffix: str, data, raw_head: bytes) -> str | Non
 
 def load_vtk_family(path: Path) -> tuple[TriMesh, str | None]:
     """Read .vtk, .vtp, .vtu or .stl; returns the mesh (file coordinates) and its SPACE tag."""
-    import vtk
-    from vtk.util.numpy_support import vtk_to_numpy
+    from vtkmodules.util.numpy_support import vtk_to_numpy
 
     suffix = file_suffix(path)
     declared = None
@@ -386,8 +410,7 @@ def load_vtk_family(path: Path) -> tuple[TriMesh, str | None]:
 def _unstructured_surface(grid) -> np.ndarray:
     """Triangles of the outer surface of a (validated) unstructured grid, in the grid's own
     point ids (vtkDataSetSurfaceFilter renumbers; its OriginalPointIds map back)."""
-    import vtk
-    from vtk.util.numpy_support import vtk_to_numpy
+    from vtkmodules.util.numpy_support import vtk_to_numpy
 
     surface = vtk.vtkDataSetSurfaceFilter()  # outer faces of volume cells, 2D cells as is
     surface.SetInputData(grid)
@@ -450,7 +473,6 @@ def save_legacy_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *
                     space: str = "RAS") -> None:
     """Binary legacy VTK, file version 4.2 (read by VTK < 9 and 3D Slicer), with
     ``SPACE=<space>`` in the header line as Slicer writes it."""
-    import vtk
 
     writer = vtk.vtkPolyDataWriter()
     writer.SetFileVersion(42)
@@ -462,7 +484,6 @@ def save_legacy_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *
 def save_xml_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
                  space: str = "RAS") -> None:
     """VTK XML polydata (.vtp, binary), with the ``SPACE`` string field array Slicer reads."""
-    import vtk
 
     poly = _polydata_with(mesh, point_data)
     tag = vtk.vtkStringArray()
@@ -477,7 +498,6 @@ def save_xml_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
 def save_stl(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
              space: str = "RAS") -> None:
     """Binary STL with ``SPACE=<space>`` in the 80-byte header (point data cannot be kept)."""
-    import vtk
 
     writer = vtk.vtkSTLWriter()
     writer.SetFileTypeToBinary()
