@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.parallel import JobError, check_scheduler, run_jobs, use_scheduler
+from core.parallel import JobError, check_scheduler, dask_jobs_per_task, run_jobs, use_scheduler
 from core.progress import Cancelled
 from proc_tree import descendants, still_alive
 
@@ -93,6 +93,34 @@ def test_dask_gives_the_pool_results(local_cluster):
 def test_dask_job_error_names_the_job(local_cluster):
     with pytest.raises(JobError, match="bad item three"):
         run_jobs(_failing_job, [(i, i) for i in range(6)])
+
+
+def _quick_job_and_its_task(arg, common):
+    from distributed import get_worker
+
+    if arg == common:
+        raise ValueError(f"bad item {arg}")
+    return arg * arg, get_worker().get_current_task()
+
+
+def test_dask_puts_short_jobs_several_to_a_task(local_cluster):
+    """Jobs of a millisecond go several to a Dask task (its overhead would dominate); every
+    job still has its own result, and a failing job in a batch is named by its own key."""
+    results = run_jobs(_quick_job_and_its_task, [(i, i) for i in range(60)], common=-1)
+    assert {k: v[0] for k, v in results.items()} == {i: i * i for i in range(60)}
+    jobs_per_task = np.unique([task for _, task in results.values()], return_counts=True)[1]
+    assert len(jobs_per_task) < 30 and jobs_per_task.max() > 1
+    with pytest.raises(JobError, match="job 50 failed.*bad item 50"):
+        run_jobs(_quick_job_and_its_task, [(i, i) for i in range(60)], common=50)
+
+
+def test_jobs_per_dask_task():
+    assert dask_jobs_per_task(None, 100, 2) == 1  # nothing timed yet
+    assert dask_jobs_per_task(2.0, 100, 2) == 1  # long jobs: one per task
+    assert dask_jobs_per_task(0.1, 100, 2) == 5  # 0.5 s of compute per task
+    assert dask_jobs_per_task(0.001, 10_000, 2) == 32  # capped
+    assert dask_jobs_per_task(0.01, 6, 2) == 2  # the last tasks stay short
+    assert dask_jobs_per_task(0.01, None, 2) == 32  # unknown total
 
 
 def test_dask_run_survives_a_killed_worker(local_cluster):
