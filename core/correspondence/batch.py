@@ -548,6 +548,9 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     first = dict(params, pair_residual=selection == "residual" and len(candidates) > 1)
     if refine >= 1 and len(usable) >= 4:
         first["labelling"] = False
+        if params["first_pass_points"] is not None:
+            first["cpd_points"] = min(int(params["first_pass_points"]),
+                                      int(params["cpd_points"] or params["first_pass_points"]))
     chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
                                                    first, n_jobs, progress, selection,
                                                    selection_shapes)

@@ -34,6 +34,9 @@ DEFAULT_CPD_PARAMS = {
                               # subsample the fitted displacement field moves every vertex
                               # (CPD's E-step costs M x N per iteration: on a 10,000-vertex
                               # pair it was 11x the cost of a 2,500-vertex pair)
+    "first_pass_points": 1000,  # nonrigid CPD subsample of the reference-based first pass when
+                              # groupwise refinement passes follow (it only gives their mean
+                              # shape; each refinement pass registers all ``cpd_points``)
     "low_rank": 80,           # rank of the kernel approximation (None: exact)
     "pose_starts": "auto",    # "auto" (identity + principal axes), "identity", "pca"
     "mirror_check": True,     # rigid fit of the mirrored target too (a left/right mix-up)
