@@ -202,6 +202,31 @@ def test_correspondence_on_dask_equals_the_pool(local_cluster, small_meshes):
     assert pooled.residuals_mm == on_dask.residuals_mm
 
 
+def test_streamed_correspondence_on_dask_reads_the_inputs_in_the_workers(local_cluster,
+                                                                        small_meshes, tmp_path):
+    """The command line's mode on Dask: the (daemonic) worker processes read each input file
+    in a child of their own and write the groomed inputs into the scratch folder; the
+    streamed results equal the in-memory ones, bit for bit, and the scratch is removed."""
+    from core.correspondence import establish_correspondence
+    from core.io import save_mesh
+
+    paths = []
+    for i, mesh in enumerate(small_meshes):
+        paths.append(tmp_path / f"bean{i}.vtk")
+        save_mesh(paths[-1], mesh)
+    with use_scheduler(None):
+        from core.io import load_mesh
+
+        pooled = establish_correspondence([load_mesh(p) for p in paths], 0, n_jobs=1)
+    streamed = {}
+    on_dask = establish_correspondence(paths, 0, scratch=tmp_path / "scratch", keep_meshes=False,
+                                       on_shape=lambda i, m: streamed.setdefault(i, m))
+    assert sorted(streamed) == list(range(len(paths))) and not (tmp_path / "scratch").exists()
+    for i, mesh in enumerate(pooled.meshes):
+        assert streamed[i].vertices.tobytes() == mesh.vertices.tobytes()
+    assert pooled.residuals_mm == on_dask.residuals_mm
+
+
 def test_evaluation_on_dask_equals_the_pool(local_cluster, small_meshes):
     from core.evaluation import evaluate_model
 

@@ -22,19 +22,30 @@ Each output is written as soon as it is final (during the last refinement pass),
 stopped by SIGINT or SIGTERM leaves every finished shape and a ``correspondence.json`` saying
 ``"interrupted": "SIGINT"`` (or ``"SIGTERM"``), ``"complete": false`` and which shapes were
 written; it exits 130 (143). Stopped after the reference-based pass but before a shape's
-refinement finished, that shape's reference-based result is written to ``DIR/provisional/``
-(listed as ``"provisional"`` in the report: usable, but not refined groupwise). ``--jobs N`` runs the per-shape jobs in N worker processes;
-``--scheduler ADDRESS`` (or ``local:N``) runs them as Dask tasks on a cluster.
+refinement finished, that shape's reference-based result is in ``DIR/provisional/`` (each is
+written there as soon as known and removed when the shape's final output is written; listed
+as ``"provisional"`` in the report: usable, but not refined groupwise). ``--jobs N`` runs the
+per-shape jobs in N worker processes; ``--scheduler ADDRESS`` (or ``local:N``) runs them as
+Dask tasks on a cluster.
+
+The client streams: the workers read the input files by path, keep the groomed inputs in
+``DIR/.correspond-scratch/`` (with the corresponded vertices of each pass, one row file the
+client writes as results arrive and the GPA mean is streamed from), which is removed at the
+end; this process holds per-shape scalars only, so its memory stays flat in the number of
+shapes (``benchmarks/bench_cluster.py --part C``). On a cluster the workers must see the
+inputs and ``DIR`` at the same paths (a shared filesystem).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
 from core.cli._options import add_scheduler_option, say_changed_formats
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
+from core.correspondence.store import SCRATCH_NAME
 from core.io import DataFileError, TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
 from core.parallel import Terminated, signals_deferred, use_scheduler
@@ -120,33 +131,17 @@ def _write_interrupted_report(args: argparse.Namespace, paths: list[Path], writt
           f"finished and written{extra}; see {args.out / REPORT_NAME}", file=sys.stderr)
 
 
-def _write_provisional(args: argparse.Namespace, out_paths: list[Path], paths: list[Path],
-                       pending: dict[int, TriMesh], written: dict) -> dict[str, str]:
-    """The reference-based results of the shapes not written as final, in ``provisional/``."""
-    done: dict[str, str] = {}
-    for index, mesh in sorted(pending.items()):
-        if str(paths[index]) in written:
-            continue
-        target = args.out / PROVISIONAL_DIR / out_paths[index].name
-        target.parent.mkdir(parents=True, exist_ok=True)
-        save_mesh(target, TriMesh(mesh.vertices, mesh.faces, target.stem), vertex_order=True)
-        done[str(paths[index])] = str(target)
-    return done
-
-
 def run(args: argparse.Namespace) -> int:
-    loaded, load_failures = load_meshes(args.meshes, isolate=True)
-    loaded_paths = [path for path, _ in loaded]
-    meshes: list[TriMesh] = [mesh for _, mesh in loaded]
-    for path, mesh in loaded:
-        mesh.name = str(path)
-    if not meshes:
-        raise ValueError("no input mesh could be read: "
-                         + "; ".join(f"{k}: {v}" for k, v in load_failures.items()))
+    # The workers read the inputs by path (each in a child process: a reader crash costs
+    # that file only) and keep the groomed inputs and the correspondences of every pass in
+    # a scratch folder inside --out, removed at the end: this process holds per-shape
+    # scalars only, its memory flat in the number of shapes.
+    paths = [Path(p) for p in args.meshes]
+    names = [str(p) for p in paths]
     reference: str | int | TriMesh = "auto"
     if args.reference != "auto":
         ref_path = Path(args.reference)
-        resolved = [p.resolve() for p in loaded_paths]
+        resolved = [p.resolve() for p in paths]
         if ref_path.resolve() in resolved:
             reference = resolved.index(ref_path.resolve())
         else:
@@ -161,9 +156,10 @@ def run(args: argparse.Namespace) -> int:
         "largest_piece": not args.no_largest_piece, "fill_holes": not args.no_fill_holes,
         "fix_orientation": not args.no_fix_orientation, "remesh": not args.no_remesh}
     used: set[str] = set()
-    out_paths = [_output_path(args.out, path, used) for path in loaded_paths]
+    out_paths = [_output_path(args.out, path, used) for path in paths]
     written: dict[str, str] = {}
-    pending: dict[int, TriMesh] = {}   # reference-based results, kept for an interruption
+    provisional: dict[str, str] = {}   # reference-based results of shapes not final yet
+    unreadable: dict[str, str] = {}
 
     def write_shape(index: int, mesh: TriMesh) -> None:
         # streaming: each output as soon as it is final, so an interrupted run keeps it; the
@@ -171,28 +167,36 @@ def run(args: argparse.Namespace) -> int:
         with signals_deferred():
             save_mesh(out_paths[index], TriMesh(mesh.vertices, mesh.faces, out_paths[index].stem),
                       vertex_order=True)
-            written[str(loaded_paths[index])] = str(out_paths[index])
+            written[names[index]] = str(out_paths[index])
+            stale = provisional.pop(names[index], None)
+            if stale is not None:
+                Path(stale).unlink(missing_ok=True)
+
+    def write_provisional(index: int, mesh: TriMesh) -> None:
+        # written as it comes (not kept in memory): what a stopped run leaves for the shapes
+        # whose refinement had not finished; replaced by the final output as it arrives
+        target = args.out / PROVISIONAL_DIR / out_paths[index].name
+        with signals_deferred():
+            target.parent.mkdir(parents=True, exist_ok=True)
+            save_mesh(target, TriMesh(mesh.vertices, mesh.faces, target.stem), vertex_order=True)
+            provisional[names[index]] = str(target)
 
     try:  # from the output folder's creation on, an interruption leaves a report
         args.out.mkdir(parents=True, exist_ok=True)
         with use_scheduler(args.scheduler), StderrProgress("correspond") as progress:
-            result = establish_correspondence(meshes, reference, n_references=args.n_references,
-                                              n_jobs=args.jobs, progress=progress,
-                                              selection=args.selection, groom=groom,
-                                              vertices=args.vertices, refine=args.refine,
-                                              on_shape=write_shape,
-                                              on_provisional=pending.__setitem__, **params)
+            result = establish_correspondence(
+                paths, reference, n_references=args.n_references, n_jobs=args.jobs,
+                progress=progress, selection=args.selection, groom=groom,
+                vertices=args.vertices, refine=args.refine, on_shape=write_shape,
+                on_provisional=write_provisional,
+                on_unreadable=lambda i, problem: unreadable.__setitem__(names[i], problem),
+                scratch=args.out / SCRATCH_NAME, keep_meshes=False, **params)
     except (KeyboardInterrupt, Terminated) as exc:
-        provisional = _write_provisional(args, out_paths, loaded_paths, pending, written)
-        _write_interrupted_report(args, loaded_paths, written, load_failures, exc, provisional)
+        readable = [p for p in paths if str(p) not in unreadable]
+        _write_interrupted_report(args, readable, written, unreadable, exc, provisional)
         raise
-    report = result.to_report([str(p) for p in loaded_paths])
-    for entry in report["shapes"]:
-        entry["output"] = written.get(entry["name"])
-    for name, problem in load_failures.items():
-        report["shapes"].append({"name": name, "ok": False, "residual_mm": None, "seconds": None,
-                                 "error": problem, "output": None})
-        report["failures"][name] = problem
+    _remove_empty(args.out / PROVISIONAL_DIR)
+    report = _complete_report(result, names, written, unreadable)
     report["inputs"] = [str(p) for p in args.meshes]
     report["complete"] = True
     atomic_write_json(args.out / REPORT_NAME, report)
@@ -207,3 +211,27 @@ def run(args: argparse.Namespace) -> int:
     if n_ok == 0:
         raise ValueError("no mesh could be corresponded (see " + str(args.out / REPORT_NAME) + ")")
     return 1 if report["failures"] else 0
+
+
+def _complete_report(result, names: list[str], written: dict, unreadable: dict) -> dict:
+    """correspondence.json of a finished run: the readable inputs in input order, then the
+    unreadable ones (their problem, no output), the reference's index among the readable."""
+    report = result.to_report(names)
+    report["shapes"] = [entry for entry in report["shapes"] if entry["name"] not in unreadable]
+    for entry in report["shapes"]:
+        entry["output"] = written.get(entry["name"])
+    index = report["reference_index"]
+    if index is not None:
+        report["reference_index"] = index - sum(n in unreadable for n in names[:index])
+    failures = {k: v for k, v in report["failures"].items() if k not in unreadable}
+    for name, problem in unreadable.items():
+        report["shapes"].append({"name": name, "ok": False, "residual_mm": None, "seconds": None,
+                                 "error": problem, "output": None})
+        failures[name] = problem
+    report["failures"] = failures
+    return report
+
+
+def _remove_empty(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        folder.rmdir()  # only when empty: every provisional result was replaced

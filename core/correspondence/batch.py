@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,6 +23,8 @@ from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _task, mes
                                      mirror_fit_ratio)
 from core.geometry import umeyama
 from core.grooming import DEFAULT_GROOMING, GroomingError, groom_mesh
+from core.correspondence.store import (InputFile, Scratch, ScratchMesh, VertexRows, open_mesh,
+                                      open_rows, procrustes_mean, read_input, write_scratch_mesh)
 from core.parallel import JobError, preload_in_workers, run_jobs, runs_inline
 from core.progress import ProgressCallback, report, sub_progress
 from core.types import TriMesh
@@ -62,6 +65,8 @@ class CorrespondenceResult:
         Why this reference was chosen (and which candidates were excluded).
     refinement : list of float
         Mean change of the corresponded vertices (mm) at each groupwise refinement pass.
+    unreadable : dict
+        Input path -> why it could not be read (also in ``failures``), for inputs given as paths.
     """
 
     meshes: list
@@ -77,6 +82,7 @@ class CorrespondenceResult:
     grooming: dict = field(default_factory=dict)
     reference_reason: str = ""
     refinement: list = field(default_factory=list)
+    unreadable: dict = field(default_factory=dict)
 
     def to_report(self, names: list[str] | None = None) -> dict:
         """JSON-ready summary (per shape: residual, grooming, error; reference and why)."""
@@ -88,7 +94,7 @@ class CorrespondenceResult:
             "reference_reason": self.reference_reason,
             "n_vertices": int(self.faces.max()) + 1 if len(self.faces) else 0,
             "n_faces": int(len(self.faces)),
-            "shapes": [{"name": n, "ok": self.meshes[i] is not None,
+            "shapes": [{"name": n, "ok": self.residuals_mm[i] is not None,
                         "residual_mm": self.residuals_mm[i],
                         "seconds": self.shape_timings[i] if i < len(self.shape_timings) else None,
                         "grooming": self.grooming.get(n),
@@ -128,51 +134,136 @@ def default_vertex_count(meshes: list[TriMesh]) -> int:
     """The common density when ``vertices`` is not given: the median input vertex count, so
     that it does not depend on which subject is the reference (inputs already within 10% of
     it with an even spacing are left as they are)."""
-    counts = [len(m.vertices) for m in meshes]
+    return _default_count([len(m.vertices) for m in meshes])
+
+
+def _default_count(counts: list[int]) -> int:
     return max(int(np.median(counts)), 20) if counts else 2000
 
 
-def _groom_job(mesh: TriMesh, options: dict) -> tuple:
-    """core.parallel job: (groomed mesh, its report as a dict, None) or (None, None, problem)."""
-    try:
-        groomed, rep = groom_mesh(mesh, options)
-    except GroomingError as exc:
-        return None, None, f"grooming: {exc}"
-    return groomed, rep.to_dict(), None
+def _shape_info(mesh: TriMesh) -> dict:
+    """What reference selection needs of a usable (groomed) input: its pose- and
+    scale-invariant descriptor and whether it is closed (computed where the mesh is)."""
+    return {"descriptor": _descriptor(mesh.vertices, mesh.faces),
+            "closed": bool(meshops.is_closed(np.asarray(mesh.faces)))}
 
 
-def _prepare(meshes: list[TriMesh], names: list[str], groom: bool | dict, vertices: int | None,
-             progress: ProgressCallback | None = None, n_jobs: int | None = 1
-             ) -> tuple[list, dict, dict]:
+def _read_job(handle: InputFile, _common: None) -> tuple:
+    """core.parallel job: an input file's vertex count, or why it cannot be read, and the
+    reader's warnings (shown by the client)."""
+    mesh, problem, notes = read_input(handle.path)
+    return (None if mesh is None else len(mesh.vertices)), problem, notes
+
+
+def _groom_job(item: tuple, common: tuple) -> tuple:
+    """core.parallel job: groom (or, with no options, only check) one input ->
+    (groomed mesh or its scratch handle, report dict or None, None, info) or
+    (None, None, problem, None). With a scratch directory the groomed mesh is written there
+    and only its handle travels back."""
+    index, handle = item
+    options, scratch, name = common[0], common[1], common[2][index]
+    mesh = open_mesh(handle)
+    if options is None:
+        problem = mesh_problem(mesh)
+        if problem:
+            return None, None, problem, None
+        groomed, rep = TriMesh(mesh.vertices, mesh.faces, name), None
+    else:
+        try:
+            groomed, rep = groom_mesh(mesh, options)
+        except GroomingError as exc:
+            return None, None, f"grooming: {exc}", None
+        groomed.name = name
+        rep = rep.to_dict()
+    info = _shape_info(groomed)
+    kept = groomed if scratch is None else write_scratch_mesh(groomed, scratch, index)
+    return kept, rep, None, info
+
+
+def _read_inputs(meshes: list, names: list[str], progress: ProgressCallback | None,
+                 n_jobs: int | None) -> tuple[dict[int, int], dict[str, str]]:
+    """Vertex count of every input, and the inputs that cannot be read (name -> problem).
+    Input files are read by the workers, each in a child process (a reader crash costs that
+    file only); the client never holds them."""
+    from core.io.errors import DataFileWarning
+
+    counts = {i: len(m.vertices) for i, m in enumerate(meshes) if isinstance(m, TriMesh)}
+    unread: dict[str, str] = {}
+    files = [(i, m) for i, m in enumerate(meshes) if isinstance(m, InputFile)]
+    if files:
+        done = run_jobs(_read_job, files, n_jobs=n_jobs, label="reading",
+                        progress=sub_progress(progress, 0.0, 0.02))
+        for i, _ in files:
+            n, problem, notes = done[i]
+            for note in notes:
+                warnings.warn(DataFileWarning(note), stacklevel=2)
+            if problem is not None:
+                unread[names[i]] = problem
+            else:
+                counts[i] = n
+    return counts, unread
+
+
+def _prepare(meshes: list, names: list[str], groom: bool | dict, vertices: int | None,
+             progress: ProgressCallback | None = None, n_jobs: int | None = 1,
+             scratch: Scratch | None = None) -> tuple[list, dict, dict]:
     """Groomed (or checked) inputs, per-shape failures and grooming reports. Grooming is a
-    per-shape job too (:func:`core.parallel.run_jobs`: pool or Dask)."""
-    prepared: list[TriMesh | None] = [None] * len(meshes)
-    failures: dict[str, str] = {}
+    per-shape job too (:func:`core.parallel.run_jobs`: pool or Dask).
+
+    ``meshes`` holds TriMesh objects or :class:`~core.correspondence.store.InputFile`
+    handles (read by the workers). The groomed inputs come back as meshes, or with a
+    ``scratch`` directory as handles of the files the workers wrote there
+    (:func:`_prepare_all` also returns what reference selection needs).
+    """
+    prepared, failures, reports, _, _ = _prepare_all(meshes, names, groom, vertices, progress,
+                                                     n_jobs, scratch)
+    return prepared, failures, reports
+
+
+def _prepare_all(meshes: list, names: list[str], groom: bool | dict, vertices: int | None,
+                 progress: ProgressCallback | None, n_jobs: int | None,
+                 scratch: Scratch | None) -> tuple[list, dict, dict, dict, dict]:
+    """:func:`_prepare` and, per usable input, what reference selection needs
+    (:func:`_shape_info`, plus ``n_input``: its vertex count before grooming), and the
+    inputs that could not be read."""
+    counts, unread = _read_inputs(meshes, names, progress, n_jobs)
+    prepared: list = [None] * len(meshes)
+    failures: dict[str, str] = dict(unread)
     reports: dict[str, dict] = {}
-    if groom is False:
-        for i, m in enumerate(meshes):
+    info: dict[int, dict] = {}
+    readable = [i for i in range(len(meshes)) if i in counts]
+    if groom is False and scratch is None and all(isinstance(m, TriMesh) for m in meshes):
+        for i, m in enumerate(meshes):  # in memory, nothing to groom: checked here
             problem = mesh_problem(m)
             if problem:
                 failures[names[i]] = problem
             else:
                 prepared[i] = m
-        return prepared, failures, reports
-    options = dict(groom) if isinstance(groom, dict) else {}
-    options.setdefault("vertices", int(vertices) if vertices else default_vertex_count(meshes))
+                info[i] = dict(_shape_info(m), n_input=counts[i])
+        return prepared, failures, reports, info, unread
+    options = None
+    if groom is not False:
+        options = dict(groom) if isinstance(groom, dict) else {}
+        options.setdefault("vertices", int(vertices) if vertices else
+                           _default_count([counts[i] for i in readable]))
+    common = (options, None if scratch is None else str(scratch.groomed), names)
     try:
-        done = run_jobs(_groom_job, list(enumerate(meshes)), common=options, n_jobs=n_jobs,
-                        progress=sub_progress(progress, 0.0, 0.1), label="grooming")
+        done = run_jobs(_groom_job, [(i, (i, meshes[i])) for i in readable], common=common,
+                        n_jobs=n_jobs, progress=sub_progress(progress, 0.02, 0.1),
+                        label="grooming" if options is not None else "checking")
     except JobError as exc:  # an unexpected error of one input: raised as it is, as inline
         raise (exc.__cause__ or exc) from None
-    for i in range(len(meshes)):
-        groomed, rep, problem = done[i]
+    for i in readable:
+        kept, rep, problem, shape = done[i]
         if problem is not None:
             failures[names[i]] = problem
             continue
-        groomed.name = names[i]
-        prepared[i] = groomed
-        reports[names[i]] = rep
-    return prepared, failures, reports
+        prepared[i] = kept
+        info[i] = dict(shape, n_input=counts[i])
+        if rep is not None:
+            reports[names[i]] = rep
+    failures = {n: failures[n] for n in names if n in failures}  # input order
+    return prepared, failures, reports, info, unread
 
 
 def _descriptor(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -194,8 +285,17 @@ def pick_reference_candidates(raw: list[TriMesh], prepared: list, usable: list[i
     (dropped pieces or filled holes) and unrepresentative ones (descriptor more than 3
     robust standard deviations from the median).
     """
-    counts = np.array([len(raw[i].vertices) for i in usable], dtype=float)
-    desc = np.array([_descriptor(prepared[i].vertices, prepared[i].faces) for i in usable])
+    info = {i: {"n_input": len(raw[i].vertices),
+                "descriptor": _descriptor(prepared[i].vertices, prepared[i].faces)} for i in usable}
+    return _pick_candidates(info, usable, n, grooming, names)
+
+
+def _pick_candidates(info: dict[int, dict], usable: list[int], n: int, grooming: dict,
+                     names: list[str]) -> tuple[list[int], str]:
+    """:func:`pick_reference_candidates` from per-shape ``info`` (``n_input``,
+    ``descriptor``) computed where the meshes are."""
+    counts = np.array([info[i]["n_input"] for i in usable], dtype=float)
+    desc = np.array([info[i]["descriptor"] for i in usable])
     dist = np.linalg.norm(desc - np.median(desc, axis=0), axis=1)
     mad = 1.4826 * np.median(np.abs(dist - np.median(dist))) + 1e-12
     excluded = {}
@@ -230,10 +330,22 @@ def _compactness(shapes: np.ndarray) -> float:
 
 def _task_job(task: tuple, references: dict) -> tuple:
     """core.parallel job: one correspondence task whose reference arrays come from
-    ``references`` (sent once per worker) -> (result or None, error or None)."""
-    key, _, _, *rest = task
+    ``references`` (sent once per worker) -> (result or None, error or None).
+
+    The target is a handle (:func:`core.correspondence.store.open_mesh`: the mesh itself, or
+    a file the worker reads). A refinement task carries the shape's current correspondence
+    (a handle too, :func:`~core.correspondence.store.open_rows`) instead of the posed mean:
+    the worker poses the mean on it (weighted Umeyama fit), as the client did before.
+    """
+    key, _, _, target, _, params, parallel, *rest = task
     ref_v, ref_f = references[key[0]]
-    _, out, err = _task((key, ref_v, ref_f, *rest))
+    mesh = open_mesh(target)
+    extra = ()
+    if rest:
+        current = open_rows(rest[0])
+        s, r, t = umeyama(ref_v, current)
+        extra = (s * ref_v @ r.T + t,)
+    _, out, err = _task((key, ref_v, ref_f, mesh.vertices, mesh.faces, params, parallel, *extra))
     return out, err
 
 
@@ -241,44 +353,51 @@ def _run_tasks(tasks: list[tuple], n_jobs: int, progress: ProgressCallback | Non
                start: float, stop: float, on_result: Callable | None = None) -> dict:
     """Run correspondence tasks in this process or through :func:`core.parallel.run_jobs`
     (process pool, or Dask inside :func:`core.parallel.use_scheduler`); cancellable via
-    progress. ``on_result(key, (out, err))`` sees each result as it arrives (streaming).
+    progress. ``on_result(key, (out, err))`` sees each result as it arrives (streaming);
+    what it returns, if not None, is kept instead of the result (a summary: the client then
+    holds no vertices).
 
-    A task is the argument tuple of :func:`core.correspondence.pair._task`; its ``parallel``
-    flag (index 6) is set here: rustcpd's own threads only when running in this process. The
-    reference of every task is sent once per worker, not once per task.
+    A task is :func:`_task_job`'s argument; its ``parallel`` flag (index 6) is set here:
+    rustcpd's own threads only when running in this process. The reference of every task is
+    sent once per worker, not once per task.
     """
     results = {}
     total = len(tasks)
     if total == 0:
         return results
+    references = {t[0][0]: (t[1], t[2]) for t in tasks}
+    keep = (lambda key, value: value) if on_result is None else (
+        lambda key, value: _or(on_result(key, value), value))
     if runs_inline(n_jobs, total):
         for done, t in enumerate(tasks):
             report(progress, start + (stop - start) * done / total, f"corresponding {done + 1}/{total}")
-            key, out, err = _task(t[:6] + (True,) + t[7:])
-            results[key] = (out, err)
-            if on_result is not None:
-                on_result(key, (out, err))
+            results[t[0]] = keep(t[0], _task_job(t[:6] + (True,) + t[7:], references))
         report(progress, stop, "correspondence done")
         return results
-    references = {t[0][0]: (t[1], t[2]) for t in tasks}
     items = [(t[0], (t[0], None, None) + t[3:6] + (False,) + t[7:]) for t in tasks]
-    keep = None if on_result is None else (lambda key, value: on_result(key, value) or value)
     results = run_jobs(_task_job, items, common=references, n_jobs=n_jobs, on_result=keep,
                        progress=sub_progress(progress, start, stop), label="corresponding")
     report(progress, stop, "correspondence done")
     return results
 
 
-def _tasks(reference: TriMesh, ref_key, targets: dict[int, TriMesh], params: dict,
-           posed: dict | None = None) -> list[tuple]:
+def _or(value, default):
+    return default if value is None else value
+
+
+def _tasks(reference: TriMesh, ref_key, targets: dict, params: dict,
+           current: dict | None = None) -> list[tuple]:
+    """Tasks corresponding ``reference`` to each target (a mesh handle); with ``current``
+    (shape -> handle of its current correspondence) the reference is posed on each shape."""
     ref_v, ref_f = np.asarray(reference.vertices, float), np.asarray(reference.faces)
-    return [((ref_key, i), ref_v, ref_f, np.asarray(m.vertices, float), np.asarray(m.faces),
-             params, False) + ((posed[i],) if posed is not None else ())
-            for i, m in targets.items()]
+    return [((ref_key, i), ref_v, ref_f, handle, None, params, False)
+            + ((current[i],) if current is not None else ())
+            for i, handle in targets.items()]
 
 
 def _resolve_reference(reference, prepared: list, names: list[str], failures: dict, usable,
-                       raw, n_references: int, grooming: dict) -> tuple[list, TriMesh | None, str]:
+                       info: dict, n_references: int, grooming: dict
+                       ) -> tuple[list, TriMesh | None, str]:
     """(candidate indices or [None], external reference mesh or None, reason)."""
     if isinstance(reference, (str, os.PathLike)) and str(reference) != "auto":
         ref_path = str(reference)
@@ -301,18 +420,18 @@ def _resolve_reference(reference, prepared: list, names: list[str], failures: di
             raise ValueError(f"reference index {idx} out of range for {len(prepared)} meshes")
         if prepared[idx] is None:
             raise ValueError(f"{names[idx]}: {failures.get(names[idx])}")
-        problem = mesh_problem(prepared[idx], need_closed=True)
+        problem = mesh_problem(open_mesh(prepared[idx]), need_closed=True)
         if problem:
             raise ValueError(f"{names[idx]}: {problem}")
         return [idx], None, "given (by index or name)"
     if reference != "auto":
         raise ValueError(f"reference must be 'auto', an index or a TriMesh, got {reference!r}")
-    closed = [i for i in usable if meshops.is_closed(np.asarray(prepared[i].faces))]
+    closed = [i for i in usable if info[i]["closed"]]
     if not closed:
         raise ValueError("no input mesh can serve as reference (none is a valid closed surface: "
                          + "; ".join(f"{k}: {v}" for k, v in failures.items()) + ")"
                          if failures else "no input mesh is a closed surface")
-    candidates, why = pick_reference_candidates(raw, prepared, closed, n_references, grooming, names)
+    candidates, why = _pick_candidates(info, closed, n_references, grooming, names)
     return candidates, None, why
 
 
@@ -320,7 +439,15 @@ def _select(candidates: list, external, prepared: list, names: list[str], usable
             params: dict, n_jobs: int, progress, selection: str, selection_shapes: int
             ) -> tuple[object, dict, dict, list[int], float]:
     """Correspond the selection subset to every candidate; keep the best (compactness or
-    residual). Returns (chosen, scores, results so far, shapes still to do, progress)."""
+    residual). Returns (chosen, scores, results so far, shapes still to do, progress).
+
+    A single candidate is the reference without trials: every shape is left to the main
+    pass (whose results stream; its score, the mean pair residual, is 0.0 as those are
+    not computed for one candidate)."""
+    if len(candidates) == 1:
+        c = candidates[0]
+        name = (external.name or "reference") if c is None else names[c]
+        return c, {name: 0.0, "_n_registrations": 0}, {}, [i for i in usable if i != c], 0.1
     if len(candidates) > 1 and len(usable) > max(int(selection_shapes), len(candidates)):
         others = [i for i in usable if i not in candidates]
         n_more = max(int(selection_shapes) - len(candidates), 1)
@@ -330,7 +457,7 @@ def _select(candidates: list, external, prepared: list, names: list[str], usable
         subset = list(usable)
     tasks = []
     for c in candidates:
-        ref = external if c is None else prepared[c]
+        ref = external if c is None else open_mesh(prepared[c])
         tasks += _tasks(ref, c, {i: prepared[i] for i in subset if i != c}, params)
     rest = [i for i in usable if i not in subset]
     split = 0.1 + 0.5 * len(tasks) / max(len(tasks) + len(rest), 1)
@@ -340,7 +467,7 @@ def _select(candidates: list, external, prepared: list, names: list[str], usable
         outs = [results[(c, i)][0] for i in subset if c is None or i != c]
         shapes = [o["vertices"] for o in outs if o is not None]
         if c is not None:
-            shapes.append(np.asarray(prepared[c].vertices, float))
+            shapes.append(np.asarray(open_mesh(prepared[c]).vertices, float))
         resid = [o["residual_mm"] for o in outs if o is not None and o["residual_mm"] is not None]
         if selection == "compactness" and len(candidates) > 1:
             score = _compactness(np.stack(shapes)) if len(shapes) >= 2 else np.inf
@@ -360,7 +487,7 @@ MIRROR_SUSPECT = 0.95  # pair.mirror_fit_ratio against the reference below this:
 MIRROR_RATIO = 0.8     # ... against the others' mean below this: mirrored
 
 
-def _flag_mirrored(results: dict, usable: list[int], vertices: dict[int, np.ndarray],
+def _flag_mirrored(results: dict, usable: list[int], vertices: MutableMapping,
                    prepared: list, params: dict) -> dict[int, str]:
     """Inputs whose mirror image fits better than any rotation of them (a left/right mix-up).
 
@@ -371,37 +498,31 @@ def _flag_mirrored(results: dict, usable: list[int], vertices: dict[int, np.ndar
     beans, 0.73 and below for mirrored twisted beans). When most inputs are suspects, the
     reference is the odd one and nothing is flagged.
     """
-    from core.alignment import generalized_procrustes
-
     ratios = {i: results[i][0].get("mirror_ratio") for i in usable
               if i in results and results[i][0] is not None}
     suspects = [i for i, r in ratios.items() if r is not None and r < MIRROR_SUSPECT]
     others = [k for k in sorted(vertices) if k not in suspects]
     if not suspects or 2 * len(suspects) >= len(ratios) or len(others) < 2:
         return {}
-    mean = generalized_procrustes(np.stack([vertices[k] for k in others]), "similarity",
-                                  max_iter=20, tol=1e-5).mean
+    mean, _ = _gpa(vertices, others, tol=1e-5)
     flagged = {}
     for i in suspects:
-        r = mirror_fit_ratio(mean, prepared[i].vertices, params)
+        r = mirror_fit_ratio(mean, open_mesh(prepared[i]).vertices, params)
         if r < MIRROR_RATIO:
             flagged[i] = (f"mirrored: its mirror image fits the other shapes better than any "
                           f"rotation of it (rigid fit sigma^2 ratio {r:.2f}); a left/right mix-up?")
     return flagged
 
 
-def _flag_outliers(vertices: dict[int, np.ndarray], names: list[str], protect) -> dict[int, str]:
+def _flag_outliers(vertices: MutableMapping, names: list[str], protect) -> dict[int, str]:
     """Shapes far from every other one after similarity alignment (a different structure
     by mistake; mirrored sides: :func:`_flag_mirrored`)."""
-    from core.alignment import generalized_procrustes
-
     keys = sorted(vertices)
     if len(keys) < 6:  # too few for a robust spread of the distances
         return {}
-    shapes = np.stack([vertices[k] for k in keys])
-    gpa = generalized_procrustes(shapes, "similarity", max_iter=20, tol=1e-5)
-    size = float(np.sqrt(((gpa.mean - gpa.mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    dist = np.sqrt(((gpa.aligned - gpa.mean) ** 2).sum(axis=2).mean(axis=1)) / size
+    mean, rmsd = _gpa(vertices, keys, tol=1e-5)
+    size = float(np.sqrt(((mean - mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    dist = rmsd / size
     med = float(np.median(dist))
     mad = 1.4826 * float(np.median(np.abs(dist - med))) + 1e-3 * med + 1e-12
     flagged = {}
@@ -412,18 +533,15 @@ def _flag_outliers(vertices: dict[int, np.ndarray], names: list[str], protect) -
     return flagged
 
 
-def _retry_from_mean(vertices: dict[int, np.ndarray], keys: list[int], faces: np.ndarray,
+def _retry_from_mean(vertices: MutableMapping, keys: list[int], faces: np.ndarray,
                      prepared: list, params: dict, n_jobs: int, timings: dict) -> None:
     """Correspond ``keys`` again, from scratch (rigid starts included), to the mean of the
     other shapes: a reference that is closer to them than the chosen one was."""
-    from core.alignment import generalized_procrustes
-
     others = [k for k in sorted(vertices) if k not in keys]
     if len(others) < 2:
         return
-    gpa = generalized_procrustes(np.stack([vertices[k] for k in others]), "similarity",
-                                 max_iter=20, tol=1e-6)
-    results = _run_tasks(_tasks(TriMesh(gpa.mean, faces, "mean"), "retry",
+    mean, _ = _gpa(vertices, others, tol=1e-6)
+    results = _run_tasks(_tasks(TriMesh(mean, faces, "mean"), "retry",
                                 {k: prepared[k] for k in keys}, params), n_jobs, None, 0.6, 0.6)
     for k in keys:
         out, _ = results[("retry", k)]
@@ -432,43 +550,63 @@ def _retry_from_mean(vertices: dict[int, np.ndarray], keys: list[int], faces: np
             _add_timings(timings, k, out)
 
 
-def _refine(vertices: dict[int, np.ndarray], faces: np.ndarray, prepared: list, params: dict,
+def _gpa(vertices: Mapping, keys: list[int], tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, per-shape rmsd) of the similarity GPA of ``vertices[k]`` over ``keys`` (20
+    iterations at most): stacked in memory, or one shape at a time from a vertex store
+    (bit-identical, :func:`core.correspondence.store.procrustes_mean`)."""
+    from core.alignment import generalized_procrustes
+
+    if isinstance(vertices, VertexRows):
+        return procrustes_mean(vertices, keys, "similarity", max_iter=20, tol=tol)
+    gpa = generalized_procrustes(np.stack([vertices[k] for k in keys]), "similarity",
+                                 max_iter=20, tol=tol)
+    return gpa.mean, gpa.rmsd_
+
+
+def _handle(vertices: Mapping, key: int):
+    """What a job needs to read ``vertices[key]`` (the array, or a row of a vertex store)."""
+    return vertices.handle(key) if isinstance(vertices, VertexRows) else vertices[key]
+
+
+def _refine(vertices: MutableMapping, faces: np.ndarray, prepared: list, params: dict,
             n_jobs: int, progress, passes: int, timings: dict,
             on_last_pass: Callable | None = None) -> list[float]:
     """Groupwise refinement: correspond every shape again to the current mean shape.
 
     The mean of the similarity-aligned corresponded shapes is posed on each shape by the
-    weighted Umeyama fit over the current correspondences (no rigid CPD needed), then
-    corresponded to it as in the pairwise step (nonrigid CPD, assignment, fairing).
-    ``on_last_pass(key, (out, err))`` sees the last pass's results as they arrive (final).
+    weighted Umeyama fit over the current correspondences (no rigid CPD needed; in the
+    worker, :func:`_task_job`), then corresponded to it as in the pairwise step (nonrigid
+    CPD, assignment, fairing). Each result replaces the shape's correspondence as it
+    arrives (its job was the only reader of it); ``on_last_pass(key, (out, err))`` sees the
+    last pass's results as they arrive (final).
     """
-    from core.alignment import generalized_procrustes
-
     changes = []
     for it in range(int(passes)):
         keys = sorted(vertices)
         if len(keys) < 3:
             break
-        gpa = generalized_procrustes(np.stack([vertices[k] for k in keys]), "similarity",
-                                     max_iter=20, tol=1e-6)
-        mean = TriMesh(gpa.mean, faces, "mean")
-        posed = {}
-        for k in keys:
-            s, r, t = umeyama(gpa.mean, vertices[k])
-            posed[k] = s * gpa.mean @ r.T + t
-        tasks = _tasks(mean, "mean", {k: prepared[k] for k in keys}, params, posed)
+        mean_v, _ = _gpa(vertices, keys, tol=1e-6)
+        current = {k: _handle(vertices, k) for k in keys}
+        tasks = _tasks(TriMesh(mean_v, faces, "mean"), "mean", {k: prepared[k] for k in keys},
+                       params, current)
+        moved: dict[int, float] = {}
+        last = it == int(passes) - 1
+
+        def absorb(key: tuple, value: tuple, last: bool = last, moved: dict = moved) -> tuple:
+            out, err = value
+            k = key[1]
+            if out is not None:  # else: keep the previous correspondence of this shape
+                moved[k] = float(np.linalg.norm(out["vertices"] - vertices[k], axis=1).mean())
+                vertices[k] = out["vertices"]
+                _add_timings(timings, k, out)
+            if last and on_last_pass is not None:
+                on_last_pass(key, value)
+            return None, err
+
         start = 0.6 + 0.35 * it / passes
-        results = _run_tasks(tasks, n_jobs, progress, start, start + 0.35 / passes,
-                             on_result=on_last_pass if it == int(passes) - 1 else None)
-        moved = []
-        for k in keys:
-            out, err = results[("mean", k)]
-            if out is None:
-                continue  # keep the previous correspondence of this shape
-            moved.append(float(np.linalg.norm(out["vertices"] - vertices[k], axis=1).mean()))
-            vertices[k] = out["vertices"]
-            _add_timings(timings, k, out)
-        changes.append(float(np.mean(moved)) if moved else 0.0)
+        _run_tasks(tasks, n_jobs, progress, start, start + 0.35 / passes, on_result=absorb)
+        ok = [moved[k] for k in keys if k in moved]
+        changes.append(float(np.mean(ok)) if ok else 0.0)
     return changes
 
 
@@ -480,20 +618,26 @@ def _add_timings(timings: dict, key: int, out: dict) -> None:
     timings["n_registrations"] = timings.get("n_registrations", 0) + 1
 
 
-def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMesh = "auto", *,
+def establish_correspondence(meshes: list[TriMesh | str | os.PathLike],
+                             reference: str | int | TriMesh = "auto", *,
                              n_references: int = 1, n_jobs: int | None = None,
                              progress: ProgressCallback | None = None, selection: str = "compactness",
                              selection_shapes: int = 8, groom: bool | dict = True,
                              vertices: int | None = None, refine: int = 1,
                              on_shape: Callable[[int, TriMesh], None] | None = None,
                              on_provisional: Callable[[int, TriMesh], None] | None = None,
+                             on_unreadable: Callable[[int, str], None] | None = None,
+                             scratch: str | os.PathLike | None = None, keep_meshes: bool = True,
                              **cpd_params) -> CorrespondenceResult:
     """Express every training mesh with the vertices and faces of one reference mesh.
 
     Parameters
     ----------
-    meshes : list of TriMesh
+    meshes : list of TriMesh or paths
         Training meshes (any vertex count, order and pose). ``mesh.name`` names them in errors.
+        A path is read by the worker that needs it (each file in a child process: a reader
+        crash costs that file only); it is named by its path, and an unreadable one is a
+        failure like any other (listed in ``unreadable`` too).
     reference : "auto", int, path or TriMesh
         ``"auto"``: the most typical usable input (:func:`pick_reference_candidates`), or with
         ``n_references`` > 1 the best of that many by ``selection``; int: that input; a path:
@@ -527,21 +671,59 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
         ``on_provisional(index, mesh)`` for every shape's reference-based result (before the
         refinement passes, after the outlier check; only when ``refine`` > 0): what an
         interrupted run can still hand over for the shapes not yet final.
+    on_unreadable : callable, optional
+        ``on_unreadable(index, problem)`` for every input path that cannot be read, as soon
+        as that is known (an interrupted run can still report it).
+    scratch : path, optional
+        A directory (created; removed at the end, also when stopped) where the workers keep
+        the groomed inputs and the client the corresponded vertices of every pass, instead
+        of this process's memory (:mod:`core.correspondence.store`): with paths as inputs,
+        the client's memory then stays flat in the number of shapes. On a cluster every
+        worker must see it at this path. The results are bit-identical either way.
+    keep_meshes : bool
+        False: ``result.meshes`` holds None for every input (the shapes went to
+        ``on_shape``); all the rest of the result is there.
     **cpd_params
         Overrides of :data:`DEFAULT_CPD_PARAMS`.
     """
     params = _check_params(cpd_params, selection)
     if len(meshes) == 0:
         raise ValueError("no meshes to correspond")
+    store = None if scratch is None else Scratch(scratch)
+    try:
+        return _establish(list(meshes), reference, params, store, n_references=n_references,
+                          n_jobs=n_jobs, progress=progress, selection=selection,
+                          selection_shapes=selection_shapes, groom=groom, vertices=vertices,
+                          refine=refine, on_shape=on_shape, on_provisional=on_provisional,
+                          on_unreadable=on_unreadable, keep_meshes=keep_meshes)
+    finally:
+        if store is not None:
+            store.remove()
+
+
+def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
+               n_references: int, n_jobs: int | None, progress, selection: str,
+               selection_shapes: int, groom: bool | dict, vertices: int | None, refine: int,
+               on_shape: Callable | None, on_provisional: Callable | None,
+               on_unreadable: Callable | None, keep_meshes: bool) -> CorrespondenceResult:
+    """:func:`establish_correspondence` with its per-shape data in ``store`` (or memory)."""
     t_start = time.perf_counter()
-    names = [_mesh_name(m, i) for i, m in enumerate(meshes)]
+    names = [_mesh_name(m, i) if isinstance(m, TriMesh) else str(m) for i, m in enumerate(meshes)]
+    handles = [m if isinstance(m, TriMesh) else InputFile(str(m)) for m in meshes]
     report(progress, 0.0, "grooming")
     n_jobs = (os.cpu_count() or 1) if n_jobs is None else int(n_jobs)
-    prepared, failures, grooming = _prepare(meshes, names, groom, vertices, progress, n_jobs)
+    prepared, failures, grooming, info, unread = _prepare_all(handles, names, groom, vertices,
+                                                              progress, n_jobs, store)
+    for i, name in enumerate(names) if on_unreadable is not None else ():
+        if name in unread:
+            on_unreadable(i, unread[name])
+    if len(unread) == len(meshes):
+        raise ValueError("no input mesh could be read: "
+                         + "; ".join(f"{k}: {v}" for k, v in unread.items()))
     t_groom = time.perf_counter() - t_start
     usable = [i for i, m in enumerate(prepared) if m is not None]
     candidates, external, why = _resolve_reference(reference, prepared, names, failures, usable,
-                                                   meshes, n_references, grooming)
+                                                   info, n_references, grooming)
     # The batch measures its final outputs itself; before a refinement pass the first pass
     # only has to give the mean shape, so it skips labelling and fairing (plain
     # CPD-then-project; the refinement labels and fairs every shape).
@@ -555,16 +737,27 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
                                                    first, n_jobs, progress, selection,
                                                    selection_shapes)
     n_trial = scores.pop("_n_registrations") - len(results)  # trial runs of the losers
-    ref = external if chosen is None else prepared[chosen]
+    ref = external if chosen is None else open_mesh(prepared[chosen])
+    ref_faces = np.asarray(ref.faces).copy()
+    corresponded: MutableMapping = ({} if store is None else
+                                    store.rows("corresponded", len(ref.vertices)))
+
+    def absorb(key: tuple, value: tuple) -> tuple:  # streaming: the client keeps no vertices
+        out, err = value
+        if out is None:
+            return value
+        corresponded[key[1]] = out["vertices"]
+        return {k: v for k, v in out.items() if k != "vertices"}, err
+
     results.update({k[1]: v for k, v in _run_tasks(
         _tasks(ref, chosen, {i: prepared[i] for i in rest}, first), n_jobs, progress,
-        split, 0.6).items()})
-    ref_faces = np.asarray(ref.faces).copy()
+        split, 0.6, on_result=absorb).items()})
     timings: dict = {"grooming": t_groom, "n_registrations": n_trial}
-    corresponded = _collect(results, chosen, ref, usable, names, failures, timings)
+    _collect(results, chosen, ref, usable, names, failures, timings, corresponded)
     for k, reason in _flag_mirrored(results, usable, corresponded, prepared, params).items():
         failures[names[k]] = reason
         corresponded.pop(k, None)
+    del results  # per-shape summaries of the first pass: not needed any more
     flagged = _flag_outliers(corresponded, names, chosen)
     if flagged:  # a wrong pose looks like a wrong shape: once more from the others' mean
         _retry_from_mean(corresponded, list(flagged), ref_faces, prepared, first, n_jobs, timings)
@@ -572,7 +765,7 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
                    if k in flagged}
     for k, reason in flagged.items():
         failures[names[k]] = reason
-        corresponded.pop(k)
+        del corresponded[k]
     streamed: set[int] = set()
 
     def stream(k: int, v: np.ndarray) -> None:
@@ -590,16 +783,20 @@ def establish_correspondence(meshes: list[TriMesh], reference: str | int | TriMe
     changes = _refine(corresponded, ref_faces, prepared, passes, n_jobs,
                       progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)
-    for k in sorted(corresponded):  # shapes no refinement pass touched (refine=0, < 3 shapes)
-        stream(k, corresponded[k])
-    return _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures,
-                   timings, scores, params, grooming, why, changes, t_start, n_jobs, progress)
+    for k in sorted(corresponded) if on_shape is not None else ():
+        if k not in streamed:  # shapes no refinement pass touched (refine=0, < 3 shapes)
+            stream(k, corresponded[k])
+    result = _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures,
+                     timings, scores, params, grooming, why, changes, t_start, n_jobs, progress,
+                     keep_meshes)
+    result.unreadable = unread
+    return result
 
 
 def _collect(results: dict, chosen, ref: TriMesh, usable: list[int], names: list[str],
-             failures: dict, timings: dict) -> dict[int, np.ndarray]:
-    """Corresponded vertices per input index (the reference itself included)."""
-    out: dict[int, np.ndarray] = {}
+             failures: dict, timings: dict, out: MutableMapping) -> MutableMapping:
+    """Corresponded vertices per input index (the reference itself included) into ``out``
+    (results whose vertices already went there as they arrived keep only a summary)."""
     for i in usable:
         if chosen is not None and i == chosen:
             out[i] = np.asarray(ref.vertices, float).copy()
@@ -608,24 +805,41 @@ def _collect(results: dict, chosen, ref: TriMesh, usable: list[int], names: list
         if err is not None:
             failures[names[i]] = f"correspondence failed: {err}"
             continue
-        out[i] = res["vertices"]
+        if "vertices" in res:
+            out[i] = res["vertices"]
         _add_timings(timings, i, res)
     return out
 
 
-def _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures, timings,
-            scores, params, grooming, why, changes, t_start, n_jobs, progress
-            ) -> CorrespondenceResult:
+def _residual_job(item: tuple, faces: np.ndarray) -> float:
+    """core.parallel job: symmetric mean surface distance (mm) between a corresponded shape
+    (vertices or their handle) and its groomed input (a mesh handle)."""
     from core.geometry import symmetric_surface_distance
 
+    vertices, target = item
+    mesh = open_mesh(target)
+    return symmetric_surface_distance(open_rows(vertices), faces, mesh.vertices, mesh.faces)
+
+
+def _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures, timings,
+            scores, params, grooming, why, changes, t_start, n_jobs, progress, keep_meshes=True
+            ) -> CorrespondenceResult:
     out_meshes: list[TriMesh | None] = [None] * len(meshes)
     residuals: list[float | None] = [None] * len(meshes)
     per = timings.pop("_per_shape", {})
     shape_times = [per.get(i) for i in range(len(meshes))]
-    for i, v in corresponded.items():
-        out_meshes[i] = TriMesh(v, ref_faces, names[i])
-        residuals[i] = 0.0 if (i == chosen and not changes) else symmetric_surface_distance(
-            v, ref_faces, prepared[i].vertices, prepared[i].faces)
+    measured = [i for i in sorted(corresponded) if not (i == chosen and not changes)]
+    for i in corresponded:
+        residuals[i] = 0.0  # the reference before any refinement: itself
+    residuals_of = run_jobs(_residual_job, [(i, (_handle(corresponded, i), prepared[i]))
+                                            for i in measured],
+                            common=ref_faces, n_jobs=n_jobs, label="measuring",
+                            progress=sub_progress(progress, 0.95, 1.0))
+    for i in measured:
+        residuals[i] = residuals_of[i]
+    if keep_meshes:
+        for i in corresponded:
+            out_meshes[i] = TriMesh(corresponded[i], ref_faces, names[i])
     times = [t for t in per.values()]
     timings.update(total=time.perf_counter() - t_start,
                    per_shape_mean=float(np.mean(times)) if times else 0.0,

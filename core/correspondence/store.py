@@ -1,0 +1,332 @@
+"""Where a correspondence batch keeps its per-shape meshes between passes.
+
+A batch (:mod:`core.correspondence.batch`) passes over the training set several times
+(grooming, the reference-based pass, the outlier and mirror checks, the groupwise refinement
+passes), and every pass needs every shape. Held by the client, that is ~0.4 MB per
+2,500-vertex shape (input, groomed input, corresponded vertices): 20 GB for a 50,000-shape
+cohort. So the per-shape data can live in two places:
+
+- **in memory** (library calls: the GUI builder, tests): the groomed meshes and the
+  corresponded vertices are held by this process and travel with each job, as before;
+- **in a scratch directory** every worker can read and write (the command line: a folder
+  inside the output folder, removed at the end): the workers read their input file by path
+  (:class:`InputFile`), write the groomed mesh (:class:`ScratchMesh`), and read the current
+  correspondence of their shape (:class:`Row` of a :class:`VertexRows` file); the client
+  keeps per-shape scalars only, and streams the GPA mean over the rows
+  (:func:`procrustes_mean`). Its memory stays flat in the number of shapes (measured in
+  ``benchmarks/bench_cluster.py --part C``).
+
+Jobs receive *handles* -- a :class:`~core.types.TriMesh` or array (in memory), or one of the
+small path records below -- and open them with :func:`open_mesh` / :func:`open_rows`, so one
+job function serves both places. The GPA here is the same iteration, in the same floating
+point order, as :func:`core.alignment.generalized_procrustes` (Gower 1975), one shape at a
+time: its results are bit-identical (tested).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+import uuid
+import warnings
+from collections.abc import Iterable, Iterator, Mapping, MutableMapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from core.parallel import preload_in_workers
+from core.types import TriMesh
+
+# the workers read input meshes (VTK readers, each file in a forked child): the fork server
+# imports VTK once, so that neither each worker nor each reading child imports it again
+preload_in_workers("vtk")
+preload_in_workers("vtk.util.numpy_support")
+
+SCRATCH_NAME = ".correspond-scratch"
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """An input mesh file, read by the worker that needs it (a shared filesystem)."""
+
+    path: str
+
+
+@dataclass(frozen=True)
+class ScratchMesh:
+    """A mesh a worker wrote into the scratch directory (``.npz``: exact arrays)."""
+
+    path: str
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class Row:
+    """Shape ``index``'s corresponded vertices in a :class:`VertexRows` file."""
+
+    path: str
+    index: int
+    n_vertices: int
+
+
+MeshHandle = TriMesh | InputFile | ScratchMesh
+
+
+def read_input(path: str | os.PathLike) -> tuple[TriMesh | None, str | None, list[str]]:
+    """Read one input mesh in a child process (a reader crash on a damaged file costs that
+    file only, as :func:`core.io.load_meshes` with ``isolate``): (mesh or None, problem or
+    None, the reader's warnings as text, for the client to show)."""
+    from core.io import load_meshes
+
+    _import_readers()
+    with warnings.catch_warnings(record=True) as caught, _children_allowed():
+        warnings.simplefilter("always")
+        loaded, failures = load_meshes([path], isolate=True)
+    notes = [str(w.message) for w in caught]
+    if failures:
+        return None, failures[str(path)], notes
+    mesh = loaded[0][1]
+    mesh.name = str(path)
+    return mesh, None, notes
+
+
+@contextlib.contextmanager
+def _children_allowed() -> Iterator[None]:
+    """Let this process start the reader's child even when it is a daemonic process (a Dask
+    worker is one; multiprocessing refuses children there because a daemon's children would
+    be orphaned at its exit -- the reader's child is waited for, or killed, before the read
+    returns)."""
+    import multiprocessing
+
+    config = getattr(multiprocessing.current_process(), "_config", {})
+    daemon = config.get("daemon")
+    if daemon:
+        config["daemon"] = False
+    try:
+        yield
+    finally:
+        if daemon:
+            config["daemon"] = daemon
+
+
+_READERS_IMPORTED = False
+
+
+def _import_readers() -> None:
+    """Import VTK here once, before the readers' children are forked from this process:
+    each child would import it again (0.5 s a file instead of 15 ms)."""
+    global _READERS_IMPORTED
+    if not _READERS_IMPORTED:
+        _READERS_IMPORTED = True
+        try:
+            import vtk  # noqa: F401
+            from vtk.util import numpy_support  # noqa: F401
+        except ImportError:
+            pass
+
+
+def open_mesh(handle: MeshHandle) -> TriMesh:
+    """The mesh behind a handle (read from disk for the path records)."""
+    if isinstance(handle, TriMesh):
+        return handle
+    if isinstance(handle, ScratchMesh):
+        with np.load(handle.path) as data:
+            return TriMesh(data["vertices"], data["faces"], handle.name)
+    if isinstance(handle, InputFile):
+        mesh, problem, _ = read_input(handle.path)
+        if mesh is None:
+            from core.io import DataFileError
+
+            raise DataFileError(handle.path, problem)
+        return mesh
+    raise TypeError(f"not a mesh handle: {type(handle).__name__}")
+
+
+def write_scratch_mesh(mesh: TriMesh, directory: str | os.PathLike, index: int) -> ScratchMesh:
+    """Write ``mesh`` into ``directory`` as shape ``index`` (atomically: a reader never sees
+    half a file) and return its handle."""
+    target = Path(directory) / f"{int(index)}.npz"
+    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:8]}.tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, vertices=mesh.vertices, faces=mesh.faces)
+    os.replace(tmp, target)
+    return ScratchMesh(str(target), mesh.name)
+
+
+def open_rows(handle: np.ndarray | Row) -> np.ndarray:
+    """The (N, 3) vertices behind a handle (an array in memory, or a :class:`Row`)."""
+    if isinstance(handle, Row):
+        fd = os.open(handle.path, os.O_RDONLY)
+        try:
+            return _read_row(fd, handle.index, handle.n_vertices)
+        finally:
+            os.close(fd)
+    return np.asarray(handle, dtype=np.float64)
+
+
+def _read_row(fd: int, index: int, n_vertices: int) -> np.ndarray:
+    size = n_vertices * 3 * 8
+    data = os.pread(fd, size, index * size)
+    if len(data) != size:
+        raise OSError(f"row {index} of the vertex store is incomplete")
+    return np.frombuffer(data, dtype=np.float64).reshape(n_vertices, 3).copy()
+
+
+class VertexRows(MutableMapping):
+    """Corresponded vertices of shape i -> (N, 3) float64, kept in one file of fixed-size rows
+    (row i at offset i * N * 24 bytes) rather than in memory; only the set of keys is held.
+
+    Written by the client as results arrive (``rows[i] = v``), read by workers through
+    :meth:`handle` and by the client one row at a time.
+    """
+
+    def __init__(self, path: str | os.PathLike, n_vertices: int, keys: Iterable[int] = ()):
+        self.path = str(path)
+        self.n_vertices = int(n_vertices)
+        self._keys: set[int] = set(int(k) for k in keys)
+        if not os.path.exists(self.path):
+            open(self.path, "wb").close()
+        self._fd = os.open(self.path, os.O_RDWR)
+
+    def __getitem__(self, key: int) -> np.ndarray:
+        if key not in self._keys:
+            raise KeyError(key)
+        return _read_row(self._fd, int(key), self.n_vertices)
+
+    def __setitem__(self, key: int, vertices: np.ndarray) -> None:
+        v = np.ascontiguousarray(vertices, dtype=np.float64)
+        if v.shape != (self.n_vertices, 3):
+            raise ValueError(f"expected ({self.n_vertices}, 3) vertices, got {v.shape}")
+        os.pwrite(self._fd, v.tobytes(), int(key) * self.n_vertices * 24)
+        self._keys.add(int(key))
+
+    def __delitem__(self, key: int) -> None:
+        self._keys.remove(key)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(sorted(self._keys))
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._keys
+
+    def handle(self, key: int) -> Row:
+        """What a worker needs to read row ``key`` itself (the client's writes are in the
+        file before the pass that reads them is submitted)."""
+        return Row(self.path, int(key), self.n_vertices)
+
+    def copy(self, path: str | os.PathLike) -> VertexRows:
+        """A copy in another file (the kernel copies; nothing passes through memory)."""
+        shutil.copyfile(self.path, path)
+        return VertexRows(path, self.n_vertices, self._keys)
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+class Scratch:
+    """A batch's scratch directory: groomed meshes (``groomed/``) and vertex row files.
+
+    Every worker must see it at the same path (a shared filesystem for a cluster, as for
+    the inputs). :meth:`remove` deletes it (the batch does so at the end, also when stopped).
+    """
+
+    def __init__(self, root: str | os.PathLike | None = None):
+        if root is None:
+            self.root = Path(tempfile.mkdtemp(prefix="ssm-correspond-"))
+        else:
+            self.root = Path(root)
+            if self.root.exists():  # a stale one from a killed run
+                shutil.rmtree(self.root, ignore_errors=True)
+            self.root.mkdir(parents=True)
+        self.groomed = self.root / "groomed"
+        self.groomed.mkdir()
+        self._rows: list[VertexRows] = []
+
+    def rows(self, name: str, n_vertices: int) -> VertexRows:
+        rows = VertexRows(self.root / f"{name}.f64", n_vertices)
+        self._rows.append(rows)
+        return rows
+
+    def copy_rows(self, rows: VertexRows, name: str) -> VertexRows:
+        copy = rows.copy(self.root / f"{name}.f64")
+        self._rows.append(copy)
+        return copy
+
+    def remove(self) -> None:
+        for rows in self._rows:
+            rows.close()
+        shutil.rmtree(self.root, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- streamed GPA
+
+def procrustes_mean(shapes: Mapping, keys: list[int], transform: str = "similarity", *,
+                    max_iter: int = 100, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, per-shape rmsd) of :func:`core.alignment.generalized_procrustes` on
+    ``[shapes[k] for k in keys]``, reading one shape at a time (``shapes`` may be a
+    :class:`VertexRows`): memory independent of the number of shapes. Same operations in
+    the same order as the stacked version (sums over shapes are sequential there too), so
+    the results are bit-identical."""
+    from core.alignment import _centroid_size, _check_transform, apply_transform, fit_transform
+
+    _check_transform(transform)
+    k = len(keys)
+    if k < 2:
+        raise ValueError(f"at least 2 shapes are needed to align, got {k}")
+
+    def each() -> Iterator[np.ndarray]:
+        for key in keys:
+            x = np.asarray(shapes[key], dtype=np.float64)
+            if x.ndim != 2 or x.shape[1] != 3 or len(x) < 4 or not np.all(np.isfinite(x)):
+                raise ValueError(f"shape {key}: not a finite (N >= 4, 3) array")
+            yield x
+
+    total = None
+    for x in each():
+        c = x - x.mean(axis=0, keepdims=True)
+        total = c.copy() if total is None else total + c
+    centred_mean = total / k
+    best, initial = None, 0
+    for j, x in enumerate(each()):
+        d = ((x - x.mean(axis=0, keepdims=True) - centred_mean) ** 2).sum()
+        if best is None or d < best:  # argmin: the first of equals
+            best, initial = d, j
+    x0 = np.asarray(shapes[keys[initial]], dtype=np.float64)
+    mean = x0 - x0.mean(axis=0)
+    size = _centroid_size(mean)
+    gauge_class = transform if transform in ("rigid", "euclidean") else "similarity"
+
+    def aligned_mean(target: np.ndarray) -> np.ndarray:
+        acc = None
+        for x in each():
+            a = apply_transform(fit_transform(x, target, transform), x)
+            acc = a.copy() if acc is None else acc + a
+        return acc / k
+
+    for _ in range(1, max_iter + 1):
+        new_mean = aligned_mean(mean)
+        gauge = fit_transform(new_mean, mean, gauge_class)
+        new_mean = apply_transform(gauge, new_mean)
+        change = float(np.sqrt(((new_mean - mean) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
+        mean = new_mean
+        if change < tol:
+            break
+    target = mean
+    mean = aligned_mean(target)
+    rmsd = np.array([np.sqrt(((apply_transform(fit_transform(x, target, transform), x) - mean) ** 2)
+                             .sum(axis=1).mean()) for x in each()])
+    return mean, rmsd
