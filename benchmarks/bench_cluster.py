@@ -24,7 +24,20 @@ B. Sparse synchronisation (``core.alignment.align_shapes_sparse``): synthetic co
    the mean vertex displacement (mm) between the recovered relative map T_i^-1 T_j and the
    true one.
 
-Run: ``.venv/bin/python benchmarks/bench_cluster.py [--shapes 500] [--chunk 50] [--part AB]``
+C. Client memory of ``ssm-studio correspond`` (issue 15: "memory on the client stays flat in
+   the number of shapes"): ``--counts`` (50, 200, 800) synthetic beans (``--vertices``
+   250-300 each, own tessellation and pose), written as .vtk files, corresponded by the real
+   command (``python -m core.cli correspond FILES --out DIR --jobs 2``: grooming, the
+   reference-based pass, the outlier and mirror checks, one groupwise refinement pass) in a
+   child process. Reported per run: the client's peak RSS (its own ``getrusage`` maximum at
+   the end) and, separately, the largest peak RSS of its other processes (workers, fork
+   server; their ``VmHWM`` sampled from /proc every 0.1 s), wall time, and whether the
+   output files are byte-identical to the peer's. The peer is today's streaming tree against
+   the tree at ``--baseline`` (821f4a8: the client reads every input and keeps every input,
+   groomed input and result), exported with ``git archive`` and run alternately in the same
+   session on the same files.
+
+Run: ``.venv/bin/python benchmarks/bench_cluster.py [--shapes 500] [--chunk 50] [--part ABC]``
 (about 5 minutes on 2 quiet cores). The machine is shared: times are upper bounds; the load
 is printed before and after each part.
 """
@@ -185,12 +198,111 @@ def part_b(n_large: int) -> None:
           f"load after {os.getloadavg()[0]:.1f}")
 
 
+# Runs the command line in the child and reports the child's own peak RSS (kB) at its end.
+_LAUNCHER = ("import resource, sys\n"
+             "from core.cli import _main\n"
+             "code = _main(sys.argv[1:])\n"
+             "print('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n"
+             "sys.exit(code)\n")
+
+
+def _peak_kb(pid: int) -> int:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def _run_correspond(tree: Path, paths: list[Path], out: Path) -> tuple[float, float, float]:
+    """(client peak MB, largest other process's peak MB, wall s) of one `correspond` run."""
+    import shutil
+
+    from core.parallel import descendants
+
+    shutil.rmtree(out, ignore_errors=True)
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-c", _LAUNCHER, "correspond", *map(str, paths),
+                             "--out", str(out), "--jobs", "2", "--max-iterations", "30"],
+                            env=env, cwd=str(tree), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    others: dict[int, int] = {}
+    while proc.poll() is None:
+        for pid in descendants(proc.pid):
+            others[pid] = max(others.get(pid, 0), _peak_kb(pid))
+        time.sleep(0.1)
+    err = proc.stderr.read()
+    wall = time.perf_counter() - t0
+    peak = [line.split()[1] for line in err.splitlines() if line.startswith("PEAK_KB")]
+    if proc.returncode not in (0, 1) or not peak:
+        raise RuntimeError(f"correspond failed ({proc.returncode}): {err[-800:]}")
+    return int(peak[0]) / 1024, max(others.values(), default=0) / 1024, wall
+
+
+def _export(commit: str, target: Path) -> Path:
+    """The tree at ``commit`` (``git archive``), for the in-memory peer."""
+    target.mkdir(parents=True, exist_ok=True)
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(target)], input=archive, check=True)
+    return target
+
+
+def _same_outputs(a: Path, b: Path) -> bool:
+    names = sorted(p.name for p in a.glob("*.vtk"))
+    return names == sorted(p.name for p in b.glob("*.vtk")) and all(
+        (a / n).read_bytes() == (b / n).read_bytes() for n in names)
+
+
+def part_c(counts: list[int], baseline: str, n_points: tuple[int, int]) -> None:
+    import tempfile
+
+    from core.correspondence.synthetic import known_homology_shapes
+    from core.io import save_mesh
+
+    work = Path(tempfile.mkdtemp(prefix="bench-stream-"))
+    try:
+        meshes = known_homology_shapes("bean", max(counts), seed=0, n_points=n_points).meshes
+        (work / "in").mkdir()
+        paths = []
+        for i, mesh in enumerate(meshes):
+            paths.append(work / "in" / f"bean_{i:05d}.vtk")
+            save_mesh(paths[-1], mesh)
+        trees = {"streaming (this tree)": ROOT}
+        if baseline:
+            trees[f"in memory ({baseline})"] = _export(baseline, work / "baseline")
+        print(f"\nC. client memory of `correspond --jobs 2` ({n_points[0]}-{n_points[1]} "
+              f"vertices a shape, refine 1), load {os.getloadavg()[0]:.1f}")
+        print(f"{'code':<26} {'shapes':>6} {'client peak MB':>15} {'worker peak MB':>15} "
+              f"{'wall s':>7} {'identical':>9} {'load':>5}")
+        for n in counts:
+            outs = {}
+            for name, tree in trees.items():
+                outs[name] = work / f"out_{len(outs)}_{n}"
+                client, worker, wall = _run_correspond(tree, paths[:n], outs[name])
+                same = _same_outputs(*outs.values()) if len(outs) == 2 else None
+                print(f"{name:<26} {n:6d} {client:15.0f} {worker:15.0f} {wall:7.1f} "
+                      f"{'' if same is None else ('yes' if same else 'NO'):>9} "
+                      f"{os.getloadavg()[0]:5.1f}", flush=True)
+    finally:
+        import shutil
+
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", type=int, default=500)
     parser.add_argument("--chunk", type=int, default=50)
     parser.add_argument("--large", type=int, default=5000)
-    parser.add_argument("--part", default="AB")
+    parser.add_argument("--part", default="ABC")
+    parser.add_argument("--counts", default="50,200,800", help="part C: numbers of shapes")
+    parser.add_argument("--vertices", default="250,300", help="part C: vertex count range")
+    parser.add_argument("--baseline", default="821f4a8",
+                        help="part C: commit of the in-memory peer ('' for none)")
     parser.add_argument("--sync-child", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.sync_child is not None:
@@ -201,6 +313,9 @@ def main() -> None:
         part_a(args.shapes, args.chunk)
     if "B" in args.part:
         part_b(args.large)
+    if "C" in args.part:
+        lo, hi = (int(x) for x in args.vertices.split(","))
+        part_c([int(x) for x in args.counts.split(",")], args.baseline, (lo, hi))
 
 
 if __name__ == "__main__":

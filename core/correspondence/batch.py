@@ -754,18 +754,9 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
         split, 0.6, on_result=absorb).items()})
     timings: dict = {"grooming": t_groom, "n_registrations": n_trial}
     _collect(results, chosen, ref, usable, names, failures, timings, corresponded)
-    for k, reason in _flag_mirrored(results, usable, corresponded, prepared, params).items():
-        failures[names[k]] = reason
-        corresponded.pop(k, None)
+    _drop_flagged(results, usable, corresponded, prepared, names, chosen, ref_faces, params,
+                  first, n_jobs, timings, failures)
     del results  # per-shape summaries of the first pass: not needed any more
-    flagged = _flag_outliers(corresponded, names, chosen)
-    if flagged:  # a wrong pose looks like a wrong shape: once more from the others' mean
-        _retry_from_mean(corresponded, list(flagged), ref_faces, prepared, first, n_jobs, timings)
-        flagged = {k: r for k, r in _flag_outliers(corresponded, names, chosen).items()
-                   if k in flagged}
-    for k, reason in flagged.items():
-        failures[names[k]] = reason
-        del corresponded[k]
     streamed: set[int] = set()
 
     def stream(k: int, v: np.ndarray) -> None:
@@ -791,6 +782,24 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
                      keep_meshes)
     result.unreadable = unread
     return result
+
+
+def _drop_flagged(results: dict, usable: list[int], corresponded: MutableMapping, prepared: list,
+                  names: list[str], chosen, ref_faces: np.ndarray, params: dict, first: dict,
+                  n_jobs: int, timings: dict, failures: dict) -> None:
+    """The mirror and outlier checks: flagged shapes leave ``corresponded``, their reason
+    goes to ``failures``."""
+    for k, reason in _flag_mirrored(results, usable, corresponded, prepared, params).items():
+        failures[names[k]] = reason
+        corresponded.pop(k, None)
+    flagged = _flag_outliers(corresponded, names, chosen)
+    if flagged:  # a wrong pose looks like a wrong shape: once more from the others' mean
+        _retry_from_mean(corresponded, list(flagged), ref_faces, prepared, first, n_jobs, timings)
+        flagged = {k: r for k, r in _flag_outliers(corresponded, names, chosen).items()
+                   if k in flagged}
+    for k, reason in flagged.items():
+        failures[names[k]] = reason
+        del corresponded[k]
 
 
 def _collect(results: dict, chosen, ref: TriMesh, usable: list[int], names: list[str],
