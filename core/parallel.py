@@ -275,6 +275,9 @@ def _die_with_parent() -> None:
         libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
 
 
+die_with_parent = _die_with_parent  # for other modules' children (core.io's isolated readers)
+
+
 def _server_dies_with_its_client() -> None:
     """In a process started by this module's pool (the fork server): exit when the process
     that started it is gone, as the workers die with the server. Run when the module is

@@ -146,3 +146,34 @@ def test_a_killed_command_leaves_no_worker_or_fork_server(tmp_path):
     while session() and time.monotonic() < deadline:
         time.sleep(0.2)
     assert session() == []
+
+
+def test_a_reading_child_dies_with_its_parent(tmp_path):
+    """An input is read in a child process (a reader crash costs that file only); when the
+    reading process dies (a pool worker terminated mid-read, a SIGKILLed command), its child
+    goes too -- an orphan would block forever writing a mesh into the pipe, holding the
+    command's stderr open."""
+    import numpy as np
+
+    from core.io import TriMesh, save_mesh
+
+    rng = np.random.default_rng(0)
+    vertices = rng.normal(size=(30000, 3))  # a message far larger than a pipe's buffer
+    save_mesh(tmp_path / "big.vtk", TriMesh(vertices, rng.integers(0, 30000, (60000, 3))))
+    script = ("import sys\nfrom core.io import load_meshes\n"
+              "load_meshes([sys.argv[1]] * 200, isolate=True)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script, str(tmp_path / "big.vtk")],
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    children: set[int] = set()
+    try:
+        _wait_for(lambda: descendants(proc.pid), proc)
+        children = descendants(proc.pid)
+        assert children, "the reader never started a child"
+        proc.kill()
+        proc.wait()
+        assert still_alive(children, guard=20.0) == []
+    finally:
+        proc.kill()
+        for pid in still_alive(children, guard=0.0):  # a failed run leaves no orphan behind
+            os.kill(pid, signal.SIGKILL)

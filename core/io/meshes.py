@@ -156,8 +156,16 @@ def _can_fork() -> bool:
     return sys.platform != "win32" and hasattr(os, "fork")
 
 
-def _child_reader(paths: list[Path], conn) -> None:  # runs in the forked child
+def _child_reader(paths: list[Path], conn, parent: int) -> None:  # runs in the forked child
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the parent's: it kills us
+    # ... and so does the parent's death (a pool worker terminated mid-read): an orphan
+    # would block forever writing a mesh into the pipe, holding the command's stderr open
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    from core.parallel import die_with_parent
+
+    die_with_parent()
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
     for index, path in enumerate(paths):
         conn.send(("start", index))
         with warnings.catch_warnings(record=True) as caught:
@@ -182,7 +190,8 @@ def _load_in_children(paths: list[Path], progress: Callable | None,
     start = 0
     while start < len(paths):
         receiver, sender = context.Pipe(duplex=False)
-        child = context.Process(target=_child_reader, args=(paths[start:], sender), daemon=True)
+        child = context.Process(target=_child_reader, args=(paths[start:], sender, os.getpid()),
+                                daemon=True)
         child.start()
         sender.close()
         current, finished = None, False
