@@ -179,7 +179,8 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
                 n_references: int = 3, align: str = "sync", transform: str = "similarity",
                 method: str = "pca", n_factors: int | None = None,
                 method_params: dict[str, Any] | None = None, n_jobs: int | None = None,
-                progress: ProgressCallback | None = None) -> BuildResult:
+                progress: ProgressCallback | None = None,
+                correspond_options: dict[str, Any] | None = None) -> BuildResult:
     """Build a placed shape model from training meshes (or corresponded shapes).
 
     Parameters
@@ -190,6 +191,8 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
     align : "sync", "sync-sparse", "gpa" or "none"; transform : "similarity", "euclidean", "rigid", "affine"
     method : "pca", "lsf", "splocs", "varimax"; n_factors; method_params : other parameters
     progress : progress(fraction, message); may raise ``core.progress.Cancelled``
+    correspond_options : more keyword arguments of the correspondence stage
+        (``establish_correspondence``: e.g. ``scratch``, with input paths, to stream)
 
     Returns
     -------
@@ -203,7 +206,8 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
     names, shapes, faces, corresponded, corr, p_corr = _prepare_inputs(
-        meshes, correspond, faces, reference, n_references, n_jobs, progress, timings)
+        meshes, correspond, faces, reference, n_references, n_jobs, progress, timings,
+        correspond_options or {})
     failures = dict(corr.failures) if corr is not None else {}
     p_align = p_corr + 0.1 * (1 - p_corr)
     t0 = time.perf_counter()
@@ -231,7 +235,7 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
 
 
 def _prepare_inputs(meshes, correspond: bool, faces, reference, n_references, n_jobs, progress,
-                    timings: dict):
+                    timings: dict, options: dict | None = None):
     """Stage 1 of :func:`build_model`: names, shapes (K, N, 3), faces, corresponded meshes,
     the CorrespondenceResult (or None) and the progress share used."""
     if isinstance(meshes, np.ndarray):
@@ -251,7 +255,8 @@ def _prepare_inputs(meshes, correspond: bool, faces, reference, n_references, n_
         return names, shapes, faces, [m for m in meshes if m is not None], None, 0.0
     t0 = time.perf_counter()
     corr = _correspond_stage(meshes, reference=reference, n_references=n_references,
-                             n_jobs=n_jobs, progress=sub_progress(progress, 0.0, 0.6))
+                             n_jobs=n_jobs, progress=sub_progress(progress, 0.0, 0.6),
+                             **(options or {}))
     timings["correspondence"] = time.perf_counter() - t0
     corresponded = [m for m in corr.meshes if m is not None]
     if len(corresponded) < 3:
@@ -274,21 +279,30 @@ def load_training_meshes(inputs: Sequence[str], progress: ProgressCallback | Non
     process; refuse formats that lose vertex order, for corresponded inputs).
     Raises DataFileError / ValueError naming the file for unreadable input.
     """
-    from pathlib import Path
+    from core.io import DataFileError, load_meshes
 
-    from core.io import MESH_SUFFIXES, DataFileError, expand_mesh_paths, load_meshes
-
-    paths = []
-    for item in inputs:
-        found = expand_mesh_paths([item])
-        if not found and Path(item).is_dir():
-            raise DataFileError(item, f"folder contains no mesh files ({', '.join(MESH_SUFFIXES)})")
-        paths.extend(p for p in found if p not in paths)
+    paths = training_mesh_paths(inputs)
     loaded, failures = load_meshes(paths, progress, isolate=isolate, vertex_order=vertex_order)
     if failures:
         name, problem = next(iter(failures.items()))
         raise DataFileError(name, problem)
     return [mesh for _, mesh in loaded]
+
+
+def training_mesh_paths(inputs: Sequence[str]) -> list:
+    """The mesh files of ``inputs`` (a folder stands for the mesh files in it, sorted by name;
+    each file once). Raises DataFileError for a folder without mesh files."""
+    from pathlib import Path
+
+    from core.io import MESH_SUFFIXES, DataFileError, expand_mesh_paths
+
+    paths: list = []
+    for item in inputs:
+        found = expand_mesh_paths([item])
+        if not found and Path(item).is_dir():
+            raise DataFileError(item, f"folder contains no mesh files ({', '.join(MESH_SUFFIXES)})")
+        paths.extend(p for p in found if p not in paths)
+    return paths
 
 
 def parse_param_values(items: Sequence[str] | None) -> dict[str, Any]:

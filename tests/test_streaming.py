@@ -173,3 +173,25 @@ def test_correspond_command_writes_what_the_library_computes(tmp_path):
         report.pop(key)
     assert report == want
     assert not (out / ".correspond-scratch").exists() and not (out / "provisional").exists()
+
+
+def test_build_model_correspond_streams_the_correspondence_and_builds_the_same_model(tmp_path):
+    """`build-model --correspond` hands the input paths to the workers (groomed inputs in a
+    scratch folder next to the model, removed): the model equals the in-memory build's."""
+    from core.cli import main
+    from core.io import load_model
+    from core.pipeline import build_model
+
+    population = known_homology_shapes("bean", 6, seed=13, n_points=(80, 100))
+    paths = _write(population.meshes, tmp_path / "in")
+    out = tmp_path / "model.npz"
+    assert main(["build-model", "--correspond", str(tmp_path / "in"), "--out", str(out),
+                 "--jobs", "2"]) == 0
+    meshes = [load_mesh(p) for p in paths]  # named by file name, as the command's are
+    expected = build_model(meshes, correspond=True, n_jobs=1).model
+    model = load_model(out)
+    assert model.source_meshes == expected.source_meshes == [p.name for p in paths]
+    np.testing.assert_array_equal(model.mean, expected.mean)
+    np.testing.assert_array_equal(model.factors, expected.factors)
+    np.testing.assert_array_equal(model.faces, expected.faces)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "model.npz"]  # no scratch

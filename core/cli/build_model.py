@@ -17,7 +17,10 @@ training shapes' average pose, so the mean appears where the training shapes wer
 the structure in the MRI they came from).
 
 With ``--correspond``, ``--scheduler ADDRESS`` (or ``local:N``) runs the per-shape
-correspondence jobs as Dask tasks on a cluster. The model file is written at the end only:
+correspondence jobs as Dask tasks on a cluster. The workers read the raw inputs by path and
+keep the groomed ones in a scratch folder next to the model file (``.MODEL.npz.scratch``,
+removed at the end), so this process holds the corresponded shapes only (the model is fitted
+to all of them at once; they are what it needs). The model file is written at the end only:
 SIGINT/SIGTERM stop the workers and exit 130/143 with no model written.
 """
 
@@ -27,11 +30,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from core.io import save_model
+from core.io import DataFileError, save_model
 from core.models import METHODS
 from core.cli._options import add_preparation_options, add_scheduler_option
-from core.pipeline import build_model, load_training_meshes, \
-    parse_param_values
+from core.pipeline import build_model, load_training_meshes, parse_param_values, \
+    training_mesh_paths
 from core.parallel import use_scheduler
 from core.progress import StderrProgress
 
@@ -72,6 +75,21 @@ def reference_option(value: str):
     return loaded[0][1]
 
 
+def _streamed_inputs(args: argparse.Namespace) -> tuple[list, dict]:
+    """The raw inputs as paths the workers read, and the correspondence options that keep
+    the groomed inputs in a scratch folder next to the model file (removed at the end): this
+    process holds only the corresponded shapes, which the model needs."""
+    from core.correspondence.store import InputFile
+
+    paths = training_mesh_paths(args.inputs)
+
+    def unreadable(index: int, problem: str) -> None:  # as before: no model, one line
+        raise DataFileError(paths[index], problem)
+
+    return ([InputFile(str(p), p.name) for p in paths],
+            {"scratch": args.out.parent / f".{args.out.name}.scratch", "on_unreadable": unreadable})
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.out.name.lower().endswith(".npz"):
         raise ValueError(f"{args.out}: the model file must end in .npz")
@@ -82,17 +100,21 @@ def run(args: argparse.Namespace) -> int:
         params["variance_retained"] = args.variance
     if args.factors is not None and args.factors < 1:
         raise ValueError(f"--factors must be at least 1, got {args.factors}")
-    with StderrProgress("read meshes") as progress:
-        meshes = load_training_meshes(args.inputs, progress=progress, isolate=True,
-                                      vertex_order=not args.correspond)
     if args.scheduler is not None and not args.correspond:
         raise ValueError("--scheduler applies to build-model --correspond (its per-shape jobs)")
+    options = None
+    if args.correspond:
+        meshes, options = _streamed_inputs(args)
+    else:
+        with StderrProgress("read meshes") as progress:
+            meshes = load_training_meshes(args.inputs, progress=progress, isolate=True,
+                                          vertex_order=True)
     reference = reference_option(args.reference) if args.correspond else "auto"
     with use_scheduler(args.scheduler), StderrProgress(f"build {args.method} model") as progress:
         result = build_model(meshes, correspond=args.correspond, reference=reference,
                              align=args.align, transform=args.transform, method=args.method,
                              n_factors=args.factors, method_params=params, n_jobs=args.jobs,
-                             progress=progress)
+                             progress=progress, correspond_options=options)
     save_model(args.out, result.model)
     model = result.model
     for name, reason in result.failures.items():

@@ -109,8 +109,12 @@ class CorrespondenceResult:
         }
 
 
-def _mesh_name(mesh: TriMesh, index: int) -> str:
-    return mesh.name or f"mesh {index}"
+def _mesh_name(mesh: TriMesh | InputFile | str | os.PathLike, index: int) -> str:
+    if isinstance(mesh, TriMesh):
+        return mesh.name or f"mesh {index}"
+    if isinstance(mesh, InputFile):
+        return mesh.name or mesh.path
+    return str(mesh)  # a path: named by it
 
 
 def _check_params(cpd_params: dict, selection: str) -> dict:
@@ -618,7 +622,7 @@ def _add_timings(timings: dict, key: int, out: dict) -> None:
     timings["n_registrations"] = timings.get("n_registrations", 0) + 1
 
 
-def establish_correspondence(meshes: list[TriMesh | str | os.PathLike],
+def establish_correspondence(meshes: list[TriMesh | InputFile | str | os.PathLike],
                              reference: str | int | TriMesh = "auto", *,
                              n_references: int = 1, n_jobs: int | None = None,
                              progress: ProgressCallback | None = None, selection: str = "compactness",
@@ -633,7 +637,7 @@ def establish_correspondence(meshes: list[TriMesh | str | os.PathLike],
 
     Parameters
     ----------
-    meshes : list of TriMesh or paths
+    meshes : list of TriMesh or paths (or :class:`~core.correspondence.store.InputFile`)
         Training meshes (any vertex count, order and pose). ``mesh.name`` names them in errors.
         A path is read by the worker that needs it (each file in a child process: a reader
         crash costs that file only); it is named by its path, and an unreadable one is a
@@ -708,8 +712,8 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
                on_unreadable: Callable | None, keep_meshes: bool) -> CorrespondenceResult:
     """:func:`establish_correspondence` with its per-shape data in ``store`` (or memory)."""
     t_start = time.perf_counter()
-    names = [_mesh_name(m, i) if isinstance(m, TriMesh) else str(m) for i, m in enumerate(meshes)]
-    handles = [m if isinstance(m, TriMesh) else InputFile(str(m)) for m in meshes]
+    names = [_mesh_name(m, i) for i, m in enumerate(meshes)]
+    handles = [m if isinstance(m, (TriMesh, InputFile)) else InputFile(str(m)) for m in meshes]
     report(progress, 0.0, "grooming")
     n_jobs = (os.cpu_count() or 1) if n_jobs is None else int(n_jobs)
     prepared, failures, grooming, info, unread = _prepare_all(handles, names, groom, vertices,

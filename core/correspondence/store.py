@@ -52,9 +52,11 @@ SCRATCH_NAME = ".correspond-scratch"
 
 @dataclass(frozen=True)
 class InputFile:
-    """An input mesh file, read by the worker that needs it (a shared filesystem)."""
+    """An input mesh file, read by the worker that needs it (a shared filesystem); ``name``
+    names it in the results (default: the path)."""
 
     path: str
+    name: str = ""
 
 
 @dataclass(frozen=True)
