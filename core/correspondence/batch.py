@@ -152,11 +152,16 @@ def _shape_info(mesh: TriMesh) -> dict:
             "closed": bool(meshops.is_closed(np.asarray(mesh.faces)))}
 
 
-def _read_job(handle: InputFile, _common: None) -> tuple:
-    """core.parallel job: an input file's vertex count, or why it cannot be read, and the
-    reader's warnings (shown by the client)."""
+def _read_job(item: tuple, raw_dir: str | None) -> tuple:
+    """core.parallel job: read one input file -> (vertex count or None, problem or None, the
+    reader's warnings for the client to show, the mesh to groom: in ``raw_dir`` if given
+    (the grooming job then needs no second read of the file in a child), else itself)."""
+    index, handle = item
     mesh, problem, notes = read_input(handle.path)
-    return (None if mesh is None else len(mesh.vertices)), problem, notes
+    if mesh is None:
+        return None, problem, notes, None
+    kept = mesh if raw_dir is None else write_scratch_mesh(mesh, raw_dir, index)
+    return len(mesh.vertices), None, notes, kept
 
 
 def _groom_job(item: tuple, common: tuple) -> tuple:
@@ -185,27 +190,29 @@ def _groom_job(item: tuple, common: tuple) -> tuple:
 
 
 def _read_inputs(meshes: list, names: list[str], progress: ProgressCallback | None,
-                 n_jobs: int | None) -> tuple[dict[int, int], dict[str, str]]:
-    """Vertex count of every input, and the inputs that cannot be read (name -> problem).
-    Input files are read by the workers, each in a child process (a reader crash costs that
-    file only); the client never holds them."""
+                 n_jobs: int | None, scratch: Scratch | None
+                 ) -> tuple[dict[int, int], dict[str, str], list]:
+    """Vertex count of every input, the inputs that cannot be read (name -> problem), and
+    what to groom each from. Input files are read by the workers, each in a child process (a
+    reader crash costs that file only); with a scratch folder the client never holds them."""
     from core.io.errors import DataFileWarning
 
     counts = {i: len(m.vertices) for i, m in enumerate(meshes) if isinstance(m, TriMesh)}
+    sources = list(meshes)
     unread: dict[str, str] = {}
-    files = [(i, m) for i, m in enumerate(meshes) if isinstance(m, InputFile)]
+    files = [(i, (i, m)) for i, m in enumerate(meshes) if isinstance(m, InputFile)]
     if files:
-        done = run_jobs(_read_job, files, n_jobs=n_jobs, label="reading",
-                        progress=sub_progress(progress, 0.0, 0.02))
+        done = run_jobs(_read_job, files, common=None if scratch is None else str(scratch.raw),
+                        n_jobs=n_jobs, label="reading", progress=sub_progress(progress, 0.0, 0.02))
         for i, _ in files:
-            n, problem, notes = done[i]
+            n, problem, notes, kept = done[i]
             for note in notes:
                 warnings.warn(DataFileWarning(note), stacklevel=2)
             if problem is not None:
                 unread[names[i]] = problem
             else:
-                counts[i] = n
-    return counts, unread
+                counts[i], sources[i] = n, kept
+    return counts, unread, sources
 
 
 def _prepare(meshes: list, names: list[str], groom: bool | dict, vertices: int | None,
@@ -230,7 +237,7 @@ def _prepare_all(meshes: list, names: list[str], groom: bool | dict, vertices: i
     """:func:`_prepare` and, per usable input, what reference selection needs
     (:func:`_shape_info`, plus ``n_input``: its vertex count before grooming), and the
     inputs that could not be read."""
-    counts, unread = _read_inputs(meshes, names, progress, n_jobs)
+    counts, unread, meshes = _read_inputs(meshes, names, progress, n_jobs, scratch)
     prepared: list = [None] * len(meshes)
     failures: dict[str, str] = dict(unread)
     reports: dict[str, dict] = {}
@@ -257,6 +264,8 @@ def _prepare_all(meshes: list, names: list[str], groom: bool | dict, vertices: i
                         label="grooming" if options is not None else "checking")
     except JobError as exc:  # an unexpected error of one input: raised as it is, as inline
         raise (exc.__cause__ or exc) from None
+    if scratch is not None:
+        scratch.drop_raw()  # the inputs as read: groomed now
     for i in readable:
         kept, rep, problem, shape = done[i]
         if problem is not None:

@@ -243,7 +243,8 @@ class VertexRows(MutableMapping):
 
 
 class Scratch:
-    """A batch's scratch directory: groomed meshes (``groomed/``) and vertex row files.
+    """A batch's scratch directory: the inputs as read (``raw/``, until groomed), the groomed
+    meshes (``groomed/``) and vertex row files.
 
     Every worker must see it at the same path (a shared filesystem for a cluster, as for
     the inputs). :meth:`remove` deletes it (the batch does so at the end, also when stopped).
@@ -257,9 +258,15 @@ class Scratch:
             if self.root.exists():  # a stale one from a killed run
                 shutil.rmtree(self.root, ignore_errors=True)
             self.root.mkdir(parents=True)
+        self.raw = self.root / "raw"        # the inputs as the workers read them
         self.groomed = self.root / "groomed"
+        self.raw.mkdir()
         self.groomed.mkdir()
         self._rows: list[VertexRows] = []
+
+    def drop_raw(self) -> None:
+        """Remove the inputs as read (once every one is groomed)."""
+        shutil.rmtree(self.raw, ignore_errors=True)
 
     def rows(self, name: str, n_vertices: int) -> VertexRows:
         rows = VertexRows(self.root / f"{name}.f64", n_vertices)
