@@ -784,6 +784,9 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
     passes = dict(params, pair_residual=False, max_iterations=int(params["refine_iterations"]))
+    if params["refine_points"] is not None:
+        passes["cpd_points"] = min(int(params["refine_points"]),
+                                   int(params["cpd_points"] or params["refine_points"]))
     changes = _refine(corresponded, ref_faces, prepared, passes, n_jobs,
                       progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)
