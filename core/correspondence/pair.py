@@ -162,7 +162,9 @@ def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, para
         fits.append((r.sigma2, r.matrix @ start))
     best = min(range(len(fits)), key=lambda i: fits[i][0])
     switch = float(params["pose_switch"])
-    if prefer_identity and mode == "auto" and best != 0 and fits[best][0] < switch * fits[0][0]:
+    lowest = min(f[0] for f in fits)  # of the short runs (mirror_fit_ratio compares these)
+    if (refine and prefer_identity and mode == "auto" and best != 0
+            and fits[best][0] < switch * fits[0][0]):
         # Before switching, the identity start gets the full iterations: after 15 it can be
         # far from converged where a principal-axes start is not (a 2,000-vertex bent tube:
         # the identity's short run had over 1/0.35 times the sigma^2 of the flipped start,
@@ -173,7 +175,7 @@ def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, para
     if (prefer_identity and mode == "auto"
             and fits[best][0] >= switch * fits[0][0]):
         best = 0  # the identity start, unless clearly beaten
-    matrix, lowest = fits[best][1], min(f[0] for f in fits)
+    matrix = fits[best][1]
     if not refine:
         return matrix, float(lowest)
     # The chosen start is refined on ``rigid_fine_points`` points: a pose from 500-point
