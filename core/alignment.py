@@ -45,7 +45,7 @@ from core.geometry import umeyama
 from core.progress import ProgressCallback, report
 
 TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
-METHODS = ("sync", "gpa")
+METHODS = ("sync", "sync-sparse", "gpa")
 
 
 @dataclass
@@ -450,10 +450,11 @@ def align_shapes(shapes, method: str = "sync", transform: str = "similarity", *,
     ----------
     shapes : (K, N, 3) float
         Corresponded shapes (vertex i homologous across shapes).
-    method : {"sync", "gpa"}
+    method : {"sync", "sync-sparse", "gpa"}
         ``sync``: pairwise least-squares transforms between all shapes, made consistent by
-        :func:`synchronize_transforms` (reference-free, not iterative). ``gpa``: iterative
-        :func:`generalized_procrustes`.
+        :func:`synchronize_transforms` (reference-free, not iterative). ``sync-sparse``: the
+        same on the graph of each shape's 10 nearest (:func:`align_shapes_sparse`, thousands
+        of shapes). ``gpa``: iterative :func:`generalized_procrustes`.
     transform : {"similarity", "euclidean", "rigid", "affine"}
 
     Returns
@@ -464,6 +465,8 @@ def align_shapes(shapes, method: str = "sync", transform: str = "similarity", *,
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    if method == "sync-sparse":
+        return align_shapes_sparse(shapes, transform, progress=progress)
     _check_transform(transform)
     x = _check_shapes(shapes)
     if method == "gpa":

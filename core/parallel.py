@@ -273,8 +273,9 @@ def descendants(pid: int) -> set[int]:
     return out
 
 
-def _die_with_parent() -> None:
-    """Linux: ask for SIGTERM when the parent process dies (no orphan keeps computing)."""
+def die_with_parent() -> None:
+    """Linux: ask for SIGTERM when the parent process dies (no orphan keeps computing): pool
+    workers, and core.io's isolated mesh readers."""
     if not sys.platform.startswith("linux"):
         return
     with contextlib.suppress(Exception):
@@ -282,9 +283,6 @@ def _die_with_parent() -> None:
 
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
-
-
-die_with_parent = _die_with_parent  # for other modules' children (core.io's isolated readers)
 
 
 def _server_dies_with_its_client() -> None:
@@ -310,7 +308,7 @@ def _pool_init(common: Any, parent_pid: int) -> None:
     global _COMMON
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it terminates us
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    _die_with_parent()
+    die_with_parent()
     try:  # the submitting process died before prctl took effect
         os.kill(parent_pid, 0)
     except ProcessLookupError:

@@ -137,12 +137,9 @@ def align(shapes: np.ndarray, *, method: str = "sync", transform: str = "similar
         report(progress, 1.0, "no alignment")
         return AlignedShapes(shapes.copy(), np.tile(np.eye(4), (len(shapes), 1, 1)),
                              shapes.mean(axis=0), "none", transform)
-    from core.alignment import align_shapes, align_shapes_sparse
+    from core.alignment import align_shapes
 
-    if method == "sync-sparse":
-        res = align_shapes_sparse(shapes, transform, progress=progress)
-    else:
-        res = align_shapes(shapes, method=method, transform=transform, progress=progress)
+    res = align_shapes(shapes, method=method, transform=transform, progress=progress)
     return AlignedShapes(res.aligned, res.transforms, res.mean, method, transform)
 
 

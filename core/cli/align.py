@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.alignment import METHODS, TRANSFORMS, align_shapes, align_shapes_sparse
+from core.alignment import METHODS, TRANSFORMS, align_shapes
 from core.cli._options import say_changed_formats
 from core.correspondence import mesh_problem
 from core.io import TriMesh, atomic_write_json, load_meshes, save_mesh
@@ -38,7 +38,7 @@ REPORT_NAME = "transforms.json"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("meshes", nargs="+", metavar="MESH", help="corresponded meshes")
-    parser.add_argument("--method", choices=(*METHODS, "sync-sparse"), default="sync",
+    parser.add_argument("--method", choices=METHODS, default="sync",
                         help="sync (default, reference-free), sync-sparse (sync on each shape's "
                              "10 nearest, for thousands of shapes) or gpa")
     parser.add_argument("--transform", choices=TRANSFORMS, default="similarity",
@@ -69,11 +69,8 @@ def run(args: argparse.Namespace) -> int:
                          + ("; " + "; ".join(f"{k}: {v}" for k, v in failures.items()) if failures else ""))
     shapes = np.stack([m.vertices for _, m in meshes])
     with StderrProgress("align") as progress:
-        if args.method == "sync-sparse":
-            result = align_shapes_sparse(shapes, args.transform, progress=progress)
-        else:
-            result = align_shapes(shapes, method=args.method, transform=args.transform,
-                                  progress=progress)
+        result = align_shapes(shapes, method=args.method, transform=args.transform,
+                              progress=progress)
     args.out.mkdir(parents=True, exist_ok=True)
     entries = []
     used: set[str] = set()
