@@ -129,6 +129,13 @@ def exit_if_interrupted(code: int, as_program: bool) -> int:
     the finished outputs are written by then; the fork server and its workers follow their
     parent (core.parallel)."""
     if as_program and code in (130, 143):
+        # multiprocessing's own first exit step: finalizers of priority >= 0 unlink the stopped
+        # pool's semaphores and close its queues (the joins that can block have priority < 0);
+        # skipped, the resource tracker warned of "leaked semaphore objects" after the report
+        with contextlib.suppress(Exception):
+            from multiprocessing import util
+
+            util._run_finalizers(0)
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
                 stream.flush()
