@@ -195,3 +195,20 @@ def test_build_model_correspond_streams_the_correspondence_and_builds_the_same_m
     np.testing.assert_array_equal(model.factors, expected.factors)
     np.testing.assert_array_equal(model.faces, expected.faces)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "model.npz"]  # no scratch
+
+
+def test_a_scratch_folder_given_by_mistake_is_refused_not_deleted(tmp_path):
+    from core.correspondence.store import Scratch
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "precious.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="not a scratch folder"):
+        Scratch(data)
+    assert (data / "precious.txt").read_text() == "keep me"
+    stale = Scratch(tmp_path / "scratch")  # as a killed run leaves it
+    (stale.root / "leftover.f64").write_bytes(b"x")
+    fresh = Scratch(tmp_path / "scratch")
+    assert not (fresh.root / "leftover.f64").exists() and (fresh.root / "groomed").is_dir()
+    fresh.remove()
+    assert not (tmp_path / "scratch").exists()

@@ -29,7 +29,6 @@ import contextlib
 import os
 import shutil
 import tempfile
-import uuid
 import warnings
 from collections.abc import Iterable, Iterator, Mapping, MutableMapping
 from dataclasses import dataclass
@@ -153,11 +152,11 @@ def open_mesh(handle: MeshHandle) -> TriMesh:
 def write_scratch_mesh(mesh: TriMesh, directory: str | os.PathLike, index: int) -> ScratchMesh:
     """Write ``mesh`` into ``directory`` as shape ``index`` (atomically: a reader never sees
     half a file) and return its handle."""
+    from core.io import atomic_path
+
     target = Path(directory) / f"{int(index)}.npz"
-    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:8]}.tmp")
-    with open(tmp, "wb") as fh:
-        np.savez(fh, vertices=mesh.vertices, faces=mesh.faces)
-    os.replace(tmp, target)
+    with atomic_path(target) as tmp:  # its name keeps the .npz suffix: savez adds none
+        np.savez(tmp, vertices=mesh.vertices, faces=mesh.faces)
     return ScratchMesh(str(target), mesh.name)
 
 
@@ -225,11 +224,6 @@ class VertexRows(MutableMapping):
         file before the pass that reads them is submitted)."""
         return Row(self.path, int(key), self.n_vertices)
 
-    def copy(self, path: str | os.PathLike) -> VertexRows:
-        """A copy in another file (the kernel copies; nothing passes through memory)."""
-        shutil.copyfile(self.path, path)
-        return VertexRows(path, self.n_vertices, self._keys)
-
     def close(self) -> None:
         if self._fd >= 0:
             os.close(self._fd)
@@ -248,16 +242,25 @@ class Scratch:
 
     Every worker must see it at the same path (a shared filesystem for a cluster, as for
     the inputs). :meth:`remove` deletes it (the batch does so at the end, also when stopped).
+    A folder that exists already is replaced only if it carries this class's marker file (a
+    stale scratch folder of a killed run): any other folder given by mistake is refused, never
+    deleted.
     """
+
+    MARKER = ".ssm-studio-scratch"
 
     def __init__(self, root: str | os.PathLike | None = None):
         if root is None:
             self.root = Path(tempfile.mkdtemp(prefix="ssm-correspond-"))
         else:
             self.root = Path(root)
-            if self.root.exists():  # a stale one from a killed run
-                shutil.rmtree(self.root, ignore_errors=True)
+            if self.root.exists():
+                if not (self.root / self.MARKER).is_file():
+                    raise ValueError(f"{self.root}: exists and is not a scratch folder of SSM "
+                                     "Studio (it would be deleted at the end); give a new path")
+                shutil.rmtree(self.root, ignore_errors=True)  # a stale one from a killed run
             self.root.mkdir(parents=True)
+        (self.root / self.MARKER).touch()
         self.raw = self.root / "raw"        # the inputs as the workers read them
         self.groomed = self.root / "groomed"
         self.raw.mkdir()
@@ -272,11 +275,6 @@ class Scratch:
         rows = VertexRows(self.root / f"{name}.f64", n_vertices)
         self._rows.append(rows)
         return rows
-
-    def copy_rows(self, rows: VertexRows, name: str) -> VertexRows:
-        copy = rows.copy(self.root / f"{name}.f64")
-        self._rows.append(copy)
-        return copy
 
     def remove(self) -> None:
         for rows in self._rows:
