@@ -623,13 +623,6 @@ def _refine(vertices: MutableMapping, faces: np.ndarray, prepared: list, params:
     return changes
 
 
-def _capped_points(params: dict, cap: str) -> int | None:
-    """``cpd_points`` limited to ``params[cap]`` (None: no cap) for one kind of pass."""
-    if params[cap] is None:
-        return params["cpd_points"]
-    return min(int(params[cap]), int(params["cpd_points"] or params[cap]))
-
-
 def _add_timings(timings: dict, key: int, out: dict) -> None:
     per = timings.setdefault("_per_shape", {})
     per[key] = per.get(key, 0.0) + float(out["timings"]["total"])
@@ -750,7 +743,6 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
     first = dict(params, pair_residual=selection == "residual" and len(candidates) > 1)
     if refine >= 1 and len(usable) >= 4:
         first["labelling"] = False
-        first["cpd_points"] = _capped_points(params, "first_pass_points")
     chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
                                                    first, n_jobs, progress, selection,
                                                    selection_shapes)
@@ -789,7 +781,6 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
     passes = dict(params, pair_residual=False, max_iterations=int(params["refine_iterations"]))
-    passes["cpd_points"] = _capped_points(params, "refine_points")
     changes = _refine(corresponded, ref_faces, prepared, passes, n_jobs,
                       progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)

@@ -27,7 +27,6 @@ DEFAULT_CPD_PARAMS = {
                               # start from the current correspondence; the late iterations
                               # mostly add CPD's density-driven sliding: on tuning seeds the
                               # spread fell 6-16 % on beans and tubes against 100)
-    "refine_points": None,    # nonrigid CPD subsample in a refinement pass (None: cpd_points)
     "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
     "rigid_points": 500,      # subsample size for the rigid pose's starts
     "rigid_fine_points": 1000,  # subsample size for the chosen start's final refinement
@@ -35,12 +34,6 @@ DEFAULT_CPD_PARAMS = {
                               # subsample the fitted displacement field moves every vertex
                               # (CPD's E-step costs M x N per iteration: on a 10,000-vertex
                               # pair it was 11x the cost of a 2,500-vertex pair)
-    "first_pass_points": None,  # nonrigid CPD subsample of the reference-based first pass when
-                              # groupwise refinement passes follow (None: ``cpd_points``). Off:
-                              # 1,000 points cut the 18-ring pipeline by ~25 % and cost 1 % on
-                              # the tuning seeds, but the held-out tubes' spread rose from
-                              # 0.615 to 0.855 mm (one bad first-pass shape the 20-iteration
-                              # refinement cannot recover)
     "low_rank": 80,           # rank of the kernel approximation (None: exact)
     "pose_starts": "auto",    # "auto" (identity + principal axes), "identity", "pca"
     "mirror_check": True,     # rigid fit of the mirrored target too (a left/right mix-up)
