@@ -39,6 +39,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from collections.abc import Callable, Iterator, Mapping
+
 import numpy as np
 
 from core.geometry import umeyama
@@ -248,6 +250,73 @@ def _centroid_size(points: np.ndarray) -> float:
     return float(np.sqrt(((points - points.mean(axis=0)) ** 2).sum(axis=1).mean()))
 
 
+def _aligned_mean(each: Callable[[], Iterator[np.ndarray]], k: int, target: np.ndarray,
+                  transform: str) -> np.ndarray:
+    """Mean of the ``k`` shapes ``each()`` yields, each fitted to ``target`` (one at a time,
+    summed in order: what ``aligned.mean(axis=0)`` of the stacked shapes computes)."""
+    total = None
+    for x in each():
+        a = apply_transform(fit_transform(x, target, transform), x)
+        total = a.copy() if total is None else total + a
+    return total / k
+
+
+def _procrustes_iterations(each: Callable[[], Iterator[np.ndarray]], k: int, mean: np.ndarray,
+                           transform: str, max_iter: int, tol: float,
+                           progress: ProgressCallback | None) -> tuple[np.ndarray, int, bool]:
+    """GPA's iterations from the start ``mean``: (mean to fit the shapes to, iterations,
+    converged). The shapes come from ``each()``, stacked or read one at a time."""
+    size = _centroid_size(mean)
+    gauge_class = transform if transform in ("rigid", "euclidean") else "similarity"
+    converged = False
+    n_iter = 0
+    for n_iter in range(1, max_iter + 1):
+        new_mean = _aligned_mean(each, k, mean, transform)
+        # Gauge: keep the mean at the previous mean's pose and size.
+        gauge = fit_transform(new_mean, mean, gauge_class)
+        new_mean = apply_transform(gauge, new_mean)
+        change = float(np.sqrt(((new_mean - mean) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
+        mean = new_mean
+        report(progress, n_iter / max_iter, f"GPA iteration {n_iter}: mean moved {change:.2e}")
+        if change < tol:
+            converged = True
+            break
+    return mean, n_iter, converged
+
+
+def procrustes_mean(shapes: Mapping, keys: list, transform: str = "similarity", *,
+                    max_iter: int = 100, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, per-shape rmsd) of :func:`generalized_procrustes` on ``[shapes[k] for k in
+    keys]``, reading one shape at a time (``shapes`` may be a file-backed mapping such as
+    :class:`core.correspondence.store.VertexRows`): memory independent of the number of
+    shapes. The same operations in the same order, so the results are bit-identical."""
+    _check_transform(transform)
+    k = len(keys)
+    if k < 2:
+        raise ValueError(f"at least 2 shapes are needed to align, got {k}")
+
+    def each() -> Iterator[np.ndarray]:
+        for key in keys:
+            x = np.asarray(shapes[key], dtype=np.float64)
+            if x.ndim != 2 or x.shape[1] != 3 or len(x) < 4 or not np.all(np.isfinite(x)):
+                raise ValueError(f"shape {key}: not a finite (N >= 4, 3) array")
+            yield x
+
+    total = None
+    for x in each():
+        c = x - x.mean(axis=0, keepdims=True)
+        total = c.copy() if total is None else total + c
+    centred_mean = total / k
+    distances = [((x - x.mean(axis=0, keepdims=True) - centred_mean) ** 2).sum() for x in each()]
+    x0 = np.asarray(shapes[keys[int(np.argmin(distances))]], dtype=np.float64)
+    target, _, _ = _procrustes_iterations(each, k, x0 - x0.mean(axis=0), transform, max_iter,
+                                          tol, None)
+    mean = _aligned_mean(each, k, target, transform)
+    rmsd = np.array([np.sqrt(((apply_transform(fit_transform(x, target, transform), x) - mean) ** 2)
+                             .sum(axis=1).mean()) for x in each()])
+    return mean, rmsd
+
+
 def generalized_procrustes(shapes, transform: str = "similarity", *, max_iter: int = 100,
                            tol: float = 1e-7, initial: int | None = None,
                            progress: ProgressCallback | None = None) -> AlignmentResult:
@@ -275,25 +344,9 @@ def generalized_procrustes(shapes, transform: str = "similarity", *, max_iter: i
     if initial is None:
         centred = x - x.mean(axis=1, keepdims=True)
         initial = int(np.argmin(((centred - centred.mean(axis=0)) ** 2).sum(axis=(1, 2))))
-    mean = x[initial] - x[initial].mean(axis=0)
-    size = _centroid_size(mean)
-    gauge_class = transform if transform in ("rigid", "euclidean") else "similarity"
-    transforms = np.tile(np.eye(4), (k, 1, 1))
-    converged = False
-    n_iter = 0
-    for n_iter in range(1, max_iter + 1):
-        transforms = np.stack([fit_transform(x[i], mean, transform) for i in range(k)])
-        aligned = apply_transform(transforms, x)
-        new_mean = aligned.mean(axis=0)
-        # Gauge: keep the mean at the previous mean's pose and size.
-        gauge = fit_transform(new_mean, mean, gauge_class)
-        new_mean = apply_transform(gauge, new_mean)
-        change = float(np.sqrt(((new_mean - mean) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
-        mean = new_mean
-        report(progress, n_iter / max_iter, f"GPA iteration {n_iter}: mean moved {change:.2e}")
-        if change < tol:
-            converged = True
-            break
+    mean, n_iter, converged = _procrustes_iterations(
+        lambda: iter(x), k, x[initial] - x[initial].mean(axis=0), transform, max_iter, tol,
+        progress)
     transforms = np.stack([fit_transform(x[i], mean, transform) for i in range(k)])
     aligned = apply_transform(transforms, x)
     mean = aligned.mean(axis=0)

@@ -14,7 +14,8 @@ import pytest
 
 from core.alignment import generalized_procrustes
 from core.correspondence import establish_correspondence
-from core.correspondence.store import VertexRows, procrustes_mean
+from core.alignment import procrustes_mean
+from core.correspondence.store import VertexRows
 from core.correspondence.synthetic import known_homology_shapes
 from core.io import load_mesh, save_mesh
 

@@ -24,7 +24,7 @@ from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _task, mes
 from core.geometry import umeyama
 from core.grooming import DEFAULT_GROOMING, GroomingError, groom_mesh
 from core.correspondence.store import (InputFile, Scratch, ScratchMesh, VertexRows, open_mesh,
-                                      open_rows, procrustes_mean, read_input, write_scratch_mesh)
+                                      open_rows, read_input, write_scratch_mesh)
 from core.parallel import JobError, preload_in_workers, run_jobs, runs_inline
 from core.progress import ProgressCallback, report, sub_progress
 from core.types import TriMesh
@@ -565,15 +565,10 @@ def _retry_from_mean(vertices: MutableMapping, keys: list[int], faces: np.ndarra
 
 def _gpa(vertices: Mapping, keys: list[int], tol: float) -> tuple[np.ndarray, np.ndarray]:
     """(mean, per-shape rmsd) of the similarity GPA of ``vertices[k]`` over ``keys`` (20
-    iterations at most): stacked in memory, or one shape at a time from a vertex store
-    (bit-identical, :func:`core.correspondence.store.procrustes_mean`)."""
-    from core.alignment import generalized_procrustes
+    iterations at most), one shape at a time (``vertices`` in memory or a vertex store)."""
+    from core.alignment import procrustes_mean
 
-    if isinstance(vertices, VertexRows):
-        return procrustes_mean(vertices, keys, "similarity", max_iter=20, tol=tol)
-    gpa = generalized_procrustes(np.stack([vertices[k] for k in keys]), "similarity",
-                                 max_iter=20, tol=tol)
-    return gpa.mean, gpa.rmsd_
+    return procrustes_mean(vertices, keys, "similarity", max_iter=20, tol=tol)
 
 
 def _handle(vertices: Mapping, key: int):

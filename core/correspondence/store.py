@@ -13,7 +13,7 @@ cohort. So the per-shape data can live in two places:
   (:class:`InputFile`), write the groomed mesh (:class:`ScratchMesh`), and read the current
   correspondence of their shape (:class:`Row` of a :class:`VertexRows` file); the client
   keeps per-shape scalars only, and streams the GPA mean over the rows
-  (:func:`procrustes_mean`). Its memory stays flat in the number of shapes (measured in
+  (:func:`core.alignment.procrustes_mean`). Its memory stays flat in the number of shapes (measured in
   ``benchmarks/bench_cluster.py --part C``).
 
 Jobs receive *handles* -- a :class:`~core.types.TriMesh` or array (in memory), or one of the
@@ -30,7 +30,7 @@ import os
 import shutil
 import tempfile
 import warnings
-from collections.abc import Iterable, Iterator, Mapping, MutableMapping
+from collections.abc import Iterable, Iterator, MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -280,63 +280,3 @@ class Scratch:
         for rows in self._rows:
             rows.close()
         shutil.rmtree(self.root, ignore_errors=True)
-
-
-# ----------------------------------------------------------------------------- streamed GPA
-
-def procrustes_mean(shapes: Mapping, keys: list[int], transform: str = "similarity", *,
-                    max_iter: int = 100, tol: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, per-shape rmsd) of :func:`core.alignment.generalized_procrustes` on
-    ``[shapes[k] for k in keys]``, reading one shape at a time (``shapes`` may be a
-    :class:`VertexRows`): memory independent of the number of shapes. Same operations in
-    the same order as the stacked version (sums over shapes are sequential there too), so
-    the results are bit-identical."""
-    from core.alignment import _centroid_size, _check_transform, apply_transform, fit_transform
-
-    _check_transform(transform)
-    k = len(keys)
-    if k < 2:
-        raise ValueError(f"at least 2 shapes are needed to align, got {k}")
-
-    def each() -> Iterator[np.ndarray]:
-        for key in keys:
-            x = np.asarray(shapes[key], dtype=np.float64)
-            if x.ndim != 2 or x.shape[1] != 3 or len(x) < 4 or not np.all(np.isfinite(x)):
-                raise ValueError(f"shape {key}: not a finite (N >= 4, 3) array")
-            yield x
-
-    total = None
-    for x in each():
-        c = x - x.mean(axis=0, keepdims=True)
-        total = c.copy() if total is None else total + c
-    centred_mean = total / k
-    best, initial = None, 0
-    for j, x in enumerate(each()):
-        d = ((x - x.mean(axis=0, keepdims=True) - centred_mean) ** 2).sum()
-        if best is None or d < best:  # argmin: the first of equals
-            best, initial = d, j
-    x0 = np.asarray(shapes[keys[initial]], dtype=np.float64)
-    mean = x0 - x0.mean(axis=0)
-    size = _centroid_size(mean)
-    gauge_class = transform if transform in ("rigid", "euclidean") else "similarity"
-
-    def aligned_mean(target: np.ndarray) -> np.ndarray:
-        acc = None
-        for x in each():
-            a = apply_transform(fit_transform(x, target, transform), x)
-            acc = a.copy() if acc is None else acc + a
-        return acc / k
-
-    for _ in range(1, max_iter + 1):
-        new_mean = aligned_mean(mean)
-        gauge = fit_transform(new_mean, mean, gauge_class)
-        new_mean = apply_transform(gauge, new_mean)
-        change = float(np.sqrt(((new_mean - mean) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
-        mean = new_mean
-        if change < tol:
-            break
-    target = mean
-    mean = aligned_mean(target)
-    rmsd = np.array([np.sqrt(((apply_transform(fit_transform(x, target, transform), x) - mean) ** 2)
-                             .sum(axis=1).mean()) for x in each()])
-    return mean, rmsd
