@@ -85,7 +85,7 @@ def read_input(path: str | os.PathLike) -> tuple[TriMesh | None, str | None, lis
     from core.io import load_meshes
 
     _import_readers()
-    with warnings.catch_warnings(record=True) as caught, _children_allowed():
+    with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         loaded, failures = load_meshes([path], isolate=True)
     notes = [str(w.message) for w in caught]
@@ -94,25 +94,6 @@ def read_input(path: str | os.PathLike) -> tuple[TriMesh | None, str | None, lis
     mesh = loaded[0][1]
     mesh.name = str(path)
     return mesh, None, notes
-
-
-@contextlib.contextmanager
-def _children_allowed() -> Iterator[None]:
-    """Let this process start the reader's child even when it is a daemonic process (a Dask
-    worker is one; multiprocessing refuses children there because a daemon's children would
-    be orphaned at its exit -- the reader's child is waited for, or killed, before the read
-    returns)."""
-    import multiprocessing
-
-    config = getattr(multiprocessing.current_process(), "_config", {})
-    daemon = config.get("daemon")
-    if daemon:
-        config["daemon"] = False
-    try:
-        yield
-    finally:
-        if daemon:
-            config["daemon"] = daemon
 
 
 _READERS_IMPORTED = False

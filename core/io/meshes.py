@@ -19,11 +19,12 @@ True)`` refuse it by name.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -192,7 +193,8 @@ def _load_in_children(paths: list[Path], progress: Callable | None,
         receiver, sender = context.Pipe(duplex=False)
         child = context.Process(target=_child_reader, args=(paths[start:], sender, os.getpid()),
                                 daemon=True)
-        child.start()
+        with _children_allowed():
+            child.start()
         sender.close()
         current, finished = None, False
         try:
@@ -227,6 +229,25 @@ def _load_in_children(paths: list[Path], progress: Callable | None,
         results[paths[crashed]] = _crash_text(child.exitcode)
         start = crashed + 1
     return results
+
+
+@contextlib.contextmanager
+def _children_allowed() -> Iterator[None]:
+    """Let a daemonic process (a Dask or pool worker) start the reader's child:
+    multiprocessing refuses children there because a daemon's children would be orphaned at
+    its exit, but the reader's child is waited for, or killed, before the read returns (and
+    dies with its parent, :func:`core.parallel.die_with_parent`)."""
+    import multiprocessing
+
+    config = getattr(multiprocessing.current_process(), "_config", {})
+    daemon = config.get("daemon")
+    if daemon:
+        config["daemon"] = False
+    try:
+        yield
+    finally:
+        if daemon:
+            config["daemon"] = daemon
 
 
 def _reissue(notes: list[str]) -> None:
