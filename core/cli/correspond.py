@@ -159,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     out_paths = [_output_path(args.out, path, used) for path in paths]
     written: dict[str, str] = {}
     provisional: dict[str, str] = {}   # reference-based results of shapes not final yet
-    unreadable: dict[str, str] = {}
+    unreadable: dict[str, str] = {}    # known as soon as read: for an interrupted run's report
 
     def write_shape(index: int, mesh: TriMesh) -> None:
         # streaming: each output as soon as it is final, so an interrupted run keeps it; the
@@ -196,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
         _write_interrupted_report(args, readable, written, unreadable, exc, provisional)
         raise
     _remove_empty(args.out / PROVISIONAL_DIR)
-    report = _complete_report(result, names, written, unreadable)
+    report = _complete_report(result, names, written)
     report["inputs"] = [str(p) for p in args.meshes]
     report["complete"] = True
     atomic_write_json(args.out / REPORT_NAME, report)
@@ -213,9 +213,11 @@ def run(args: argparse.Namespace) -> int:
     return 1 if report["failures"] else 0
 
 
-def _complete_report(result, names: list[str], written: dict, unreadable: dict) -> dict:
+def _complete_report(result, names: list[str], written: dict) -> dict:
     """correspondence.json of a finished run: the readable inputs in input order, then the
-    unreadable ones (their problem, no output), the reference's index among the readable."""
+    unreadable ones (``result.unreadable``: their problem, no output), the reference's index
+    among the readable."""
+    unreadable = result.unreadable
     report = result.to_report(names)
     report["shapes"] = [entry for entry in report["shapes"] if entry["name"] not in unreadable]
     for entry in report["shapes"]:
