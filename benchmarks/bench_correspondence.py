@@ -383,6 +383,20 @@ def scaling_table(seed: int = 3) -> None:
     print(f"10,000 / 2,500 pair time: {totals[10000] / totals[2500]:.2f}x")
 
 
+def _title(what: str, n_shapes: int, vertices: int, seed: int) -> None:
+    print(f"\n{what}, {n_shapes} shapes per kind, ~{vertices} vertices; "
+          f"{'held-out' if seed >= 100 else 'TUNING'} seeds {seed}-{seed + 2}; load {_load()}")
+
+
+def _populations(n_shapes: int, vertices: int, seed: int):
+    """(kind, known-homology population) for the bean, tube and ring, seeds seed, seed+1, seed+2."""
+    from core.correspondence.synthetic import known_homology_shapes
+
+    for i, kind in enumerate(("bean", "tube", "ring")):
+        yield kind, known_homology_shapes(kind, n_shapes, seed=seed + i,
+                                          n_points=(vertices - 100, vertices + 100))
+
+
 def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100) -> None:
     """Spread of corresponded points around their true material points, per shape kind.
 
@@ -395,15 +409,12 @@ def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
     """
     from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
     from core.correspondence.batch import _prepare
-    from core.correspondence.synthetic import known_homology_shapes
 
-    print(f"\nspread vs truth (mean distance of homologous points' material points from their "
-          f"mean, mm), {n_shapes} shapes per kind, ~{vertices} vertices; "
-          f"{'held-out' if seed >= 100 else 'TUNING'} seeds {seed}-{seed + 2}; load {_load()}")
+    _title("spread vs truth (mean distance of homologous points' material points from their "
+           "mean, mm)", n_shapes, vertices, seed)
     print(f"{'kind':<6}{'plain raw':>11}{'plain groomed':>15}{'ours refine 0':>15}{'ours refine 1':>15}"
           f"{'gain vs best plain':>20}{'assign % of pair':>18}{'dropped':>9}")
-    for i, kind in enumerate(("bean", "tube", "ring")):
-        pop = known_homology_shapes(kind, n_shapes, seed=seed + i, n_points=(vertices - 100, vertices + 100))
+    for kind, pop in _populations(n_shapes, vertices, seed):
         outputs, dropped = {}, set()
         for refine in (0, 1):
             res = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=refine,
@@ -446,16 +457,13 @@ def limits_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
     from core.correspondence import DEFAULT_CPD_PARAMS, correspond_pair, establish_correspondence
     from core.correspondence.batch import _prepare
     from core.correspondence.cpd import cpd_affine, cpd_rigid
-    from core.correspondence.synthetic import known_homology_shapes
     from core.geometry import SurfaceProjector, surface_coordinates
 
-    print(f"\nwhat the surfaces determine: spread (mm) with the exact bump-free base surface as "
-          f"template, {n_shapes} shapes per kind, ~{vertices} vertices; "
-          f"{'held-out' if seed >= 100 else 'TUNING'} seeds {seed}-{seed + 2}; load {_load()}")
+    _title("what the surfaces determine: spread (mm) with the exact bump-free base surface as "
+           "template", n_shapes, vertices, seed)
     print(f"{'kind':<6}{'ours refine 1':>15}{'true affine+proj':>18}{'CPD from true sim':>19}"
           f"{'rigid CPD from truth':>22}{'affine CPD from truth':>23}")
-    for i, kind in enumerate(("bean", "tube", "ring")):
-        pop = known_homology_shapes(kind, n_shapes, seed=seed + i, n_points=(vertices - 100, vertices + 100))
+    for kind, pop in _populations(n_shapes, vertices, seed):
         ours = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=1, vertices=vertices)
         groomed, _, _ = _prepare(pop.meshes, [m.name for m in pop.meshes], True, vertices)
         template = TriMesh(pop.material[0], pop.meshes[0].faces, "base")
