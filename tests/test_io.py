@@ -1511,3 +1511,15 @@ def test_correspond_writes_stl_inputs_as_vtk_and_says_so(tmp_path, capsys):
     report = json.loads((tmp_path / "out" / "correspondence.json").read_text())
     assert {s["output"] for s in report["shapes"]} == \
         {str(tmp_path / "out" / n) for n in ("in0.vtk", "in1.ply", "in2.vtk")}
+
+
+def test_a_reader_message_names_the_file_once(tmp_path):
+    # VTK's reader says "Unrecognized file type: ... for file: <path>"; the error names the
+    # file itself, so the message read "... for file: the file".
+    path = tmp_path / "garbage.vtk"
+    path.write_text("garbage")
+    with pytest.raises(DataFileError) as caught:
+        io.load_mesh(path)
+    text = str(caught.value)
+    assert text.count(str(path)) == 1 and "the file" not in text, text
+    assert "\n" not in text

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import stat
 import warnings
 from collections.abc import Iterator
@@ -58,11 +59,18 @@ def warnings_as_notes(path: str | os.PathLike) -> Iterator[None]:
             warnings.warn(DataFileWarning(note), stacklevel=3)
 
 
+def without_path(text: str, path: str | os.PathLike) -> str:
+    """A library's message about ``path`` without the path (the caller names the file once):
+    the path becomes "the file", and a trailing "for file: <path>" (VTK's readers) goes."""
+    text = text.replace(str(path), "the file")
+    return re.sub(r"\s*\b(for|in) file:?\s*the file\b", "", text)
+
+
 def why(exc: BaseException, path: Path | None = None) -> str:
     """A library's error text on one line, without the file name (the caller adds it)."""
     text = str(exc)
     if path is not None:
-        text = text.replace(str(path), "the file")
+        text = without_path(text, path)
     text = display_path(text)
     text = " ".join(text.split())
     return text[:300] if text else type(exc).__name__

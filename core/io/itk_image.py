@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_path
-from core.io.errors import DataFileError
+from core.io.errors import DataFileError, without_path
 from core.io.registry import FileFormat, register
 from core.types.volume import Volume
 
@@ -143,7 +143,7 @@ def sitk_error_text(exc: BaseException, path: Path | None = None) -> str:
     text = " ".join(useful or lines[-1:]) or type(exc).__name__
     text = re.sub(r"\w+\(0x[0-9a-fA-F]+\):\s*", "", text.replace("ITK ERROR:", "")).strip()
     if path is not None:
-        text = text.replace(str(path), "the file")
+        text = without_path(text, path)
     return " ".join(text.split())[:240]
 
 

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_path
-from core.io.errors import DataFileError
+from core.io.errors import DataFileError, without_path
 from core.io.limits import DEFLATE_MAX_RATIO, check_declared_size
 from core.io.registry import file_suffix
 from core.types.trimesh import TriMesh
@@ -371,7 +371,7 @@ def load_vtk_family(path: Path) -> tuple[TriMesh, str | None]:
         reader.Update()
         data = reader.GetOutputDataObject(0)
     if errors:
-        detail = errors[0].replace(str(path), "the file")[:200]
+        detail = without_path(without_path(errors[0], path), name)[:200]
         raise DataFileError(path, f"unreadable, truncated or corrupt {suffix} file "
                                   f"(VTK: {detail})")
     if data is None or not isinstance(data, vtk.vtkDataSet) or data.GetNumberOfPoints() == 0:
