@@ -37,9 +37,8 @@ Transformation classes (``transform=``):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 

@@ -294,11 +294,15 @@ def training_mesh_paths(inputs: Sequence[str]) -> list:
     from core.io import MESH_SUFFIXES, DataFileError, expand_mesh_paths
 
     paths: list = []
+    seen: set = set()  # a set: a cohort's folder holds thousands of files
     for item in inputs:
         found = expand_mesh_paths([item])
         if not found and Path(item).is_dir():
             raise DataFileError(item, f"folder contains no mesh files ({', '.join(MESH_SUFFIXES)})")
-        paths.extend(p for p in found if p not in paths)
+        for p in found:
+            if p not in seen:
+                seen.add(p)
+                paths.append(p)
     return paths
 
 

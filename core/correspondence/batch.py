@@ -535,8 +535,8 @@ def _flag_outliers(vertices: MutableMapping, names: list[str], protect) -> dict[
     by mistake; mirrored sides: :func:`_flag_mirrored`).
 
     Flagged: a robust z-score over 5 and a distance over :data:`OUTLIER_FACTOR` times the
-    median. Measured on 6-shape sets of :mod:`core.correspondence.synthetic`: correctly
-    shapes of the right structure reach 2.65x the median (bent tubes whose correspondence is
+    median. Measured on 6-shape sets of :mod:`core.correspondence.synthetic`: shapes of the
+    right structure reach 2.65x the median (bent tubes whose correspondence is
     off by over a millimetre), a ring or a tube among beans 3.9-4.4x. With 2x such a tube
     was dropped from its training set as "a different structure".
     """

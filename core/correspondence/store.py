@@ -18,9 +18,9 @@ cohort. So the per-shape data can live in two places:
 
 Jobs receive *handles* -- a :class:`~core.types.TriMesh` or array (in memory), or one of the
 small path records below -- and open them with :func:`open_mesh` / :func:`open_rows`, so one
-job function serves both places. The GPA here is the same iteration, in the same floating
-point order, as :func:`core.alignment.generalized_procrustes` (Gower 1975), one shape at a
-time: its results are bit-identical (tested).
+job function serves both places. The streamed GPA, :func:`core.alignment.procrustes_mean`,
+runs the iterations of :func:`core.alignment.generalized_procrustes` (Gower 1975) one shape at
+a time: its results are bit-identical (tested).
 """
 
 from __future__ import annotations
@@ -106,11 +106,10 @@ def _import_readers() -> None:
     if not _READERS_IMPORTED:
         _READERS_IMPORTED = True
         with contextlib.suppress(ImportError, AttributeError):
-            from core.io import vtk_meshes
+            from core.io.vtk_meshes import import_classes
             from vtkmodules.util import numpy_support  # noqa: F401
 
-            for name in vtk_meshes._VTKClasses._LIBRARY:  # each class's own library
-                getattr(vtk_meshes.vtk, name)
+            import_classes()
 
 
 def open_mesh(handle: MeshHandle) -> TriMesh:

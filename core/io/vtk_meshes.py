@@ -64,13 +64,19 @@ class _VTKClasses:
 vtk = _VTKClasses()
 
 
+def import_classes() -> None:
+    """Import every VTK class the readers and writers use now (e.g. before forking reader
+    children, which would each import them again)."""
+    for name in _VTKClasses._LIBRARY:
+        getattr(vtk, name)
+
+
 def triangles_of(poly) -> np.ndarray:
     """Triangles (F, 3) of a vtkPolyData: polygons and triangle strips, triangulated by VTK.
 
     Vertex and line cells are ignored; polygons with more than 3 corners and strips go through
     ``vtkTriangleFilter``. Point ids are unchanged.
     """
-
     if poly.GetNumberOfPolys() == 0 and poly.GetNumberOfStrips() == 0:
         return np.zeros((0, 3), np.int64)
     offsets, connectivity = _cell_arrays(poly.GetPolys())
@@ -120,7 +126,6 @@ def vtk_errors() -> Iterator[list[str]]:
     VTK readers do not raise: they print errors (through the output window and the
     vtkLogger stderr sink) and return partial data. The list is filled when the block exits.
     """
-
     errors: list[str] = []
     with _VTK_LOCK:
         window = vtk.vtkStringOutputWindow()
@@ -473,7 +478,6 @@ def save_legacy_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *
                     space: str = "RAS") -> None:
     """Binary legacy VTK, file version 4.2 (read by VTK < 9 and 3D Slicer), with
     ``SPACE=<space>`` in the header line as Slicer writes it."""
-
     writer = vtk.vtkPolyDataWriter()
     writer.SetFileVersion(42)
     writer.SetFileTypeToBinary()
@@ -484,7 +488,6 @@ def save_legacy_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *
 def save_xml_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
                  space: str = "RAS") -> None:
     """VTK XML polydata (.vtp, binary), with the ``SPACE`` string field array Slicer reads."""
-
     poly = _polydata_with(mesh, point_data)
     tag = vtk.vtkStringArray()
     tag.SetName("SPACE")
@@ -498,7 +501,6 @@ def save_xml_vtk(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
 def save_stl(path: Path, mesh: TriMesh, point_data: dict | None = None, *,
              space: str = "RAS") -> None:
     """Binary STL with ``SPACE=<space>`` in the 80-byte header (point data cannot be kept)."""
-
     writer = vtk.vtkSTLWriter()
     writer.SetFileTypeToBinary()
     writer.SetHeader(f"SSM Studio output. SPACE={space}")
