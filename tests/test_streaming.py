@@ -12,9 +12,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from core.alignment import generalized_procrustes
+from core.alignment import generalized_procrustes, procrustes_mean
 from core.correspondence import establish_correspondence
-from core.alignment import procrustes_mean
 from core.correspondence.store import VertexRows
 from core.correspondence.synthetic import known_homology_shapes
 from core.io import load_mesh, save_mesh
