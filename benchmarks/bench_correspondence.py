@@ -442,6 +442,104 @@ def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
               f"{100 * (1 - spreads[1] / best):>19.0f}%{share:>18.1f}{len(dropped):>9}")
 
 
+def _true_points(pop, k: int, material: np.ndarray) -> np.ndarray:
+    """The points of shape ``k`` whose material points are ``material`` (P, 3): a template's
+    true homologous points there."""
+    from core.geometry import surface_coordinates
+
+    mesh = pop.meshes[k]
+    tri, bary, _ = surface_coordinates(material, pop.material[k], mesh.faces)
+    return np.einsum("pj,pjc->pc", bary, mesh.vertices[mesh.faces[tri]])
+
+
+def diagnostics_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 2) -> None:
+    """Why the groupwise refinement does not get further (the README's "what limits it";
+    run on the tuning seeds). Per kind, spread (mm) unless said:
+
+    - ours with 1, 2 and 3 refinement passes;
+    - the total variance (mm^2) after similarity GPA of ours' correspondences and of the true
+      ones (the true homologues of ours' consensus material points): the truth less compact
+      than ours means a compactness (MDL, entropy) criterion moves away from it;
+    - one more pass against the mean, against each of the other shapes (as templates) with
+      the results averaged: equal spreads mean the error belongs to the shape;
+    - the affine map fitted to ours' correspondence, then projection;
+    - groupwise sliding (the trace-minimising step): the mean of the similarity GPA posed on
+      every shape and projected onto it, after 1 and 6 iterations;
+    - rings: nonrigid CPD of the exact base surface from the true similarity pose turned
+      about the ring's axis by 10, 20 and 30 degrees: the mean distance (mm) of its points
+      from their true homologues.
+    """
+    from core.alignment import apply_transform, fit_transform, generalized_procrustes
+    from core.correspondence import DEFAULT_CPD_PARAMS, correspond_pair, establish_correspondence
+    from core.correspondence.batch import _prepare
+    from core.correspondence.synthetic import material_points
+    from core.geometry import SurfaceProjector, rodrigues
+
+    def variance(shapes: list) -> float:
+        gpa = generalized_procrustes(np.stack(shapes), "similarity", max_iter=50, tol=1e-8)
+        return float(((gpa.aligned - gpa.mean) ** 2).sum(axis=2).sum(axis=1).mean())
+
+    _title("what limits the groupwise refinement (diagnostics)", n_shapes, vertices, seed)
+    print(f"{'kind':<6}{'refine 1 / 2 / 3':>22}{'GPA var ours / truth':>24}{'to mean / others avg':>23}"
+          f"{'affine fit+proj':>17}{'sliding it 1 / 6':>18}")
+    one_pass = dict(DEFAULT_CPD_PARAMS, max_iterations=DEFAULT_CPD_PARAMS["refine_iterations"],
+                    pair_residual=False)
+    for kind, pop in _populations(n_shapes, vertices, seed):
+        refined = {}
+        for passes in (1, 2, 3):
+            res = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=passes,
+                                           vertices=vertices)
+            refined[passes] = _spread_of(pop, [m.vertices for m in res.meshes]).mean()
+            if passes == 1:
+                ours, faces = [m.vertices for m in res.meshes], res.faces
+        groomed, _, _ = _prepare(pop.meshes, [m.name for m in pop.meshes], True, vertices)
+        project = [SurfaceProjector(g.vertices, g.faces) for g in groomed]
+        consensus = np.mean([material_points(v, pop.meshes[k], pop.material[k])
+                             for k, v in enumerate(ours)], axis=0)
+        truth = [_true_points(pop, k, consensus) for k in range(len(ours))]
+        mean = generalized_procrustes(np.stack(ours), "similarity", max_iter=20, tol=1e-6).mean
+        to_mean, averaged, affine = [], [], []
+        for k, current in enumerate(ours):
+            def posed(template: np.ndarray, how: str = "similarity") -> np.ndarray:
+                return apply_transform(fit_transform(template, current, how), template)
+            to_mean.append(correspond_pair(TriMesh(mean, faces), groomed[k], one_pass,
+                                           posed=posed(mean))["vertices"])
+            others = [correspond_pair(TriMesh(ours[j], faces), groomed[k], one_pass,
+                                      posed=posed(ours[j]))["vertices"]
+                      for j in range(len(ours)) if j != k]
+            averaged.append(project[k](np.mean(others, axis=0))[0])
+            affine.append(project[k](posed(mean, "affine"))[0])
+        sliding, slid = [], list(ours)
+        for _ in range(6):
+            mean_now = generalized_procrustes(np.stack(slid), "similarity", max_iter=20, tol=1e-6).mean
+            slid = [project[k](apply_transform(fit_transform(mean_now, v, "similarity"), mean_now))[0]
+                    for k, v in enumerate(slid)]
+            sliding.append(_spread_of(pop, slid).mean())
+        print(f"{kind:<6}{refined[1]:>10.3f} / {refined[2]:.3f} / {refined[3]:.3f}"
+              f"{variance(ours):>14.0f} / {variance(truth):<7.0f}"
+              f"{_spread_of(pop, to_mean).mean():>14.3f} / {_spread_of(pop, averaged).mean():<6.3f}"
+              f"{_spread_of(pop, affine).mean():>17.3f}{sliding[0]:>11.3f} / {sliding[-1]:.3f}")
+        if kind == "ring":  # the base ring's axis is z; turned about it, in the base frame
+            template = TriMesh(pop.material[0], pop.meshes[0].faces, "base")
+            ends = []
+            for degrees in (0, 10, 20, 30):
+                turn = rodrigues(np.deg2rad(degrees) * np.array([0.0, 0.0, 1.0]))
+                outs = []
+                for k in range(len(ours)):
+                    start = template.vertices @ turn.T
+                    true = _true_points(pop, k, template.vertices)
+                    pose = apply_transform(fit_transform(template.vertices, true, "similarity"), start)
+                    outs.append(correspond_pair(template, groomed[k], dict(DEFAULT_CPD_PARAMS,
+                                                labelling=False, pair_residual=False),
+                                                posed=pose)["vertices"])
+                    outs.append(np.linalg.norm(outs.pop() - true, axis=1).mean())
+                ends.append(float(np.mean(outs)))
+            # (not the spread: a turn shared by every shape would cancel in it)
+            print("      ring, nonrigid CPD of the exact base from the true pose turned by "
+                  "0 / 10 / 20 / 30 degrees, mean distance from the true homologues: "
+                  + " / ".join(f"{e:.2f}" for e in ends) + " mm")
+
+
 def limits_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100) -> None:
     """How far the surfaces alone determine the homologies (why the spread table's gain stops).
 
@@ -457,7 +555,7 @@ def limits_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
     from core.correspondence import DEFAULT_CPD_PARAMS, correspond_pair, establish_correspondence
     from core.correspondence.batch import _prepare
     from core.correspondence.cpd import cpd_affine, cpd_rigid
-    from core.geometry import SurfaceProjector, surface_coordinates
+    from core.geometry import SurfaceProjector
 
     _title("what the surfaces determine: spread (mm) with the exact bump-free base surface as "
            "template", n_shapes, vertices, seed)
@@ -469,9 +567,7 @@ def limits_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
         template = TriMesh(pop.material[0], pop.meshes[0].faces, "base")
         columns: dict[str, list] = {k: [] for k in ("affine", "cpd", "rigid", "aff_cpd")}
         for k, mesh in enumerate(pop.meshes):
-            # the template's true homologous points on shape k: its material points there
-            tri, bary, _ = surface_coordinates(template.vertices, pop.material[k], mesh.faces)
-            truth = np.einsum("pj,pjc->pc", bary, mesh.vertices[mesh.faces[tri]])
+            truth = _true_points(pop, k, template.vertices)
             project = SurfaceProjector(groomed[k].vertices, groomed[k].faces)
             affine = apply_transform(fit_transform(template.vertices, truth, "affine"), template.vertices)
             similar = apply_transform(fit_transform(template.vertices, truth, "similarity"), template.vertices)
@@ -590,7 +686,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--tuning", action="store_true",
                         help="spread table on the tuning seeds 2-4 instead of the held-out 100-102")
-    parser.add_argument("--only", choices=("pipeline", "scaling", "spread", "limits", "labels", "legacy"),
+    parser.add_argument("--only", choices=("pipeline", "scaling", "spread", "limits", "diagnostics", "labels", "legacy"),
                         default=None)
     args = parser.parse_args(argv)
     if args.only in (None, "scaling"):
@@ -599,6 +695,8 @@ def main(argv: list[str] | None = None) -> int:
         spread_table(args.spread_shapes, args.jobs, seed=2 if args.tuning else 100)
     if args.only in (None, "limits"):
         limits_table(args.spread_shapes, args.jobs, seed=2 if args.tuning else 100)
+    if args.only == "diagnostics":  # not in the default run: it explains, it reports nothing
+        diagnostics_table(args.spread_shapes, args.jobs, seed=2 if args.tuning else 100)
     if args.only in (None, "pipeline"):
         pipeline_table("ring", args.shapes, args.jobs)
     if args.only in (None, "labels"):
