@@ -383,21 +383,35 @@ def scaling_table(seed: int = 3) -> None:
     print(f"10,000 / 2,500 pair time: {totals[10000] / totals[2500]:.2f}x")
 
 
-def _title(what: str, n_shapes: int, vertices: int, seed: int) -> None:
-    print(f"\n{what}, {n_shapes} shapes per kind, ~{vertices} vertices; "
-          f"{'held-out' if seed >= 100 else 'TUNING'} seeds {seed}-{seed + 2}; load {_load()}")
+def _title(what: str, n_shapes: int, vertices: int, seed: int, repeats: int = 1) -> None:
+    per = f"{n_shapes} shapes per population, {repeats} populations per kind" if repeats > 1 \
+        else f"{n_shapes} shapes per kind"
+    print(f"\n{what}; {population} population, {per}, ~{vertices} vertices; "
+          f"{'held-out' if seed >= 100 else 'TUNING'} seeds {seed}-{seed + 3 * repeats - 1}; load {_load()}")
 
 
-def _populations(n_shapes: int, vertices: int, seed: int):
-    """(kind, known-homology population) for the bean, tube and ring, seeds seed, seed+1, seed+2."""
+# The two populations of core.correspondence.synthetic: "bumps", independent random bumps
+# on every shape (the generator's defaults); "features", six consistent features a kind whose
+# size varies between shapes, smaller independent bumps, and independent even remeshes.
+POPULATIONS = {"bumps": {},
+               "features": {"features": 6, "n_bumps": 3, "bump_mm": 0.5, "retessellate": True}}
+population = "bumps"  # set by --population
+
+
+def _populations(n_shapes: int, vertices: int, seed: int, repeats: int = 1):
+    """(kind, known-homology population) for the bean, tube and ring, seeds seed, seed+1,
+    seed+2; with ``repeats`` R, R populations a kind (seeds seed + i + 3 r), kind by kind."""
     from core.correspondence.synthetic import known_homology_shapes
 
     for i, kind in enumerate(("bean", "tube", "ring")):
-        yield kind, known_homology_shapes(kind, n_shapes, seed=seed + i,
-                                          n_points=(vertices - 100, vertices + 100))
+        for r in range(repeats):
+            yield kind, known_homology_shapes(kind, n_shapes, seed=seed + i + 3 * r,
+                                              n_points=(vertices - 100, vertices + 100),
+                                              **POPULATIONS[population])
 
 
-def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100) -> None:
+def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100,
+                 repeats: int = 1) -> None:
     """Spread of corresponded points around their true material points, per shape kind.
 
     The generator's own tessellations sample every shape with the same density per unit of
@@ -405,16 +419,21 @@ def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
     have); grooming remeshes uneven inputs (the tubes) to an even density. So plain CPD is run
     twice: on the raw meshes, and on the same groomed meshes ours gets; both with ours'
     chosen reference (groomed). Held-out seeds 100+ (reported); ``--tuning`` runs the same
-    table on tuning seeds 2+ (what parameter choices were made on).
+    table on tuning seeds 2+ (what parameter choices were made on). With ``repeats`` R
+    (``--spread-seeds``), R independent populations a kind: the columns are the means over
+    them, the gain is that of the means, and each population's own gain is listed (with 6
+    shapes a population, one population's gain moves by +-10 points from seed to seed).
     """
     from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
     from core.correspondence.batch import _prepare
 
     _title("spread vs truth (mean distance of homologous points' material points from their "
-           "mean, mm)", n_shapes, vertices, seed)
+           "mean, mm)", n_shapes, vertices, seed, repeats)
     print(f"{'kind':<6}{'plain raw':>11}{'plain groomed':>15}{'ours refine 0':>15}{'ours refine 1':>15}"
-          f"{'gain vs best plain':>20}{'assign % of pair':>18}{'dropped':>9}")
-    for kind, pop in _populations(n_shapes, vertices, seed):
+          f"{'gain vs best plain':>20}{'assign % of pair':>18}{'dropped':>9}"
+          + ("   gain per population" if repeats > 1 else ""))
+    rows: dict[str, list] = {}
+    for kind, pop in _populations(n_shapes, vertices, seed, repeats):
         outputs, dropped = {}, set()
         for refine in (0, 1):
             res = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=refine,
@@ -436,10 +455,28 @@ def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
         # left out of the plain columns too, and counted.
         spreads = {key: _spread_of(pop, [v if k not in dropped else None for k, v in enumerate(vs)]).mean()
                    for key, vs in [*outputs.items(), *plain.items()]}
-        best = min(spreads["raw"], spreads["groomed"])
-        print(f"{kind:<6}{spreads['raw']:>11.3f}{spreads['groomed']:>15.3f}"
-              f"{spreads[0]:>15.3f}{spreads[1]:>15.3f}"
-              f"{100 * (1 - spreads[1] / best):>19.0f}%{share:>18.1f}{len(dropped):>9}")
+        rows.setdefault(kind, []).append((spreads, share, len(dropped)))
+        if len(rows[kind]) < repeats:
+            continue
+        mean = {key: float(np.mean([r[0][key] for r in rows[kind]])) for key in spreads}
+        gains = [100 * (1 - r[0][1] / min(r[0]["raw"], r[0]["groomed"])) for r in rows[kind]]
+        best = min(mean["raw"], mean["groomed"])
+        print(f"{kind:<6}{mean['raw']:>11.3f}{mean['groomed']:>15.3f}"
+              f"{mean[0]:>15.3f}{mean[1]:>15.3f}"
+              f"{100 * (1 - mean[1] / best):>19.0f}%{np.mean([r[1] for r in rows[kind]]):>18.1f}"
+              f"{sum(r[2] for r in rows[kind]):>9}"
+              + ("   " + " / ".join(f"{g:.0f}%" for g in gains) if repeats > 1 else ""))
+
+
+def _base_template(pop, vertices: int) -> TriMesh:
+    """The exact bump-free base surface, remeshed as grooming remeshes every input: a
+    template that differs from the one ours and plain CPD get only in being exact. (Until
+    2026-12-02 it was the base at shape 0's own lattice, a different kind of mesh: its
+    density follows the material parameter, and CPD matches densities.)"""
+    from core.grooming import remesh
+
+    v, f = remesh(pop.material[0], pop.meshes[0].faces, vertices)
+    return TriMesh(v, f, "base")
 
 
 def _true_points(pop, k: int, material: np.ndarray) -> np.ndarray:
@@ -520,7 +557,7 @@ def diagnostics_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int 
               f"{_spread_of(pop, to_mean).mean():>14.3f} / {_spread_of(pop, averaged).mean():<6.3f}"
               f"{_spread_of(pop, affine).mean():>17.3f}{sliding[0]:>11.3f} / {sliding[-1]:.3f}")
         if kind == "ring":  # the base ring's axis is z; turned about it, in the base frame
-            template = TriMesh(pop.material[0], pop.meshes[0].faces, "base")
+            template = _base_template(pop, vertices)
             ends = []
             for degrees in (0, 10, 20, 30):
                 turn = rodrigues(np.deg2rad(degrees) * np.array([0.0, 0.0, 1.0]))
@@ -543,8 +580,8 @@ def diagnostics_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int 
 def limits_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100) -> None:
     """How far the surfaces alone determine the homologies (why the spread table's gain stops).
 
-    The template is the exact bump-free base surface (shape 0's tessellation at its material
-    points), and every shape's true homologous points are known. Columns: SSM Studio's
+    The template is the exact bump-free base surface (:func:`_base_template`, even density),
+    and every shape's true homologous points are known. Columns: SSM Studio's
     spread (refine 1, its own reference, for scale); the true affine map of the template onto
     each shape, then nearest-point projection (the floor of any global fit + projection);
     nonrigid CPD from the true similarity pose (plain CPD-then-project with a perfect
@@ -564,7 +601,7 @@ def limits_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
     for kind, pop in _populations(n_shapes, vertices, seed):
         ours = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=1, vertices=vertices)
         groomed, _, _ = _prepare(pop.meshes, [m.name for m in pop.meshes], True, vertices)
-        template = TriMesh(pop.material[0], pop.meshes[0].faces, "base")
+        template = _base_template(pop, vertices)
         columns: dict[str, list] = {k: [] for k in ("affine", "cpd", "rigid", "aff_cpd")}
         for k, mesh in enumerate(pop.meshes):
             truth = _true_points(pop, k, template.vertices)
@@ -683,16 +720,24 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--shapes", type=int, default=18, help="meshes in the pipeline table (18)")
     parser.add_argument("--spread-shapes", type=int, default=8, help="shapes per kind, spread table")
+    parser.add_argument("--spread-seeds", type=int, default=1,
+                        help="independent populations per kind in the spread table (1)")
+    parser.add_argument("--population", choices=tuple(POPULATIONS), default="bumps",
+                        help="known-homology shapes of the spread, limits and diagnostics tables: "
+                             "independent bumps (default) or consistent features")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--tuning", action="store_true",
                         help="spread table on the tuning seeds 2-4 instead of the held-out 100-102")
     parser.add_argument("--only", choices=("pipeline", "scaling", "spread", "limits", "diagnostics", "labels", "legacy"),
                         default=None)
     args = parser.parse_args(argv)
+    global population
+    population = args.population
     if args.only in (None, "scaling"):
         scaling_table()
     if args.only in (None, "spread"):
-        spread_table(args.spread_shapes, args.jobs, seed=2 if args.tuning else 100)
+        spread_table(args.spread_shapes, args.jobs, seed=2 if args.tuning else 100,
+                     repeats=args.spread_seeds)
     if args.only in (None, "limits"):
         limits_table(args.spread_shapes, args.jobs, seed=2 if args.tuning else 100)
     if args.only == "diagnostics":  # not in the default run: it explains, it reports nothing

@@ -17,6 +17,22 @@ Base surfaces:
 - ``"twist"``: the bean twisted by 100 degrees about its long axis, a clearly chiral shape
   (no mirror symmetry), to tell a mirrored side (a left/right mix-up) from a rotated one.
 
+Two kinds of population:
+
+- **independent bumps** (the default): each shape's bumps are its own, at random places. There
+  is no population structure, and under broad bumps the truth is a convention (offsets along
+  the base normals) more than something the surfaces show.
+- **consistent features** (``features=K``): K local bumps at the same material points in every
+  shape of a kind (fixed per kind, whatever the seed), each with a mean height and a
+  per-shape factor ``1 + feature_cv * N(0, 1)``, as anatomy has homologous features whose
+  size varies between subjects; the independent bumps, smaller, add per-subject variation.
+  What population-based correspondence methods are built for.
+
+``retessellate=True`` replaces each shape's lattice by an independent even remesh of its
+surface (material points carried by barycentric interpolation): the lattice's vertex
+density follows the material parameter, a cue of the truth that CPD's density matching uses
+and a scan's mesh does not have.
+
 :func:`material_points` gives, for points on a shape's surface, their material points by
 barycentric interpolation over the shape's triangles; :func:`homology_spread` the mean
 distance (mm, on the base surface) of corresponded points from their points' common mean:
@@ -125,15 +141,25 @@ class KnownHomologyShapes:
 def known_homology_shapes(kind: str = "bean", n_shapes: int = 10, *, seed: int = 0,
                           n_points: tuple[int, int] = (1800, 2300), n_bumps: int = 6,
                           bump_mm: float = 1.5, bump_width_mm: float = 7.0,
-                          max_angle_deg: float = 45.0, translation_mm: float = 40.0
-                          ) -> KnownHomologyShapes:
-    """``n_shapes`` shapes of the base ``kind`` (module docstring), reproducible from ``seed``."""
+                          max_angle_deg: float = 45.0, translation_mm: float = 40.0,
+                          features: int = 0, feature_mm: float = 2.0,
+                          feature_width_mm: float = 4.0, feature_cv: float = 0.35,
+                          retessellate: bool = False) -> KnownHomologyShapes:
+    """``n_shapes`` shapes of the base ``kind`` (module docstring), reproducible from ``seed``.
+
+    ``features``: consistent features a kind (0: independent bumps only), mean heights
+    +-``feature_mm`` x U(0.7, 1.3), width ``feature_width_mm``, per-shape height factor
+    ``1 + feature_cv * N(0, 1)``; ``retessellate``: each shape an independent even remesh.
+    """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     rng = np.random.default_rng(seed)
+    feature_centres, feature_heights = _features(kind, features, feature_mm)
     meshes, material = [], []
     for s in range(n_shapes):
-        m, faces = _tessellation(kind, int(rng.integers(*n_points)), rng)
+        n_vertices = int(rng.integers(*n_points))
+        # A retessellated shape starts from a finer lattice, so its own remesh is not tied to it.
+        m, faces = _tessellation(kind, 3 * n_vertices if retessellate else n_vertices, rng)
         base = _base(kind, m)
         normals = _normals(kind, m)
         if kind == "ring":  # bump centres on the surface
@@ -142,13 +168,20 @@ def known_homology_shapes(kind: str = "bean", n_shapes: int = 10, *, seed: int =
             centres = _base(kind, rng.normal(size=(n_bumps, 3)) / 1.7)
         heights = rng.normal(size=n_bumps) * bump_mm
         d2 = ((base[:, None, :] - centres[None]) ** 2).sum(axis=2)
-        shape = base + (np.exp(-d2 / (2 * bump_width_mm ** 2)) @ heights)[:, None] * normals
+        offset = np.exp(-d2 / (2 * bump_width_mm ** 2)) @ heights
+        if features:
+            sizes = feature_heights * (1.0 + feature_cv * rng.normal(size=features))
+            d2 = ((base[:, None, :] - feature_centres[None]) ** 2).sum(axis=2)
+            offset = offset + np.exp(-d2 / (2 * feature_width_mm ** 2)) @ sizes
+        shape = base + offset[:, None] * normals
+        if retessellate:
+            shape, faces, base = _retessellated(kind, m, faces, shape, base, n_vertices)
         shape = shape * rng.uniform(0.9, 1.1, size=3)
         rot = random_rotation(rng, max_angle_deg)
         shape = shape @ rot.T + rng.uniform(-translation_mm, translation_mm, size=3)
         # Faces counter-clockwise seen from outside: on the sphere parameter each face by its
         # own normal, the ring's grid is consistent and only needs the global sign.
-        if kind != "ring":
+        if kind != "ring" and not retessellate:  # (a remesh is consistently oriented)
             inward = np.einsum("ij,ij->i", face_normals(m, faces, normalize=False), m[faces].mean(axis=1)) < 0
             faces = np.where(inward[:, None], faces[:, ::-1], faces)
         if meshops.volume(shape, faces) < 0:
@@ -158,6 +191,33 @@ def known_homology_shapes(kind: str = "bean", n_shapes: int = 10, *, seed: int =
         meshes.append(TriMesh(shape[perm], inverse[faces], f"{kind}_{s:02d}"))
         material.append(base[perm])
     return KnownHomologyShapes(kind, meshes, material)
+
+
+def _features(kind: str, n: int, height_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (n, 3) on the base surface and mean heights (n,) of a kind's consistent
+    features: the same for every population of the kind (their own fixed seed)."""
+    rng = np.random.default_rng(1000 + KINDS.index(kind))
+    if kind == "ring":
+        centres = _base(kind, rng.uniform(0, 2 * np.pi, size=(n, 2)))
+    else:
+        u = rng.normal(size=(n, 3))
+        centres = _base(kind, u / np.linalg.norm(u, axis=1, keepdims=True))
+    heights = rng.choice([-1.0, 1.0], n) * height_mm * rng.uniform(0.7, 1.3, n)
+    return centres, heights
+
+
+def _retessellated(kind: str, m: np.ndarray, faces: np.ndarray, shape: np.ndarray,
+                   base: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An independent even remesh of one shape's surface: vertices, faces and the vertices'
+    base-surface (material) positions, interpolated over the lattice's triangles."""
+    from core.grooming import remesh
+
+    if kind != "ring":  # the sphere lattice's hull faces, outward first
+        inward = np.einsum("ij,ij->i", face_normals(m, faces, normalize=False), m[faces].mean(axis=1)) < 0
+        faces = np.where(inward[:, None], faces[:, ::-1], faces)
+    vertices, new_faces = remesh(shape, faces, n_vertices)
+    tri, bary, _ = surface_coordinates(vertices, shape, faces)
+    return vertices, new_faces, np.einsum("pj,pjc->pc", bary, base[faces[tri]])
 
 
 def material_points(points: np.ndarray, mesh: TriMesh, material: np.ndarray) -> np.ndarray:
