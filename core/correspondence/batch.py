@@ -67,6 +67,9 @@ class CorrespondenceResult:
         Mean change of the corresponded vertices (mm) at each groupwise refinement pass.
     unreadable : dict
         Input path -> why it could not be read (also in ``failures``), for inputs given as paths.
+    poses : dict
+        Mesh name -> how its rigid pose was settled, for the shapes whose best fit to the
+        reference turned them from their input orientation (:func:`_recheck_switched`).
     """
 
     meshes: list
@@ -83,6 +86,7 @@ class CorrespondenceResult:
     reference_reason: str = ""
     refinement: list = field(default_factory=list)
     unreadable: dict = field(default_factory=dict)
+    poses: dict = field(default_factory=dict)
 
     def to_report(self, names: list[str] | None = None) -> dict:
         """JSON-ready summary (per shape: residual, grooming, error; reference and why)."""
@@ -98,6 +102,7 @@ class CorrespondenceResult:
                         "residual_mm": self.residuals_mm[i],
                         "seconds": self.shape_timings[i] if i < len(self.shape_timings) else None,
                         "grooming": self.grooming.get(n),
+                        "pose": self.poses.get(n),
                         "error": self.failures.get(n)}
                        for i, n in enumerate(names)],
             "mean_residual_mm": float(np.mean(ok)) if ok else None,
@@ -527,6 +532,66 @@ def _flag_mirrored(results: dict, usable: list[int], vertices: MutableMapping,
     return flagged
 
 
+NEIGHBOUR_TRIES = 3  # closest shapes a switched shape is corresponded to again, one by one
+
+
+def _recheck_switched(results: dict, corresponded: MutableMapping, faces: np.ndarray,
+                      prepared: list, params: dict, n_jobs: int, timings: dict) -> dict:
+    """Shapes whose rigid pose switched to a principal-axes start, checked against a closer
+    shape.
+
+    The pairwise step keeps the input's orientation unless a principal-axes start fits the
+    reference far better (:func:`core.correspondence.pair._rigid_fit`). Against a reference
+    turned far from the shape (inputs up to 90 degrees apart), the identity start can stall
+    and a nearly symmetric shape then fits far better flipped end to end: bent tubes came out
+    reversed, 28-30 mm from their true homologues (1 of 12 in held-out population 107 of
+    ``bench_correspondence``; against shape 0 of twenty 8-tube sets, 3 of 7 in one and 1 of 7
+    in another; ``test_a_tube_flipped_against_the_reference_keeps_its_input_orientation_in_the_batch``).
+    Each switched shape is corresponded again, the same way
+    (every start, the same rule), to the shape that did not switch whose long axis is
+    closest to its own, as that shape's correspondence: from an input orientation that
+    close, the identity start converges. The new result is kept when it keeps the input
+    orientation (otherwise the next closest is tried, up to :data:`NEIGHBOUR_TRIES`); a
+    shape that switches every time is truly turned and keeps its first result.
+    Only when the switched shapes are a minority (the inputs share their orientation).
+    Returns shape index -> what was done.
+    """
+    from core.correspondence.pair import _principal_axes
+
+    switched = [k for k, (res, err) in results.items()
+                if err is None and res is not None and res.get("pose_switched") and k in corresponded]
+    others = [k for k in sorted(corresponded) if k not in switched]
+    if not switched or len(others) <= len(switched):
+        return {}
+    axis = {k: _principal_axes(np.asarray(open_mesh(prepared[k]).vertices))[:, 0]
+            for k in switched + others}
+    ranked = {k: sorted(others, key=lambda o: -abs(float(axis[o] @ axis[k])))[:NEIGHBOUR_TRIES]
+              for k in switched}
+    notes = {k: ("turned from its input orientation: its principal axes fitted the reference "
+                 f"and its {len(ranked[k])} closest shapes far better") for k in switched}
+    pending = list(switched)
+    for attempt in range(NEIGHBOUR_TRIES):
+        tasks = []
+        for k in pending:
+            if attempt < len(ranked[k]):
+                j = ranked[k][attempt]
+                tasks += _tasks(TriMesh(np.asarray(corresponded[j], float), faces, "neighbour"),
+                                j, {k: prepared[k]}, params)
+        if not tasks:
+            break
+        for (j, k), (out, _) in _run_tasks(tasks, n_jobs, None, 0.6, 0.6).items():
+            if out is None:
+                continue
+            _add_timings(timings, k, out)
+            if not out["pose_switched"]:
+                corresponded[k] = out["vertices"]
+                pending.remove(k)
+                notes[k] = ("input orientation kept: against one of its closest shapes the "
+                            "input orientation fitted (against the reference a principal-axes "
+                            "pose had)")
+    return notes
+
+
 OUTLIER_FACTOR = 3.0  # an outlier's Procrustes distance to the mean: over this many times the median
 
 
@@ -769,6 +834,8 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
         split, 0.6, on_result=absorb).items()})
     timings: dict = {"grooming": t_groom, "n_registrations": n_trial}
     _collect(results, chosen, ref, usable, names, failures, timings, corresponded)
+    poses = {names[k]: note for k, note in _recheck_switched(
+        results, corresponded, ref_faces, prepared, first, n_jobs, timings).items()}
     _drop_flagged(results, usable, corresponded, prepared, names, chosen, ref_faces, params,
                   first, n_jobs, timings, failures)
     del results  # per-shape summaries of the first pass: not needed any more
@@ -796,6 +863,7 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
                      timings, scores, params, grooming, why, changes, t_start, n_jobs, progress,
                      keep_meshes)
     result.unreadable = unread
+    result.poses = poses
     return result
 
 
