@@ -533,6 +533,7 @@ def _flag_mirrored(results: dict, usable: list[int], vertices: MutableMapping,
 
 
 NEIGHBOUR_TRIES = 3  # closest shapes a switched shape is corresponded to again, one by one
+NEIGHBOUR_POOL = 64  # unswitched shapes the closest are chosen from
 
 
 def _recheck_switched(results: dict, corresponded: MutableMapping, faces: np.ndarray,
@@ -563,9 +564,12 @@ def _recheck_switched(results: dict, corresponded: MutableMapping, faces: np.nda
     others = [k for k in sorted(corresponded) if k not in switched]
     if not switched or len(others) <= len(switched):
         return {}
+    # The closest shapes are looked for among at most NEIGHBOUR_POOL of the others (a
+    # cohort's meshes may be files: each is read once for its long axis).
+    pool = others[::max(1, len(others) // NEIGHBOUR_POOL)]
     axis = {k: _principal_axes(np.asarray(open_mesh(prepared[k]).vertices))[:, 0]
-            for k in switched + others}
-    ranked = {k: sorted(others, key=lambda o: -abs(float(axis[o] @ axis[k])))[:NEIGHBOUR_TRIES]
+            for k in switched + pool}
+    ranked = {k: sorted(pool, key=lambda o: -abs(float(axis[o] @ axis[k])))[:NEIGHBOUR_TRIES]
               for k in switched}
     notes = {k: ("turned from its input orientation: its principal axes fitted the reference "
                  f"and its {len(ranked[k])} closest shapes far better") for k in switched}

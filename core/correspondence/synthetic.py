@@ -160,6 +160,7 @@ def known_homology_shapes(kind: str = "bean", n_shapes: int = 10, *, seed: int =
         n_vertices = int(rng.integers(*n_points))
         # A retessellated shape starts from a finer lattice, so its own remesh is not tied to it.
         m, faces = _tessellation(kind, 3 * n_vertices if retessellate else n_vertices, rng)
+        faces = _outward(kind, m, faces)
         base = _base(kind, m)
         normals = _normals(kind, m)
         if kind == "ring":  # bump centres on the surface
@@ -179,11 +180,9 @@ def known_homology_shapes(kind: str = "bean", n_shapes: int = 10, *, seed: int =
         shape = shape * rng.uniform(0.9, 1.1, size=3)
         rot = random_rotation(rng, max_angle_deg)
         shape = shape @ rot.T + rng.uniform(-translation_mm, translation_mm, size=3)
-        # Faces counter-clockwise seen from outside: on the sphere parameter each face by its
-        # own normal, the ring's grid is consistent and only needs the global sign.
-        if kind != "ring" and not retessellate:  # (a remesh is consistently oriented)
-            inward = np.einsum("ij,ij->i", face_normals(m, faces, normalize=False), m[faces].mean(axis=1)) < 0
-            faces = np.where(inward[:, None], faces[:, ::-1], faces)
+        # Faces counter-clockwise seen from outside: the ring's grid is consistent and only
+        # needs the global sign (the sphere lattice was oriented face by face; a remesh is
+        # consistently oriented).
         if meshops.volume(shape, faces) < 0:
             faces = faces[:, ::-1]
         perm = rng.permutation(len(shape))
@@ -191,6 +190,15 @@ def known_homology_shapes(kind: str = "bean", n_shapes: int = 10, *, seed: int =
         meshes.append(TriMesh(shape[perm], inverse[faces], f"{kind}_{s:02d}"))
         material.append(base[perm])
     return KnownHomologyShapes(kind, meshes, material)
+
+
+def _outward(kind: str, m: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The lattice's faces counter-clockwise seen from outside the parameter sphere, face by
+    face (the convex hull's are not); the ring's grid is left as it is."""
+    if kind == "ring":
+        return faces
+    inward = np.einsum("ij,ij->i", face_normals(m, faces, normalize=False), m[faces].mean(axis=1)) < 0
+    return np.where(inward[:, None], faces[:, ::-1], faces)
 
 
 def _features(kind: str, n: int, height_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -212,9 +220,6 @@ def _retessellated(kind: str, m: np.ndarray, faces: np.ndarray, shape: np.ndarra
     base-surface (material) positions, interpolated over the lattice's triangles."""
     from core.grooming import remesh
 
-    if kind != "ring":  # the sphere lattice's hull faces, outward first
-        inward = np.einsum("ij,ij->i", face_normals(m, faces, normalize=False), m[faces].mean(axis=1)) < 0
-        faces = np.where(inward[:, None], faces[:, ::-1], faces)
     vertices, new_faces = remesh(shape, faces, n_vertices)
     tri, bary, _ = surface_coordinates(vertices, shape, faces)
     return vertices, new_faces, np.einsum("pj,pjc->pc", bary, base[faces[tri]])
