@@ -30,7 +30,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from core import mesh as meshops
-from core.geometry import SurfaceProjector, face_normals, vertex_normals
+from core.geometry import SurfaceProjector, face_normals
 from core.types import TriMesh
 
 REMESH_ATTEMPTS = 5  # decimations tried by :func:`remesh` before it gives up on a clean result
@@ -268,7 +268,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
 
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    euler = len(v) - len(meshops.edges(f)) + len(f)  # 2 - 2 genus for a closed surface
+    euler = meshops.euler_characteristic(len(v), f)  # 2 - 2 genus for a closed surface
     target_faces = max(2 * int(n_vertices) - 2 * euler, 8)
     poly = pv.PolyData(v, np.column_stack([np.full(len(f), 3), f]).ravel())
     while poly.n_cells < 2 * target_faces:
@@ -286,7 +286,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
         rv = np.asarray(out.points, dtype=np.float64)
         rf = np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
         rv, rf = compact(rv, rf)
-        if meshops.is_closed(rf) and len(rv) - len(meshops.edges(rf)) + len(rf) == euler:
+        if meshops.is_closed(rf) and meshops.euler_characteristic(len(rv), rf) == euler:
             break
     projector = SurfaceProjector(dense_v, dense_f, exact=False, candidates="centroids")
     rv = meshops.fair_mesh(rv, rf, projector, iterations=relax_iterations, step=0.5)

@@ -69,6 +69,11 @@ def n_components(faces: np.ndarray, n_vertices: int) -> int:
     return int(connected_components(a, directed=False)[0])
 
 
+def euler_characteristic(n_vertices: int, faces: np.ndarray) -> int:
+    """V - E + F of the mesh (2 - 2 genus for one closed surface)."""
+    return int(n_vertices) - len(edges(faces)) + len(faces)
+
+
 def boundary_edges(faces: np.ndarray) -> np.ndarray:
     """Edges used by exactly one triangle (B, 2); empty for a closed (watertight) surface."""
     uniq, counts, _ = edge_table(faces)

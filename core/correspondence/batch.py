@@ -19,11 +19,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core import mesh as meshops
-from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _task, mesh_problem,
-                                     mirror_fit_ratio)
+from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _principal_axes, _task,
+                                     mesh_problem, mirror_fit_ratio)
 from core.geometry import umeyama
-from core.grooming import DEFAULT_GROOMING, GroomingError, groom_mesh
-from core.correspondence.store import (InputFile, Scratch, ScratchMesh, VertexRows, open_mesh,
+from core.grooming import GroomingError, groom_mesh
+from core.correspondence.store import (InputFile, Scratch, VertexRows, open_mesh,
                                       open_rows, read_input, write_scratch_mesh)
 from core.parallel import JobError, preload_in_workers, run_jobs, runs_inline
 from core.progress import ProgressCallback, report, sub_progress
@@ -557,8 +557,6 @@ def _recheck_switched(results: dict, corresponded: MutableMapping, faces: np.nda
     Only when the switched shapes are a minority (the inputs share their orientation).
     Returns shape index -> what was done.
     """
-    from core.correspondence.pair import _principal_axes
-
     switched = [k for k, (res, err) in results.items()
                 if err is None and res is not None and res.get("pose_switched") and k in corresponded]
     others = [k for k in sorted(corresponded) if k not in switched]

@@ -176,7 +176,7 @@ def known_homology_shapes(kind: str = "bean", n_shapes: int = 10, *, seed: int =
             offset = offset + np.exp(-d2 / (2 * feature_width_mm ** 2)) @ sizes
         shape = base + offset[:, None] * normals
         if retessellate:
-            shape, faces, base = _retessellated(kind, m, faces, shape, base, n_vertices)
+            shape, faces, base = _retessellated(faces, shape, base, n_vertices)
         shape = shape * rng.uniform(0.9, 1.1, size=3)
         rot = random_rotation(rng, max_angle_deg)
         shape = shape @ rot.T + rng.uniform(-translation_mm, translation_mm, size=3)
@@ -214,15 +214,14 @@ def _features(kind: str, n: int, height_mm: float) -> tuple[np.ndarray, np.ndarr
     return centres, heights
 
 
-def _retessellated(kind: str, m: np.ndarray, faces: np.ndarray, shape: np.ndarray,
-                   base: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _retessellated(faces: np.ndarray, shape: np.ndarray, base: np.ndarray,
+                   n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An independent even remesh of one shape's surface: vertices, faces and the vertices'
     base-surface (material) positions, interpolated over the lattice's triangles."""
     from core.grooming import remesh
 
     vertices, new_faces = remesh(shape, faces, n_vertices)
-    tri, bary, _ = surface_coordinates(vertices, shape, faces)
-    return vertices, new_faces, np.einsum("pj,pjc->pc", bary, base[faces[tri]])
+    return vertices, new_faces, material_points(vertices, TriMesh(shape, faces), base)
 
 
 def material_points(points: np.ndarray, mesh: TriMesh, material: np.ndarray) -> np.ndarray:
