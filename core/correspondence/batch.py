@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core import mesh as meshops
+from core.alignment import apply_transform, fit_transform
 from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _principal_axes, _task,
                                      mesh_problem, mirror_fit_ratio)
 from core.geometry import umeyama
@@ -133,7 +134,10 @@ def _check_params(cpd_params: dict, selection: str) -> dict:
     params.update(cpd_params)
     if not 0.0 <= params["w"] < 1.0:
         raise ValueError(f"outlier weight w must be in [0, 1), got {params['w']}")
-    for name in ("beta", "lam", "tolerance"):
+    if params["refine_deformation"] not in ("normal_offsets", "cpd"):
+        raise ValueError("refine_deformation must be 'normal_offsets' or 'cpd', got "
+                         f"{params['refine_deformation']!r}")
+    for name in ("beta", "lam", "tolerance", "offset_width", "offset_sd", "offset_noise"):
         if not params[name] > 0:
             raise ValueError(f"{name} must be positive, got {params[name]}")
     return params
@@ -361,8 +365,11 @@ def _task_job(task: tuple, references: dict) -> tuple:
     extra = ()
     if rest:
         current = open_rows(rest[0])
-        s, r, t = umeyama(ref_v, current)
-        extra = (s * ref_v @ r.T + t,)
+        if params.get("deformation") == "normal_offsets":  # its fit adds only a similarity
+            extra = (apply_transform(fit_transform(ref_v, current, "affine"), ref_v),)
+        else:
+            s, r, t = umeyama(ref_v, current)
+            extra = (s * ref_v @ r.T + t,)
     _, out, err = _task((key, ref_v, ref_f, mesh.vertices, mesh.faces, params, parallel, *extra))
     return out, err
 
@@ -854,7 +861,8 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
     if on_provisional is not None and refine > 0:
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
-    passes = dict(params, pair_residual=False, max_iterations=int(params["refine_iterations"]))
+    passes = dict(params, pair_residual=False, max_iterations=int(params["refine_iterations"]),
+                  deformation=params["refine_deformation"])
     changes = _refine(corresponded, ref_faces, prepared, passes, n_jobs,
                       progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)

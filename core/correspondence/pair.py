@@ -14,6 +14,7 @@ import numpy as np
 from core import mesh as meshops
 from core.correspondence.assignment import auction_assign, labelling_candidates
 from core.correspondence.cpd import cpd_nonrigid, cpd_rigid
+from core.correspondence.offsets import fit_normal_offsets
 from core.geometry import SurfaceProjector, symmetric_surface_distance
 from core.types import TriMesh
 
@@ -27,6 +28,16 @@ DEFAULT_CPD_PARAMS = {
                               # start from the current correspondence; the late iterations
                               # mostly add CPD's density-driven sliding: on tuning seeds the
                               # spread fell 6-16 % on beans and tubes against 100)
+    "refine_deformation": "normal_offsets",  # the refinement passes' deformation of the
+                              # posed mean: "normal_offsets" (a similarity and smooth offsets
+                              # along the mean's normals, core.correspondence.offsets) or "cpd"
+                              # (nonrigid CPD for refine_iterations, as until 2026-12-02)
+    "offset_width": 0.5,      # kernel width of the offsets' prior (unit-RMS units)
+    "offset_sd": 0.1,         # standard deviation of the offsets' prior (unit-RMS units)
+    "offset_noise": 0.02,     # point-to-plane residual's standard deviation (unit-RMS units)
+    "offset_iterations": 15,  # Gauss-Newton iterations of the offsets' fit (30 gave the same spread on tuning seeds)
+    "deformation": "cpd",     # this correspondence's deformation ("cpd" or "normal_offsets";
+                              # a refinement pass sets it from refine_deformation)
     "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
     "rigid_points": 500,      # subsample size for the rigid pose's starts
     "rigid_fine_points": 1000,  # subsample size for the chosen start's final refinement
@@ -246,11 +257,18 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
         y_posed = (np.asarray(posed, dtype=np.float64) - centre) / scale
     t1 = time.perf_counter()
     times["rigid"] = t1 - t0
-    moved, nonrigid = _deform(xn, y_posed, p, parallel)
+    if p["deformation"] == "normal_offsets":
+        fit = fit_normal_offsets(y_posed, ref_f, xn, tgt_f, width=p["offset_width"],
+                                 sd=p["offset_sd"], noise=p["offset_noise"],
+                                 iterations=p["offset_iterations"])
+        moved, sigma2, n_iter = fit.points, fit.residual2, fit.n_iter
+    else:
+        moved, nonrigid = _deform(xn, y_posed, p, parallel)
+        sigma2, n_iter = nonrigid.sigma2, nonrigid.n_iter
     t2 = time.perf_counter()
     times["nonrigid"] = t2 - t1
     if p["labelling"]:
-        labelled = label_points(moved, xn, tgt_f, nonrigid.sigma2, p["w"])
+        labelled = label_points(moved, xn, tgt_f, sigma2, p["w"])
     t3 = time.perf_counter()
     times["assignment"] = t3 - t2
     if p["labelling"]:
@@ -268,8 +286,8 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
                 if p["pair_residual"] else None)
     times["residual"] = time.perf_counter() - t4
     times["total"] = time.perf_counter() - t0
-    return {"vertices": vertices, "residual_mm": residual, "sigma2": nonrigid.sigma2 * scale ** 2,
-            "n_iter": nonrigid.n_iter, "mirror_ratio": mirror, "pose_switched": switched,
+    return {"vertices": vertices, "residual_mm": residual, "sigma2": sigma2 * scale ** 2,
+            "n_iter": n_iter, "mirror_ratio": mirror, "pose_switched": switched,
             "timings": times}
 
 

@@ -1,0 +1,176 @@
+"""A template fitted to a surface by a similarity pose and smooth offsets along its normals.
+
+The deformation of the groupwise refinement passes (:mod:`core.correspondence.batch`): the
+population's mean shape, posed on a shape by the affine fit over the shape's current
+correspondence, is moved onto the shape's surface by
+
+    P = s R (X + (B a) * N) + t
+
+with X the posed template's vertices, N their unit normals, ``B a`` a scalar offset field
+and (s, R, t) a similarity. The offsets have a Gaussian-process prior (squared-exponential
+kernel of width ``width``, standard deviation ``sd``: ``a ~ N(0, I)`` with ``B B^T`` the
+kernel, low rank by the Nystrom method), as Gaussian process morphable models do
+(Luthi et al., IEEE TPAMI 2018), restricted here to displacements along the template's
+normals: the template's points may not slide along the surface, so each shape's local
+features and bumps are taken up by offsets and not by a drift of the points. The data term
+is the symmetric point-to-plane distance (Chen & Medioni 1992 for point-to-plane; both
+directions as in Rusinkiewicz's symmetric ICP, SIGGRAPH 2019): template points to the
+surface and surface points to the moved template, so that a tube cannot slide along its own
+axis with offsets lengthening one end. Solved by Gauss-Newton (closest points recomputed
+every iteration).
+
+Nonrigid CPD, the first pass's deformation, matches point densities: where a shape's
+feature is higher than the template's, its larger area draws template points in, a
+tangential error of the order of the feature's size. On the known-homology benchmark
+(``benchmarks/bench_correspondence.py --only spread``) this fit in the refinement pass
+lowered the spread below CPD's (README, Measured).
+
+All lengths are in the units of the points given (:func:`core.correspondence.pair`
+normalises each target to unit RMS radius).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from core.geometry import SurfaceProjector, barycentric, face_normals, rodrigues, vertex_normals
+
+NYSTROM_POINTS = 400  # landmarks of the low-rank kernel (the kernel is broad: ~0.5 of the size)
+BASIS_ENERGY = 0.995  # share of the kernel's trace the offset basis keeps
+
+
+@dataclass
+class NormalOffsetFit:
+    """``points`` (M, 3): the moved template (near the surface, not on it); ``offsets`` (M,)
+    along the posed template's normals; ``pose`` (4, 4) the similarity applied after them;
+    ``residual2`` the mean squared point-to-plane distance at the end; ``n_iter``."""
+
+    points: np.ndarray
+    offsets: np.ndarray
+    pose: np.ndarray
+    residual2: float
+    n_iter: int
+
+
+def offset_basis(points: np.ndarray, width: float, sd: float, *,
+                 landmarks: int = NYSTROM_POINTS, energy: float = BASIS_ENERGY) -> np.ndarray:
+    """B (M, r) with ``B B^T`` ~ sd^2 exp(-|x_i - x_j|^2 / (2 width^2)) (Nystrom on
+    ``landmarks`` points spread by farthest-point order, then the leading ``energy`` share).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    pick = _spread_points(points, min(int(landmarks), len(points)))
+    def kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        d2 = (a ** 2).sum(1)[:, None] + (b ** 2).sum(1)[None] - 2.0 * a @ b.T
+        return np.exp(-np.maximum(d2, 0.0) / (2.0 * width ** 2))
+    cross = kernel(points, points[pick])                     # (M, m)
+    lam, vec = np.linalg.eigh(kernel(points[pick], points[pick]))
+    keep = lam > 1e-10 * lam.max()
+    factor = cross @ (vec[:, keep] / np.sqrt(lam[keep]))     # K ~ factor factor^T
+    u, s, _ = np.linalg.svd(factor, full_matrices=False)
+    cum = np.cumsum(s ** 2) / (s ** 2).sum()
+    r = int(np.searchsorted(cum, energy) + 1)
+    return u[:, :r] * s[:r] * sd
+
+
+def _spread_points(points: np.ndarray, n: int) -> np.ndarray:
+    """Indices of ``n`` points in farthest-point order (deterministic: starts at point 0;
+    O(M n), one vectorised pass over the points a landmark)."""
+    chosen = np.empty(n, dtype=np.int64)
+    chosen[0] = 0
+    dist = np.linalg.norm(points - points[0], axis=1)
+    for i in range(1, n):  # n landmarks, each a vectorised pass over the points
+        chosen[i] = int(np.argmax(dist))
+        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[i]], axis=1))
+    return chosen
+
+
+def fit_normal_offsets(template: np.ndarray, faces: np.ndarray, target_vertices: np.ndarray,
+                       target_faces: np.ndarray, *, width: float = 0.5, sd: float = 0.1,
+                       noise: float = 0.02, iterations: int = 15,
+                       tolerance: float = 1e-6) -> NormalOffsetFit:
+    """Fit the posed ``template`` (M, 3) with ``faces`` to the target surface (module
+    docstring): ``width`` and ``sd`` of the offsets' prior, ``noise`` the point-to-plane
+    residual's standard deviation, all in the points' units.
+
+    Runs on one BLAS thread: a pool's workers have one, and the round-off of a threaded
+    product differs, which the closest points amplify (0.01 mm on a tube); the outputs of
+    the process pool, of Dask and of a run in this process stay byte-identical.
+    """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit(template, faces, target_vertices, target_faces, width, sd, noise,
+                    iterations, tolerance)
+
+
+def _fit(template, faces, target_vertices, target_faces, width, sd, noise, iterations,
+         tolerance) -> NormalOffsetFit:
+    x0 = np.asarray(template, dtype=np.float64)
+    faces = np.asarray(faces)
+    tv = np.asarray(target_vertices, dtype=np.float64)
+    tf = np.asarray(target_faces)
+    normals = vertex_normals(x0, faces)
+    basis = offset_basis(x0, width, sd)
+    rank = basis.shape[1]
+    # The fast projector (nearest triangle centroids, no certificate) inside the loop, as the
+    # fairing does: the exact one's certificate fails on thin parts and redoubles its search.
+    target = SurfaceProjector(tv, tf, k=8, exact=False, candidates="centroids")
+    target_normals = face_normals(tv, tf)
+    alpha = np.zeros(rank)
+    pose = np.eye(4)
+    residual2, n_iter = 0.0, 0
+    for n_iter in range(1, int(iterations) + 1):
+        points = _moved(x0, normals, basis, alpha, pose)
+        linear = normals @ pose[:3, :3].T  # d points / d offset, per vertex
+        centre = points.mean(axis=0)
+        # Template -> surface.
+        closest, _, tri = target.project(points)
+        n1 = target_normals[tri]
+        e1 = np.einsum("ij,ij->i", n1, points - closest)
+        j1 = np.hstack([_pose_rows(points - centre, n1),
+                        np.einsum("ij,ij->i", n1, linear)[:, None] * basis])
+        # Surface -> moved template (barycentric rows of the template's Jacobian).
+        back, _, tri2 = SurfaceProjector(points, faces, k=8, exact=False,
+                                             candidates="centroids").project(tv)
+        corners = faces[tri2]
+        bary = barycentric(points[corners], back)
+        n2 = face_normals(points, faces)[tri2]
+        e2 = np.einsum("ij,ij->i", n2, back - tv)
+        weights = np.einsum("ij,ikj->ik", n2, linear[corners]) * bary
+        j2 = np.hstack([_pose_rows(back - centre, n2), np.einsum("ik,ikr->ir", weights, basis[corners])])
+        balance = np.sqrt(len(points) / len(tv))  # both directions weigh the same
+        jac = np.vstack([j1, balance * j2]) / noise
+        res = np.concatenate([e1, balance * e2]) / noise
+        hessian = jac.T @ jac
+        hessian[7:, 7:] += np.eye(rank)
+        hessian[:7, :7] += 1e-6 * np.trace(hessian[:7, :7]) * np.eye(7)  # a tiny damping
+        gradient = jac.T @ res
+        gradient[7:] += alpha
+        step = -np.linalg.solve(hessian, gradient)
+        pose = _pose_step(step[:7], centre) @ pose
+        alpha = alpha + step[7:]
+        residual2 = float(np.mean(e1 ** 2))
+        if np.abs(step[:7]).max() < tolerance and np.abs(step[7:]).max() < tolerance / max(sd, 1e-12):
+            break
+    points = _moved(x0, normals, basis, alpha, pose)
+    return NormalOffsetFit(points, basis @ alpha, pose, residual2, n_iter)
+
+
+def _moved(x0: np.ndarray, normals: np.ndarray, basis: np.ndarray, alpha: np.ndarray,
+           pose: np.ndarray) -> np.ndarray:
+    return (x0 + (basis @ alpha)[:, None] * normals) @ pose[:3, :3].T + pose[:3, 3]
+
+
+def _pose_rows(arm: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Point-to-plane Jacobian rows (P, 7) of a small similarity about the centre: rotation
+    vector (3), relative scale (1), translation (3)."""
+    return np.column_stack([np.cross(arm, normals), np.einsum("ij,ij->i", normals, arm), normals])
+
+
+def _pose_step(step: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The similarity (4, 4) of one Gauss-Newton step, about ``centre``."""
+    out = np.eye(4)
+    out[:3, :3] = (1.0 + step[3]) * rodrigues(step[:3])
+    out[:3, 3] = centre - out[:3, :3] @ centre + step[4:7]
+    return out
