@@ -44,7 +44,10 @@ coarse, repaired and unrepresentative ones, and says why; with ``n_references`` 
 candidates are tried and the most compact model kept. Shapes far from every other shape
 (another structure, a mirrored side) are reported and left out. Then every shape is
 corresponded again to the evolving mean shape (``refine`` passes), which removes most of
-the chosen reference's bias.
+the chosen reference's bias. A pass poses the mean on each shape by the affine fit over the
+shape's current correspondence and moves it onto the shape by a similarity and smooth
+offsets along the mean's normals (:mod:`~core.correspondence.offsets`; not CPD, whose
+density matching slides points towards a shape's larger features), then labels and fairs.
 
 **Residual** (``residuals_mm``): the symmetric mean surface distance in mm between the
 corresponded mesh and the target: the mean of (a) the mean distance of the corresponded
@@ -60,7 +63,8 @@ Shapes are independent, so the per-shape work runs in a process pool.
 
 Modules: :mod:`~core.correspondence.cpd` (the rustcpd adapter),
 :mod:`~core.correspondence.assignment`, :mod:`~core.correspondence.pair` (one shape),
-:mod:`~core.correspondence.batch` (the training set).
+:mod:`~core.correspondence.batch` (the training set), :mod:`~core.correspondence.offsets`
+(the refinement's template fit).
 """
 
 from core.correspondence.assignment import auction_assign, labelling_candidates

@@ -665,10 +665,11 @@ def _refine(vertices: MutableMapping, faces: np.ndarray, prepared: list, params:
             on_last_pass: Callable | None = None) -> list[float]:
     """Groupwise refinement: correspond every shape again to the current mean shape.
 
-    The mean of the similarity-aligned corresponded shapes is posed on each shape by the
-    weighted Umeyama fit over the current correspondences (no rigid CPD needed; in the
-    worker, :func:`_task_job`), then corresponded to it as in the pairwise step (nonrigid
-    CPD, assignment, fairing). Each result replaces the shape's correspondence as it
+    The mean of the similarity-aligned corresponded shapes is posed on each shape by a fit
+    over the current correspondences (no rigid CPD needed; in the worker, :func:`_task_job`:
+    affine for the default ``refine_deformation="normal_offsets"``, Umeyama for ``"cpd"``),
+    moved onto the shape (:mod:`core.correspondence.offsets`, or nonrigid CPD), then
+    labelled and faired as in the pairwise step. Each result replaces the shape's correspondence as it
     arrives (its job was the only reader of it); ``on_last_pass(key, (out, err))`` sees the
     last pass's results as they arrive (final).
     """
@@ -700,6 +701,12 @@ def _refine(vertices: MutableMapping, faces: np.ndarray, prepared: list, params:
         ok = [moved[k] for k in keys if k in moved]
         changes.append(float(np.mean(ok)) if ok else 0.0)
     return changes
+
+
+def _pass_params(params: dict) -> dict:
+    """The correspondence parameters of a refinement pass (its deformation, no residual)."""
+    return dict(params, pair_residual=False, max_iterations=int(params["refine_iterations"]),
+                deformation=params["refine_deformation"])
 
 
 def _add_timings(timings: dict, key: int, out: dict) -> None:
@@ -861,8 +868,7 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
     if on_provisional is not None and refine > 0:
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
-    passes = dict(params, pair_residual=False, max_iterations=int(params["refine_iterations"]),
-                  deformation=params["refine_deformation"])
+    passes = _pass_params(params)
     changes = _refine(corresponded, ref_faces, prepared, passes, n_jobs,
                       progress, refine, timings,
                       on_last_pass=final if on_shape is not None else None)

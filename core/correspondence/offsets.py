@@ -124,21 +124,8 @@ def _fit(template, faces, target_vertices, target_faces, width, sd, noise, itera
         points = _moved(x0, normals, basis, alpha, pose)
         linear = normals @ pose[:3, :3].T  # d points / d offset, per vertex
         centre = points.mean(axis=0)
-        # Template -> surface.
-        closest, _, tri = target.project(points)
-        n1 = target_normals[tri]
-        e1 = np.einsum("ij,ij->i", n1, points - closest)
-        j1 = np.hstack([_pose_rows(points - centre, n1),
-                        np.einsum("ij,ij->i", n1, linear)[:, None] * basis])
-        # Surface -> moved template (barycentric rows of the template's Jacobian).
-        back, _, tri2 = SurfaceProjector(points, faces, k=8, exact=False,
-                                             candidates="centroids").project(tv)
-        corners = faces[tri2]
-        bary = barycentric(points[corners], back)
-        n2 = face_normals(points, faces)[tri2]
-        e2 = np.einsum("ij,ij->i", n2, back - tv)
-        weights = np.einsum("ij,ikj->ik", n2, linear[corners]) * bary
-        j2 = np.hstack([_pose_rows(back - centre, n2), np.einsum("ik,ikr->ir", weights, basis[corners])])
+        e1, j1 = _to_surface(points, centre, linear, basis, target, target_normals)
+        e2, j2 = _to_template(points, faces, centre, linear, basis, tv)
         balance = np.sqrt(len(points) / len(tv))  # both directions weigh the same
         jac = np.vstack([j1, balance * j2]) / noise
         res = np.concatenate([e1, balance * e2]) / noise
@@ -155,6 +142,34 @@ def _fit(template, faces, target_vertices, target_faces, width, sd, noise, itera
             break
     points = _moved(x0, normals, basis, alpha, pose)
     return NormalOffsetFit(points, basis @ alpha, pose, residual2, n_iter)
+
+
+def _to_surface(points: np.ndarray, centre: np.ndarray, linear: np.ndarray, basis: np.ndarray,
+                target: SurfaceProjector, target_normals: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Template -> surface: point-to-plane residuals (M,) and their Jacobian (M, 7 + r)."""
+    closest, _, tri = target.project(points)
+    normals = target_normals[tri]
+    residual = np.einsum("ij,ij->i", normals, points - closest)
+    jac = np.hstack([_pose_rows(points - centre, normals),
+                     np.einsum("ij,ij->i", normals, linear)[:, None] * basis])
+    return residual, jac
+
+
+def _to_template(points: np.ndarray, faces: np.ndarray, centre: np.ndarray, linear: np.ndarray,
+                 basis: np.ndarray, surface_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Surface -> moved template: residuals (N,) and Jacobian (N, 7 + r), each row the
+    barycentric mix of the closest template triangle's vertex rows."""
+    back, _, tri = SurfaceProjector(points, faces, k=8, exact=False,
+                                    candidates="centroids").project(surface_points)
+    corners = faces[tri]
+    bary = barycentric(points[corners], back)
+    normals = face_normals(points, faces)[tri]
+    residual = np.einsum("ij,ij->i", normals, back - surface_points)
+    weights = np.einsum("ij,ikj->ik", normals, linear[corners]) * bary
+    jac = np.hstack([_pose_rows(back - centre, normals),
+                     np.einsum("ik,ikr->ir", weights, basis[corners])])
+    return residual, jac
 
 
 def _moved(x0: np.ndarray, normals: np.ndarray, basis: np.ndarray, alpha: np.ndarray,
