@@ -84,3 +84,25 @@ def test_an_unknown_refine_deformation_is_refused():
         establish_correspondence(pop.meshes, 0, n_jobs=1,
                                  refine_deformation="tps")
     assert DEFAULT_CPD_PARAMS["refine_deformation"] == "normal_offsets"
+
+
+def test_cli_correspond_takes_the_refinement_deformation(tmp_path):
+    import json
+
+    from core.cli import main
+    from core.io import save_mesh
+
+    pop = known_homology_shapes("bean", 4, seed=23, n_points=(380, 420))
+    paths = []
+    for mesh in pop.meshes:
+        paths.append(str(tmp_path / f"{mesh.name}.vtk"))
+        save_mesh(paths[-1], mesh)
+    for how in ("cpd", "normal_offsets"):
+        out = tmp_path / how
+        assert main(["correspond", *paths, "--out", str(out), "--jobs", "1",
+                     "--refine-deformation", how]) == 0
+        report = json.loads((out / "correspondence.json").read_text())
+        assert report["params"]["refine_deformation"] == how
+        assert len(report["refinement_change_mm"]) == 1
+    with pytest.raises(SystemExit):
+        main(["correspond", *paths, "--out", str(tmp_path / "x"), "--refine-deformation", "tps"])

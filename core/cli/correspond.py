@@ -71,6 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refine", type=int, default=1,
                         help="groupwise refinement passes: correspond again to the mean shape "
                              "(default 1; 0: plain reference-based)")
+    parser.add_argument("--refine-deformation", choices=("normal_offsets", "cpd"),
+                        default=DEFAULT_CPD_PARAMS["refine_deformation"],
+                        help="how a refinement pass moves the mean onto each shape: a similarity "
+                             "and smooth offsets along its normals (default), or nonrigid CPD "
+                             "(the former pass)")
     parser.add_argument("--no-groom", action="store_true",
                         help="no grooming at all (inputs must be single closed surfaces)")
     for step, what in (("largest-piece", "keep only the largest connected piece"),
@@ -151,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
             reference = ref_loaded[0][1]
             reference.name = str(ref_path)
     params = {"w": args.w, "beta": args.beta, "lam": args.lam, "tolerance": args.tolerance,
-              "max_iterations": args.max_iterations}
+              "max_iterations": args.max_iterations, "refine_deformation": args.refine_deformation}
     groom: bool | dict = False if args.no_groom else {
         "largest_piece": not args.no_largest_piece, "fill_holes": not args.no_fill_holes,
         "fix_orientation": not args.no_fix_orientation, "remesh": not args.no_remesh}
