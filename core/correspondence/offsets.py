@@ -89,57 +89,59 @@ def _spread_points(points: np.ndarray, n: int) -> np.ndarray:
 
 def fit_normal_offsets(template: np.ndarray, faces: np.ndarray, target_vertices: np.ndarray,
                        target_faces: np.ndarray, *, width: float = 0.5, sd: float = 0.1,
-                       noise: float = 0.02, iterations: int = 15,
+                       noise: float = 0.02, iterations: int = 15, pose_iterations: int = 15,
                        tolerance: float = 1e-6) -> NormalOffsetFit:
     """Fit the posed ``template`` (M, 3) with ``faces`` to the target surface (module
     docstring): ``width`` and ``sd`` of the offsets' prior, ``noise`` the point-to-plane
-    residual's standard deviation, all in the points' units.
+    residual's standard deviation, all in the points' units. First ``pose_iterations`` of
+    the similarity alone (the offsets held at zero), then ``iterations`` of both: on the
+    tuning seeds the pose-first stage lowered rings' spread by 15 % (bumps) and 17 %
+    (features) and left beans and tubes within 2 %.
 
     Runs on one BLAS thread: a pool's workers have one, and the round-off of a threaded
     product differs, which the closest points amplify (0.01 mm on a tube); the outputs of
     the process pool, of Dask and of a run in this process stay byte-identical.
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit(template, faces, target_vertices, target_faces, width, sd, noise,
-                    iterations, tolerance)
+        return _fit(np.asarray(template, dtype=np.float64), np.asarray(faces),
+                    np.asarray(target_vertices, dtype=np.float64), np.asarray(target_faces),
+                    width, sd, noise, (int(pose_iterations), int(iterations)), tolerance)
 
 
-def _fit(template, faces, target_vertices, target_faces, width, sd, noise, iterations,
-         tolerance) -> NormalOffsetFit:
-    x0 = np.asarray(template, dtype=np.float64)
-    faces = np.asarray(faces)
-    tv = np.asarray(target_vertices, dtype=np.float64)
-    tf = np.asarray(target_faces)
+def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, width: float,
+         sd: float, noise: float, stages: tuple[int, int], tolerance: float) -> NormalOffsetFit:
     normals = vertex_normals(x0, faces)
     basis = offset_basis(x0, width, sd)
-    rank = basis.shape[1]
     # The fast projector (nearest triangle centroids, no certificate) inside the loop, as the
     # fairing does: the exact one's certificate fails on thin parts and redoubles its search.
     target = SurfaceProjector(tv, tf, k=8, exact=False, candidates="centroids")
     target_normals = face_normals(tv, tf)
-    alpha = np.zeros(rank)
+    alpha = np.zeros(basis.shape[1])
     pose = np.eye(4)
     residual2, n_iter = 0.0, 0
-    for n_iter in range(1, int(iterations) + 1):
-        points = _moved(x0, normals, basis, alpha, pose)
-        linear = normals @ pose[:3, :3].T  # d points / d offset, per vertex
-        centre = points.mean(axis=0)
-        e1, j1 = _to_surface(points, centre, linear, basis, target, target_normals)
-        e2, j2 = _to_template(points, faces, centre, linear, basis, tv)
-        balance = np.sqrt(len(points) / len(tv))  # both directions weigh the same
-        jac = np.vstack([j1, balance * j2]) / noise
-        res = np.concatenate([e1, balance * e2]) / noise
-        hessian = jac.T @ jac
-        hessian[7:, 7:] += np.eye(rank)
-        hessian[:7, :7] += 1e-6 * np.trace(hessian[:7, :7]) * np.eye(7)  # a tiny damping
-        gradient = jac.T @ res
-        gradient[7:] += alpha
-        step = -np.linalg.solve(hessian, gradient)
-        pose = _pose_step(step[:7], centre) @ pose
-        alpha = alpha + step[7:]
-        residual2 = float(np.mean(e1 ** 2))
-        if np.abs(step[:7]).max() < tolerance and np.abs(step[7:]).max() < tolerance / max(sd, 1e-12):
-            break
+    for stage, count in enumerate(stages):
+        active = basis if stage == 1 else basis[:, :0]  # the pose-only stage: no offsets
+        for _ in range(count):
+            n_iter += 1
+            points = _moved(x0, normals, basis, alpha, pose)
+            linear = normals @ pose[:3, :3].T  # d points / d offset, per vertex
+            centre = points.mean(axis=0)
+            e1, j1 = _to_surface(points, centre, linear, active, target, target_normals)
+            e2, j2 = _to_template(points, faces, centre, linear, active, tv)
+            balance = np.sqrt(len(points) / len(tv))  # both directions weigh the same
+            jac = np.vstack([j1, balance * j2]) / noise
+            hessian = jac.T @ jac
+            hessian[7:, 7:] += np.eye(active.shape[1])
+            hessian[:7, :7] += 1e-6 * np.trace(hessian[:7, :7]) * np.eye(7)  # a tiny damping
+            gradient = jac.T @ (np.concatenate([e1, balance * e2]) / noise)
+            gradient[7:] += alpha[:active.shape[1]]
+            step = -np.linalg.solve(hessian, gradient)
+            pose = _pose_step(step[:7], centre) @ pose
+            alpha[:active.shape[1]] += step[7:]
+            residual2 = float(np.mean(e1 ** 2))
+            offsets_step = np.abs(step[7:]).max(initial=0.0) * sd  # alpha is in prior sds
+            if np.abs(step[:7]).max() < tolerance and offsets_step < tolerance:
+                break
     points = _moved(x0, normals, basis, alpha, pose)
     return NormalOffsetFit(points, basis @ alpha, pose, residual2, n_iter)
 

@@ -35,7 +35,9 @@ DEFAULT_CPD_PARAMS = {
     "offset_width": 0.5,      # kernel width of the offsets' prior (unit-RMS units)
     "offset_sd": 0.1,         # standard deviation of the offsets' prior (unit-RMS units)
     "offset_noise": 0.02,     # point-to-plane residual's standard deviation (unit-RMS units)
-    "offset_iterations": 15,  # Gauss-Newton iterations of the offsets' fit (30 gave the same spread on tuning seeds)
+    "offset_iterations": 15,  # Gauss-Newton iterations of the offsets' fit (30 gave the same
+                              # spread on tuning seeds), after offset_pose_iterations
+    "offset_pose_iterations": 15,  # of its similarity alone first (0: none)
     "deformation": "cpd",     # this correspondence's deformation ("cpd" or "normal_offsets";
                               # a refinement pass sets it from refine_deformation)
     "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
@@ -260,7 +262,8 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     if p["deformation"] == "normal_offsets":
         fit = fit_normal_offsets(y_posed, ref_f, xn, tgt_f, width=p["offset_width"],
                                  sd=p["offset_sd"], noise=p["offset_noise"],
-                                 iterations=p["offset_iterations"])
+                                 iterations=p["offset_iterations"],
+                                 pose_iterations=p["offset_pose_iterations"])
         moved, sigma2, n_iter = fit.points, fit.residual2, fit.n_iter
     else:
         moved, nonrigid = _deform(xn, y_posed, p, parallel)
