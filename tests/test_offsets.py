@@ -48,14 +48,15 @@ def _bumped_target(seed: int):
     return x, faces, tv, tf, truth, offsets, rotation
 
 
-def test_fit_recovers_a_similarity_and_a_bump_along_the_normals():
+@pytest.mark.parametrize("pose_iterations", [0, 15])
+def test_fit_recovers_a_similarity_and_a_bump_along_the_normals(pose_iterations):
     x, faces, tv, tf, truth, offsets, rotation = _bumped_target(5)
     # Start: the true similarity turned by 4 degrees more and shifted (a current
     # correspondence's error), without the bump.
     start_turn = rodrigues(np.deg2rad(4.0) * np.array([0.0, 0.0, 1.0]))
     start = 1.07 * x @ (start_turn @ rotation).T + [0.2, -0.1, 0.05] + [0.03, 0.02, 0.0]
     before = np.linalg.norm(SurfaceProjector(tv, tf)(start)[0] - truth, axis=1).mean()
-    fit = fit_normal_offsets(start, faces, tv, tf)
+    fit = fit_normal_offsets(start, faces, tv, tf, pose_iterations=pose_iterations)
     after = np.linalg.norm(SurfaceProjector(tv, tf)(fit.points)[0] - truth, axis=1).mean()
     # Unit RMS radius, edges ~0.12; projecting the truth itself onto the remesh is 0.003 off.
     # Seeds 5-7 end at 0.013-0.017 from 0.062.

@@ -89,14 +89,14 @@ def _spread_points(points: np.ndarray, n: int) -> np.ndarray:
 
 def fit_normal_offsets(template: np.ndarray, faces: np.ndarray, target_vertices: np.ndarray,
                        target_faces: np.ndarray, *, width: float = 0.5, sd: float = 0.1,
-                       noise: float = 0.02, iterations: int = 15, pose_iterations: int = 15,
+                       noise: float = 0.02, iterations: int = 15, pose_iterations: int = 0,
                        tolerance: float = 1e-6) -> NormalOffsetFit:
     """Fit the posed ``template`` (M, 3) with ``faces`` to the target surface (module
     docstring): ``width`` and ``sd`` of the offsets' prior, ``noise`` the point-to-plane
-    residual's standard deviation, all in the points' units. First ``pose_iterations`` of
-    the similarity alone (the offsets held at zero), then ``iterations`` of both: on the
-    tuning seeds the pose-first stage lowered rings' spread by 15 % (bumps) and 17 %
-    (features) and left beans and tubes within 2 %.
+    residual's standard deviation, all in the points' units. ``pose_iterations`` of the
+    similarity alone (the offsets held at zero) may come first, then ``iterations`` of both.
+    A pose-first stage is off by default: a ring's turn about its own axis is barely
+    constrained by the similarity alone (README, Measured).
 
     Runs on one BLAS thread: a pool's workers have one, and the round-off of a threaded
     product differs, which the closest points amplify (0.01 mm on a tube); the outputs of
