@@ -134,9 +134,9 @@ def _check_params(cpd_params: dict, selection: str) -> dict:
     params.update(cpd_params)
     if not 0.0 <= params["w"] < 1.0:
         raise ValueError(f"outlier weight w must be in [0, 1), got {params['w']}")
-    if params["refine_deformation"] not in ("normal_offsets", "cpd"):
-        raise ValueError("refine_deformation must be 'normal_offsets' or 'cpd', got "
-                         f"{params['refine_deformation']!r}")
+    for name in ("refine_deformation", "deformation"):
+        if params[name] not in ("normal_offsets", "cpd"):
+            raise ValueError(f"{name} must be 'normal_offsets' or 'cpd', got {params[name]!r}")
     for name in ("beta", "lam", "tolerance", "offset_width", "offset_sd", "offset_noise"):
         if not params[name] > 0:
             raise ValueError(f"{name} must be positive, got {params[name]}")
@@ -669,9 +669,9 @@ def _refine(vertices: MutableMapping, faces: np.ndarray, prepared: list, params:
     over the current correspondences (no rigid CPD needed; in the worker, :func:`_task_job`:
     affine for the default ``refine_deformation="normal_offsets"``, Umeyama for ``"cpd"``),
     moved onto the shape (:mod:`core.correspondence.offsets`, or nonrigid CPD), then
-    labelled and faired as in the pairwise step. Each result replaces the shape's correspondence as it
-    arrives (its job was the only reader of it); ``on_last_pass(key, (out, err))`` sees the
-    last pass's results as they arrive (final).
+    labelled and faired as in the pairwise step. Each result replaces the shape's
+    correspondence as it arrives (its job was the only reader of it);
+    ``on_last_pass(key, (out, err))`` sees the last pass's results as they arrive (final).
     """
     changes = []
     for it in range(int(passes)):

@@ -236,7 +236,8 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     dict
         ``vertices`` (M, 3) on the target, with the reference's vertex order; ``residual_mm``
         (None with ``pair_residual=False``);
-        ``sigma2`` (CPD, mm^2); ``n_iter``; ``mirror_ratio`` (:func:`mirror_fit_ratio`, None
+        ``sigma2`` (mm^2: CPD's, or the offsets' fit's mean squared point-to-plane
+        residual); ``n_iter``; ``mirror_ratio`` (:func:`mirror_fit_ratio`, None
         when not checked); ``pose_switched`` (a principal-axes start replaced the input's
         orientation); ``timings`` (seconds per step).
     """
