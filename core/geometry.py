@@ -342,3 +342,16 @@ def random_rotation(rng: np.random.Generator, max_angle_deg: float = 180.0) -> n
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     return rodrigues(axis * np.deg2rad(rng.uniform(-max_angle_deg, max_angle_deg)))
+
+
+def farthest_point_indices(points: np.ndarray, count: int, start: int = 0) -> np.ndarray:
+    """Indices (count,) of points in farthest-point order from ``start``: each next point is
+    the one farthest from those chosen (one vectorised pass over the points a pick)."""
+    points = np.asarray(points, dtype=np.float64)
+    chosen = np.empty(int(count), dtype=np.int64)
+    chosen[0] = int(start)
+    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for i in range(1, int(count)):
+        chosen[i] = int(np.argmax(dist))
+        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[i]], axis=1))
+    return chosen

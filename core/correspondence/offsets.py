@@ -36,7 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from core.geometry import SurfaceProjector, barycentric, face_normals, rodrigues, vertex_normals
+from core.geometry import (SurfaceProjector, barycentric, face_normals,
+                           farthest_point_indices, rodrigues, vertex_normals)
 
 NYSTROM_POINTS = 400  # landmarks of the low-rank kernel (the kernel is broad: ~0.5 of the size)
 BASIS_ENERGY = 0.995  # share of the kernel's trace the offset basis keeps
@@ -61,7 +62,8 @@ def offset_basis(points: np.ndarray, width: float, sd: float, *,
     ``landmarks`` points spread by farthest-point order, then the leading ``energy`` share).
     """
     points = np.asarray(points, dtype=np.float64)
-    pick = _spread_points(points, min(int(landmarks), len(points)))
+    pick = farthest_point_indices(points, min(int(landmarks), len(points)))
+
     def kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         d2 = (a ** 2).sum(1)[:, None] + (b ** 2).sum(1)[None] - 2.0 * a @ b.T
         return np.exp(-np.maximum(d2, 0.0) / (2.0 * width ** 2))
@@ -73,18 +75,6 @@ def offset_basis(points: np.ndarray, width: float, sd: float, *,
     cum = np.cumsum(s ** 2) / (s ** 2).sum()
     r = int(np.searchsorted(cum, energy) + 1)
     return u[:, :r] * s[:r] * sd
-
-
-def _spread_points(points: np.ndarray, n: int) -> np.ndarray:
-    """Indices of ``n`` points in farthest-point order (deterministic: starts at point 0;
-    O(M n), one vectorised pass over the points a landmark)."""
-    chosen = np.empty(n, dtype=np.int64)
-    chosen[0] = 0
-    dist = np.linalg.norm(points - points[0], axis=1)
-    for i in range(1, n):  # n landmarks, each a vectorised pass over the points
-        chosen[i] = int(np.argmax(dist))
-        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[i]], axis=1))
-    return chosen
 
 
 def fit_normal_offsets(template: np.ndarray, faces: np.ndarray, target_vertices: np.ndarray,

@@ -75,12 +75,7 @@ def ellipsoid_surface(n_sub: int = 3, radii=(20.0, 14.0, 10.0)) -> tuple[np.ndar
 
 def farthest_points(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
     """Indices of ``count`` points chosen by farthest-point sampling from a random start."""
-    idx = [int(rng.integers(len(points)))]
-    dist = np.linalg.norm(points - points[idx[0]], axis=1)
-    for _ in range(count - 1):
-        idx.append(int(np.argmax(dist)))
-        dist = np.minimum(dist, np.linalg.norm(points - points[idx[-1]], axis=1))
-    return np.array(idx)
+    return geometry.farthest_point_indices(points, count, start=int(rng.integers(len(points))))
 
 
 def planted_shapes(base: np.ndarray, faces: np.ndarray, *, n_shapes: int = 30, n_factors: int = 6,
