@@ -22,7 +22,6 @@ from core import mesh as meshops
 from core.alignment import apply_transform, fit_transform
 from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _principal_axes, _task,
                                      mesh_problem, mirror_fit_ratio)
-from core.geometry import umeyama
 from core.grooming import GroomingError, groom_mesh
 from core.correspondence.store import (InputFile, Scratch, VertexRows, open_mesh,
                                       open_rows, read_input, write_scratch_mesh)
@@ -357,7 +356,7 @@ def _task_job(task: tuple, references: dict) -> tuple:
     The target is a handle (:func:`core.correspondence.store.open_mesh`: the mesh itself, or
     a file the worker reads). A refinement task carries the shape's current correspondence
     (a handle too, :func:`~core.correspondence.store.open_rows`) instead of the posed mean:
-    the worker poses the mean on it (weighted Umeyama fit), as the client did before.
+    the worker poses the mean on it (core.alignment.fit_transform), as the client did before.
     """
     key, _, _, target, _, params, parallel, *rest = task
     ref_v, ref_f = references[key[0]]
@@ -365,11 +364,9 @@ def _task_job(task: tuple, references: dict) -> tuple:
     extra = ()
     if rest:
         current = open_rows(rest[0])
-        if params.get("deformation") == "normal_offsets":  # its fit adds only a similarity
-            extra = (apply_transform(fit_transform(ref_v, current, "affine"), ref_v),)
-        else:
-            s, r, t = umeyama(ref_v, current)
-            extra = (s * ref_v @ r.T + t,)
+        # Affine for the offsets' fit (which adds only a similarity), similarity for CPD.
+        how = "affine" if params.get("deformation") == "normal_offsets" else "similarity"
+        extra = (apply_transform(fit_transform(ref_v, current, how), ref_v),)
     _, out, err = _task((key, ref_v, ref_f, mesh.vertices, mesh.faces, params, parallel, *extra))
     return out, err
 
@@ -667,7 +664,7 @@ def _refine(vertices: MutableMapping, faces: np.ndarray, prepared: list, params:
 
     The mean of the similarity-aligned corresponded shapes is posed on each shape by a fit
     over the current correspondences (no rigid CPD needed; in the worker, :func:`_task_job`:
-    affine for the default ``refine_deformation="normal_offsets"``, Umeyama for ``"cpd"``),
+    affine for the default ``refine_deformation="normal_offsets"``, similarity for ``"cpd"``),
     moved onto the shape (:mod:`core.correspondence.offsets`, or nonrigid CPD), then
     labelled and faired as in the pairwise step. Each result replaces the shape's
     correspondence as it arrives (its job was the only reader of it);
