@@ -396,6 +396,17 @@ def _title(what: str, n_shapes: int, vertices: int, seed: int, repeats: int = 1)
 POPULATIONS = {"bumps": {},
                "features": {"features": 6, "n_bumps": 3, "bump_mm": 0.5, "retessellate": True}}
 population = "bumps"  # set by --population
+ours_params: dict = {}  # SSM Studio's correspondence parameters in the spread table, --param
+
+
+def _param_value(text: str):
+    """NAME=VALUE of --param: an int, a float, or the string."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
 
 
 def _populations(n_shapes: int, vertices: int, seed: int, repeats: int = 1):
@@ -428,7 +439,8 @@ def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
     from core.correspondence.batch import _prepare
 
     _title("spread vs truth (mean distance of homologous points' material points from their "
-           "mean, mm)", n_shapes, vertices, seed, repeats)
+           "mean, mm)" + (f"; SSM Studio with {ours_params}" if ours_params else ""),
+           n_shapes, vertices, seed, repeats)
     print(f"{'kind':<6}{'plain raw':>11}{'plain groomed':>15}{'ours refine 0':>15}{'ours refine 1':>15}"
           f"{'gain vs best plain':>20}{'assign % of pair':>18}{'dropped':>9}"
           + ("   gain per population" if repeats > 1 else ""))
@@ -437,7 +449,7 @@ def spread_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
         outputs, dropped = {}, set()
         for refine in (0, 1):
             res = establish_correspondence(pop.meshes, "auto", n_jobs=jobs, refine=refine,
-                                           vertices=vertices)
+                                           vertices=vertices, **ours_params)
             outputs[refine] = [m.vertices if m is not None else None for m in res.meshes]
             dropped |= {k for k, m in enumerate(res.meshes) if m is None}
             share = 100 * res.timings["assignment_total"] / max(res.timings["cpu_total"], 1e-9)
@@ -770,6 +782,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--population", choices=tuple(POPULATIONS), default="bumps",
                         help="known-homology shapes of the spread, limits and diagnostics tables: "
                              "independent bumps (default) or consistent features")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                        help="an SSM Studio correspondence parameter in the spread table, e.g. "
+                             "refine_deformation=cpd (the former refinement pass); repeatable")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--tuning", action="store_true",
                         help="spread table on the tuning seeds 2-4 instead of the held-out 100-102")
@@ -779,6 +794,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     global population
     population = args.population
+    ours_params.update({k: _param_value(v) for k, v in (p.split("=", 1) for p in args.param)})
     if args.only in (None, "scaling"):
         scaling_table()
     if args.only in (None, "spread"):
