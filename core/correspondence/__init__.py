@@ -45,7 +45,7 @@ candidates are tried and the most compact model kept. Shapes far from every othe
 (another structure, a mirrored side) are reported and left out. Then every shape is
 corresponded again to the evolving mean shape (``refine`` passes), which removes most of
 the chosen reference's bias. A pass poses the mean on each shape by the affine fit over the
-shape's current correspondence and moves it onto the shape by a similarity and smooth
+shape's current correspondence and moves it onto the shape by an affine map and smooth
 offsets along the mean's normals (:mod:`~core.correspondence.offsets`; not CPD, whose
 density matching slides points towards a shape's larger features), then labels and fairs.
 

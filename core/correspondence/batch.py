@@ -136,6 +136,8 @@ def _check_params(cpd_params: dict, selection: str) -> dict:
     for name in ("refine_deformation", "deformation"):
         if params[name] not in ("normal_offsets", "cpd"):
             raise ValueError(f"{name} must be 'normal_offsets' or 'cpd', got {params[name]!r}")
+    if params["offset_pose"] not in ("affine", "similarity"):
+        raise ValueError(f"offset_pose must be 'affine' or 'similarity', got {params['offset_pose']!r}")
     for name in ("beta", "lam", "tolerance", "offset_width", "offset_sd", "offset_noise"):
         if not params[name] > 0:
             raise ValueError(f"{name} must be positive, got {params[name]}")
@@ -364,7 +366,7 @@ def _task_job(task: tuple, references: dict) -> tuple:
     extra = ()
     if rest:
         current = open_rows(rest[0])
-        # Affine for the offsets' fit (which adds only a similarity), similarity for CPD.
+        # Affine for the offsets' fit (whose own pose refines it), similarity for CPD.
         how = "affine" if params.get("deformation") == "normal_offsets" else "similarity"
         extra = (apply_transform(fit_transform(ref_v, current, how), ref_v),)
     _, out, err = _task((key, ref_v, ref_f, mesh.vertices, mesh.faces, params, parallel, *extra))

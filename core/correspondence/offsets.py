@@ -1,13 +1,16 @@
-"""A template fitted to a surface by a similarity pose and smooth offsets along its normals.
+"""A template fitted to a surface by an affine pose and smooth offsets along its normals.
 
 The deformation of the groupwise refinement passes (:mod:`core.correspondence.batch`): the
 population's mean shape, posed on a shape by the affine fit over the shape's current
 correspondence, is moved onto the shape's surface by
 
-    P = s R (X + (B a) * N) + t
+    P = A (X + (B a) * N) + t
 
 with X the posed template's vertices, N their unit normals, ``B a`` a scalar offset field
-and (s, R, t) a similarity. The offsets have a Gaussian-process prior (squared-exponential
+and (A, t) an affine map (or a similarity, A = s R). The affine map takes up the anisotropic
+scalings between subjects, which offsets along the normals cannot express where the surface
+runs along the stretch (a tube's length, a bean's long side): with a similarity the rest
+of such a stretch was left to slide (README, Measured). The offsets have a Gaussian-process prior (squared-exponential
 kernel of width ``width``, standard deviation ``sd``: ``a ~ N(0, I)`` with ``B B^T`` the
 kernel, low rank by the Nystrom method), as Gaussian process morphable models do
 (Luthi et al., IEEE TPAMI 2018), restricted here to displacements along the template's
@@ -46,7 +49,8 @@ BASIS_ENERGY = 0.995  # share of the kernel's trace the offset basis keeps
 @dataclass
 class NormalOffsetFit:
     """``points`` (M, 3): the moved template (near the surface, not on it); ``offsets`` (M,)
-    along the posed template's normals; ``pose`` (4, 4) the similarity applied after them;
+    along the posed template's normals; ``pose`` (4, 4) the affine map (or similarity)
+    applied after them;
     ``residual2`` the mean squared point-to-plane distance at the end; ``n_iter``."""
 
     points: np.ndarray
@@ -80,26 +84,31 @@ def offset_basis(points: np.ndarray, width: float, sd: float, *,
 def fit_normal_offsets(template: np.ndarray, faces: np.ndarray, target_vertices: np.ndarray,
                        target_faces: np.ndarray, *, width: float = 0.5, sd: float = 0.1,
                        noise: float = 0.02, iterations: int = 15, pose_iterations: int = 0,
-                       tolerance: float = 1e-6) -> NormalOffsetFit:
+                       pose: str = "affine", tolerance: float = 1e-6) -> NormalOffsetFit:
     """Fit the posed ``template`` (M, 3) with ``faces`` to the target surface (module
     docstring): ``width`` and ``sd`` of the offsets' prior, ``noise`` the point-to-plane
-    residual's standard deviation, all in the points' units. ``pose_iterations`` of the
-    similarity alone (the offsets held at zero) may come first, then ``iterations`` of both.
-    A pose-first stage is off by default: a ring's turn about its own axis is barely
-    constrained by the similarity alone (README, Measured).
+    residual's standard deviation, all in the points' units; ``pose`` the map fitted with
+    the offsets, ``"affine"`` or ``"similarity"``. ``pose_iterations`` of the pose alone
+    (the offsets held at zero) may come first, then ``iterations`` of both. A pose-first
+    stage is off by default: a ring's turn about its own axis is barely constrained by the
+    pose alone (README, Measured).
 
     Runs on one BLAS thread: a pool's workers have one, and the round-off of a threaded
     product differs, which the closest points amplify (0.01 mm on a tube); the outputs of
     the process pool, of Dask and of a run in this process stay byte-identical.
     """
+    if pose not in ("affine", "similarity"):
+        raise ValueError(f"pose must be 'affine' or 'similarity', got {pose!r}")
     with threadpool_limits(limits=1, user_api="blas"):
         return _fit(np.asarray(template, dtype=np.float64), np.asarray(faces),
                     np.asarray(target_vertices, dtype=np.float64), np.asarray(target_faces),
-                    width, sd, noise, (int(pose_iterations), int(iterations)), tolerance)
+                    width, sd, noise, (int(pose_iterations), int(iterations)), tolerance,
+                    pose == "affine")
 
 
 def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, width: float,
-         sd: float, noise: float, stages: tuple[int, int], tolerance: float) -> NormalOffsetFit:
+         sd: float, noise: float, stages: tuple[int, int], tolerance: float,
+         affine: bool = False) -> NormalOffsetFit:
     normals = vertex_normals(x0, faces)
     basis = offset_basis(x0, width, sd)
     # The fast projector (nearest triangle centroids, no certificate) inside the loop, as the
@@ -108,6 +117,7 @@ def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, widt
     target_normals = face_normals(tv, tf)
     alpha = np.zeros(basis.shape[1])
     pose = np.eye(4)
+    npose = 12 if affine else 7
     residual2, n_iter = 0.0, 0
     for stage, count in enumerate(stages):
         active = basis if stage == 1 else basis[:, :0]  # the pose-only stage: no offsets
@@ -116,40 +126,42 @@ def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, widt
             points = _moved(x0, normals, basis, alpha, pose)
             linear = normals @ pose[:3, :3].T  # d points / d offset, per vertex
             centre = points.mean(axis=0)
-            e1, j1 = _to_surface(points, centre, linear, active, target, target_normals)
-            e2, j2 = _to_template(points, faces, centre, linear, active, tv)
+            e1, j1 = _to_surface(points, centre, linear, active, target, target_normals, affine)
+            e2, j2 = _to_template(points, faces, centre, linear, active, tv, affine)
             balance = np.sqrt(len(points) / len(tv))  # both directions weigh the same
             jac = np.vstack([j1, balance * j2]) / noise
             hessian = jac.T @ jac
-            hessian[7:, 7:] += np.eye(active.shape[1])
-            hessian[:7, :7] += 1e-6 * np.trace(hessian[:7, :7]) * np.eye(7)  # a tiny damping
+            hessian[npose:, npose:] += np.eye(active.shape[1])
+            hessian[:npose, :npose] += (1e-6 * np.trace(hessian[:npose, :npose])
+                                        * np.eye(npose))  # a tiny damping
             gradient = jac.T @ (np.concatenate([e1, balance * e2]) / noise)
-            gradient[7:] += alpha[:active.shape[1]]
+            gradient[npose:] += alpha[:active.shape[1]]
             step = -np.linalg.solve(hessian, gradient)
-            pose = _pose_step(step[:7], centre) @ pose
-            alpha[:active.shape[1]] += step[7:]
+            pose = _pose_step(step[:npose], centre) @ pose
+            alpha[:active.shape[1]] += step[npose:]
             residual2 = float(np.mean(e1 ** 2))
-            offsets_step = np.abs(step[7:]).max(initial=0.0) * sd  # alpha is in prior sds
-            if np.abs(step[:7]).max() < tolerance and offsets_step < tolerance:
+            offsets_step = np.abs(step[npose:]).max(initial=0.0) * sd  # alpha is in prior sds
+            if np.abs(step[:npose]).max() < tolerance and offsets_step < tolerance:
                 break
     points = _moved(x0, normals, basis, alpha, pose)
     return NormalOffsetFit(points, basis @ alpha, pose, residual2, n_iter)
 
 
 def _to_surface(points: np.ndarray, centre: np.ndarray, linear: np.ndarray, basis: np.ndarray,
-                target: SurfaceProjector, target_normals: np.ndarray
+                target: SurfaceProjector, target_normals: np.ndarray, affine: bool = False
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Template -> surface: point-to-plane residuals (M,) and their Jacobian (M, 7 + r)."""
     closest, _, tri = target.project(points)
     normals = target_normals[tri]
     residual = np.einsum("ij,ij->i", normals, points - closest)
-    jac = np.hstack([_pose_rows(points - centre, normals),
+    jac = np.hstack([_pose_rows(points - centre, normals, affine),
                      np.einsum("ij,ij->i", normals, linear)[:, None] * basis])
     return residual, jac
 
 
 def _to_template(points: np.ndarray, faces: np.ndarray, centre: np.ndarray, linear: np.ndarray,
-                 basis: np.ndarray, surface_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                 basis: np.ndarray, surface_points: np.ndarray, affine: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Surface -> moved template: residuals (N,) and Jacobian (N, 7 + r), each row the
     barycentric mix of the closest template triangle's vertex rows."""
     back, _, tri = SurfaceProjector(points, faces, k=8, exact=False,
@@ -159,7 +171,7 @@ def _to_template(points: np.ndarray, faces: np.ndarray, centre: np.ndarray, line
     normals = face_normals(points, faces)[tri]
     residual = np.einsum("ij,ij->i", normals, back - surface_points)
     weights = np.einsum("ij,ikj->ik", normals, linear[corners]) * bary
-    jac = np.hstack([_pose_rows(back - centre, normals),
+    jac = np.hstack([_pose_rows(back - centre, normals, affine),
                      np.einsum("ik,ikr->ir", weights, basis[corners])])
     return residual, jac
 
@@ -169,15 +181,22 @@ def _moved(x0: np.ndarray, normals: np.ndarray, basis: np.ndarray, alpha: np.nda
     return (x0 + (basis @ alpha)[:, None] * normals) @ pose[:3, :3].T + pose[:3, 3]
 
 
-def _pose_rows(arm: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Point-to-plane Jacobian rows (P, 7) of a small similarity about the centre: rotation
-    vector (3), relative scale (1), translation (3)."""
+def _pose_rows(arm: np.ndarray, normals: np.ndarray, affine: bool = False) -> np.ndarray:
+    """Point-to-plane Jacobian rows of a small pose step about the centre: (P, 7) for a
+    similarity (rotation vector, relative scale, translation), (P, 12) for an affine map
+    (the 3 x 3 increment row by row, translation)."""
+    if affine:
+        return np.column_stack([(normals[:, :, None] * arm[:, None, :]).reshape(-1, 9), normals])
     return np.column_stack([np.cross(arm, normals), np.einsum("ij,ij->i", normals, arm), normals])
 
 
 def _pose_step(step: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """The similarity (4, 4) of one Gauss-Newton step, about ``centre``."""
+    """The similarity or affine map (4, 4) of one Gauss-Newton step, about ``centre``."""
     out = np.eye(4)
+    if len(step) == 12:
+        out[:3, :3] += step[:9].reshape(3, 3)
+        out[:3, 3] = centre - out[:3, :3] @ centre + step[9:]
+        return out
     out[:3, :3] = (1.0 + step[3]) * rodrigues(step[:3])
     out[:3, 3] = centre - out[:3, :3] @ centre + step[4:7]
     return out

@@ -29,7 +29,7 @@ DEFAULT_CPD_PARAMS = {
                               # mostly add CPD's density-driven sliding: on tuning seeds the
                               # spread fell 6-16 % on beans and tubes against 100)
     "refine_deformation": "normal_offsets",  # the refinement passes' deformation of the
-                              # posed mean: "normal_offsets" (a similarity and smooth offsets
+                              # posed mean: "normal_offsets" (an affine map and smooth offsets
                               # along the mean's normals, core.correspondence.offsets) or "cpd"
                               # (nonrigid CPD for refine_iterations, as until 2026-12-02)
     "offset_width": 0.5,      # kernel width of the offsets' prior (unit-RMS units)
@@ -37,9 +37,12 @@ DEFAULT_CPD_PARAMS = {
     "offset_noise": 0.02,     # point-to-plane residual's standard deviation (unit-RMS units)
     "offset_iterations": 15,  # Gauss-Newton iterations of the offsets' fit (30 gave the same
                               # spread on tuning seeds), after offset_pose_iterations
-    "offset_pose_iterations": 0,  # of its similarity alone first: on tuning seeds 15 gained
+    "offset_pose_iterations": 0,  # of its pose alone first: on tuning seeds 15 gained
                               # 14-16 % on rings, held out it turned one population of rings
                               # with independent bumps far off (-169 %), so none by default
+    "offset_pose": "affine",  # the map fitted with the offsets: "affine" or "similarity" (as
+                              # until 2026-12-02; held out, the affine map gained 31 points on
+                              # tubes with independent bumps, README Measured)
     "deformation": "cpd",     # this correspondence's deformation ("cpd" or "normal_offsets";
                               # a refinement pass sets it from refine_deformation)
     "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
@@ -266,7 +269,8 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
         fit = fit_normal_offsets(y_posed, ref_f, xn, tgt_f, width=p["offset_width"],
                                  sd=p["offset_sd"], noise=p["offset_noise"],
                                  iterations=p["offset_iterations"],
-                                 pose_iterations=p["offset_pose_iterations"])
+                                 pose_iterations=p["offset_pose_iterations"],
+                                 pose=p["offset_pose"])
         moved, sigma2, n_iter = fit.points, fit.residual2, fit.n_iter
     else:
         moved, nonrigid = _deform(xn, y_posed, p, parallel)
