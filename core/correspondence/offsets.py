@@ -50,14 +50,17 @@ BASIS_ENERGY = 0.995  # share of the kernel's trace the offset basis keeps
 class NormalOffsetFit:
     """``points`` (M, 3): the moved template (near the surface, not on it); ``offsets`` (M,)
     along the posed template's normals; ``pose`` (4, 4) the affine map (or similarity)
-    applied after them;
-    ``residual2`` the mean squared point-to-plane distance at the end; ``n_iter``."""
+    applied after them; ``residual2`` the mean squared point-to-plane distance at the end;
+    ``objective`` the fit's objective there (twice the negative log posterior up to a
+    constant: data term plus prior), by which fits from different starts compare;
+    ``n_iter``."""
 
     points: np.ndarray
     offsets: np.ndarray
     pose: np.ndarray
     residual2: float
     n_iter: int
+    objective: float
 
 
 def offset_basis(points: np.ndarray, width: float, sd: float, *,
@@ -118,7 +121,7 @@ def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, widt
     alpha = np.zeros(basis.shape[1])
     pose = np.eye(4)
     npose = 12 if affine else 7
-    residual2, n_iter = 0.0, 0
+    residual2, objective, n_iter = 0.0, 0.0, 0
     for stage, count in enumerate(stages):
         active = basis if stage == 1 else basis[:, :0]  # the pose-only stage: no offsets
         for _ in range(count):
@@ -136,6 +139,8 @@ def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, widt
                                         * np.eye(npose))  # a tiny damping
             gradient = jac.T @ (np.concatenate([e1, balance * e2]) / noise)
             gradient[npose:] += alpha[:active.shape[1]]
+            objective = float(np.sum((np.concatenate([e1, balance * e2]) / noise) ** 2)
+                           + alpha @ alpha)
             step = -np.linalg.solve(hessian, gradient)
             pose = _pose_step(step[:npose], centre) @ pose
             alpha[:active.shape[1]] += step[npose:]
@@ -144,7 +149,7 @@ def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, widt
             if np.abs(step[:npose]).max() < tolerance and offsets_step < tolerance:
                 break
     points = _moved(x0, normals, basis, alpha, pose)
-    return NormalOffsetFit(points, basis @ alpha, pose, residual2, n_iter)
+    return NormalOffsetFit(points, basis @ alpha, pose, residual2, n_iter, objective)
 
 
 def _to_surface(points: np.ndarray, centre: np.ndarray, linear: np.ndarray, basis: np.ndarray,
