@@ -10,12 +10,13 @@ with X the posed template's vertices, N their unit normals, ``B a`` a scalar off
 and (A, t) an affine map (or a similarity, A = s R). The affine map takes up the anisotropic
 scalings between subjects, which offsets along the normals cannot express where the surface
 runs along the stretch (a tube's length, a bean's long side): with a similarity the rest
-of such a stretch was left to slide (README, Measured). The offsets have a Gaussian-process prior (squared-exponential
-kernel of width ``width``, standard deviation ``sd``: ``a ~ N(0, I)`` with ``B B^T`` the
-kernel, low rank by the Nystrom method), as Gaussian process morphable models do
-(Luthi et al., IEEE TPAMI 2018), restricted here to displacements along the template's
-normals: the template's points may not slide along the surface, so each shape's local
-features and bumps are taken up by offsets and not by a drift of the points. The data term
+of such a stretch was left to slide (README, Measured). The offsets have a Gaussian-process
+prior (squared-exponential kernel of width ``width``, standard deviation ``sd``:
+``a ~ N(0, I)`` with ``B B^T`` the kernel, low rank by the Nystrom method), as Gaussian
+process morphable models do (Luthi et al., IEEE TPAMI 2018), restricted here to
+displacements along the template's normals: the template's points may not slide along the
+surface, so each shape's local features and bumps are taken up by offsets and not by a
+drift of the points. The data term
 is the symmetric point-to-plane distance (Chen & Medioni 1992 for point-to-plane; both
 directions as in Rusinkiewicz's symmetric ICP, SIGGRAPH 2019): template points to the
 surface and surface points to the moved template, so that a tube cannot slide along its own
@@ -155,7 +156,8 @@ def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, widt
 def _to_surface(points: np.ndarray, centre: np.ndarray, linear: np.ndarray, basis: np.ndarray,
                 target: SurfaceProjector, target_normals: np.ndarray, affine: bool = False
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Template -> surface: point-to-plane residuals (M,) and their Jacobian (M, 7 + r)."""
+    """Template -> surface: point-to-plane residuals (M,) and their Jacobian (M, 7 + r; 12 + r
+    for an affine pose)."""
     closest, _, tri = target.project(points)
     normals = target_normals[tri]
     residual = np.einsum("ij,ij->i", normals, points - closest)
@@ -167,8 +169,8 @@ def _to_surface(points: np.ndarray, centre: np.ndarray, linear: np.ndarray, basi
 def _to_template(points: np.ndarray, faces: np.ndarray, centre: np.ndarray, linear: np.ndarray,
                  basis: np.ndarray, surface_points: np.ndarray, affine: bool = False
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Surface -> moved template: residuals (N,) and Jacobian (N, 7 + r), each row the
-    barycentric mix of the closest template triangle's vertex rows."""
+    """Surface -> moved template: residuals (N,) and Jacobian (N, 7 + r; 12 + r for an affine
+    pose), each row the barycentric mix of the closest template triangle's vertex rows."""
     back, _, tri = SurfaceProjector(points, faces, k=8, exact=False,
                                     candidates="centroids").project(surface_points)
     corners = faces[tri]
