@@ -692,21 +692,16 @@ def _turned_offset_fits(template: TriMesh, target: TriMesh, truth: np.ndarray,
     fit's own posterior puts the turn, given a perfect template and a search over the turn."""
     from core.alignment import apply_transform, fit_transform
     from core.correspondence import DEFAULT_CPD_PARAMS
-    from core.correspondence.offsets import fit_normal_offsets
+    from core.correspondence.pair import offsets_fit
     from core.geometry import rodrigues
 
-    p = DEFAULT_CPD_PARAMS
     pose = fit_transform(template.vertices, truth, "affine")
-    centre = target.vertices.mean(axis=0)
-    scale = np.sqrt(((target.vertices - centre) ** 2).sum(axis=1).mean())
+    xn, centre, scale = _normalised(target.vertices)
     fits = []
     for deg in sorted({d for t in turns_deg for d in (t, -t)}, key=abs):
         turned = template.vertices @ rodrigues(np.deg2rad(deg) * np.array([0.0, 0.0, 1.0])).T
         start = (apply_transform(pose, turned) - centre) / scale
-        fit = fit_normal_offsets(start, template.faces, (target.vertices - centre) / scale,
-                                 target.faces, width=p["offset_width"], sd=p["offset_sd"],
-                                 noise=p["offset_noise"], iterations=p["offset_iterations"],
-                                 pose=p["offset_pose"])
+        fit = offsets_fit(start, template.faces, xn, target.faces, DEFAULT_CPD_PARAMS)
         fits.append((fit.objective, fit.points * scale + centre))
     return fits
 

@@ -73,9 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 1; 0: plain reference-based)")
     parser.add_argument("--refine-deformation", choices=("normal_offsets", "cpd"),
                         default=DEFAULT_CPD_PARAMS["refine_deformation"],
-                        help="how a refinement pass moves the mean onto each shape: a similarity "
-                             "and smooth offsets along its normals (default), or nonrigid CPD "
-                             "(the former pass)")
+                        help="how a refinement pass moves the mean onto each shape: an affine "
+                             "map and smooth offsets along its normals (default), or nonrigid "
+                             "CPD (the former pass)")
     parser.add_argument("--no-groom", action="store_true",
                         help="no grooming at all (inputs must be single closed surfaces)")
     for step, what in (("largest-piece", "keep only the largest connected piece"),

@@ -367,7 +367,7 @@ def _task_job(task: tuple, references: dict) -> tuple:
     if rest:
         current = open_rows(rest[0])
         # Affine for the offsets' fit (whose own pose refines it), similarity for CPD.
-        how = "affine" if params.get("deformation") == "normal_offsets" else "similarity"
+        how = "affine" if params["deformation"] == "normal_offsets" else "similarity"
         extra = (apply_transform(fit_transform(ref_v, current, how), ref_v),)
     _, out, err = _task((key, ref_v, ref_f, mesh.vertices, mesh.faces, params, parallel, *extra))
     return out, err

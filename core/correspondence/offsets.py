@@ -112,7 +112,7 @@ def fit_normal_offsets(template: np.ndarray, faces: np.ndarray, target_vertices:
 
 def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, width: float,
          sd: float, noise: float, stages: tuple[int, int], tolerance: float,
-         affine: bool = False) -> NormalOffsetFit:
+         affine: bool) -> NormalOffsetFit:
     normals = vertex_normals(x0, faces)
     basis = offset_basis(x0, width, sd)
     # The fast projector (nearest triangle centroids, no certificate) inside the loop, as the
@@ -154,7 +154,7 @@ def _fit(x0: np.ndarray, faces: np.ndarray, tv: np.ndarray, tf: np.ndarray, widt
 
 
 def _to_surface(points: np.ndarray, centre: np.ndarray, linear: np.ndarray, basis: np.ndarray,
-                target: SurfaceProjector, target_normals: np.ndarray, affine: bool = False
+                target: SurfaceProjector, target_normals: np.ndarray, affine: bool
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Template -> surface: point-to-plane residuals (M,) and their Jacobian (M, 7 + r; 12 + r
     for an affine pose)."""
@@ -167,7 +167,7 @@ def _to_surface(points: np.ndarray, centre: np.ndarray, linear: np.ndarray, basi
 
 
 def _to_template(points: np.ndarray, faces: np.ndarray, centre: np.ndarray, linear: np.ndarray,
-                 basis: np.ndarray, surface_points: np.ndarray, affine: bool = False
+                 basis: np.ndarray, surface_points: np.ndarray, affine: bool
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Surface -> moved template: residuals (N,) and Jacobian (N, 7 + r; 12 + r for an affine
     pose), each row the barycentric mix of the closest template triangle's vertex rows."""
@@ -188,7 +188,7 @@ def _moved(x0: np.ndarray, normals: np.ndarray, basis: np.ndarray, alpha: np.nda
     return (x0 + (basis @ alpha)[:, None] * normals) @ pose[:3, :3].T + pose[:3, 3]
 
 
-def _pose_rows(arm: np.ndarray, normals: np.ndarray, affine: bool = False) -> np.ndarray:
+def _pose_rows(arm: np.ndarray, normals: np.ndarray, affine: bool) -> np.ndarray:
     """Point-to-plane Jacobian rows of a small pose step about the centre: (P, 7) for a
     similarity (rotation vector, relative scale, translation), (P, 12) for an affine map
     (the 3 x 3 increment row by row, translation)."""

@@ -14,7 +14,7 @@ import numpy as np
 from core import mesh as meshops
 from core.correspondence.assignment import auction_assign, labelling_candidates
 from core.correspondence.cpd import cpd_nonrigid, cpd_rigid
-from core.correspondence.offsets import fit_normal_offsets
+from core.correspondence.offsets import NormalOffsetFit, fit_normal_offsets
 from core.geometry import SurfaceProjector, symmetric_surface_distance
 from core.types import TriMesh
 
@@ -96,6 +96,17 @@ def mesh_problem(mesh: TriMesh, *, need_closed: bool = False) -> str | None:
         return (f"a reference must be a closed surface, this one has {n_open} boundary edges"
                 if n_open else "a reference must be a closed surface (some edges have more than 2 triangles)")
     return None
+
+
+def offsets_fit(template: np.ndarray, faces: np.ndarray, target_vertices: np.ndarray,
+                target_faces: np.ndarray, params: dict) -> NormalOffsetFit:
+    """:func:`~core.correspondence.offsets.fit_normal_offsets` with the ``offset_*`` settings
+    of ``params`` (unit-RMS units: the target normalised as :func:`correspond_pair` does)."""
+    return fit_normal_offsets(template, faces, target_vertices, target_faces,
+                              width=params["offset_width"], sd=params["offset_sd"],
+                              noise=params["offset_noise"], iterations=params["offset_iterations"],
+                              pose_iterations=params["offset_pose_iterations"],
+                              pose=params["offset_pose"])
 
 
 def _normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -266,11 +277,7 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     t1 = time.perf_counter()
     times["rigid"] = t1 - t0
     if p["deformation"] == "normal_offsets":
-        fit = fit_normal_offsets(y_posed, ref_f, xn, tgt_f, width=p["offset_width"],
-                                 sd=p["offset_sd"], noise=p["offset_noise"],
-                                 iterations=p["offset_iterations"],
-                                 pose_iterations=p["offset_pose_iterations"],
-                                 pose=p["offset_pose"])
+        fit = offsets_fit(y_posed, ref_f, xn, tgt_f, p)
         moved, sigma2, n_iter = fit.points, fit.residual2, fit.n_iter
     else:
         moved, nonrigid = _deform(xn, y_posed, p, parallel)
