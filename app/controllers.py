@@ -83,8 +83,8 @@ class SessionController:
 
     def add_structure(self, path: str | os.PathLike) -> tuple[Structure, str]:
         """A new active structure with the model file ``path`` (name, side and colour from its
-        header, as ``core.model_library`` reads it), at the model's stored placement."""
-        from core.model_library import structure_info
+        header, as ``core.io.model_library`` reads it), at the model's stored placement."""
+        from core.io.model_library import structure_info
 
         model = load_model(path)
         info = structure_info(model, path)
@@ -100,12 +100,12 @@ class SessionController:
 
     # -- sessions ----------------------------------------------------------------------
     def to_session(self, fit_settings: dict):
-        """The current work as a :class:`core.session.Session`.
+        """The current work as a :class:`core.session.document.Session`.
 
         The top level holds the active structure (as single-structure sessions always did);
         with several structures, or a renamed/recoloured one, ``structures`` holds them all.
         """
-        from core.session import Session, SessionStructure
+        from core.session.document import Session, SessionStructure
 
         state = self.state
         s = state.active
@@ -177,7 +177,7 @@ class SessionController:
 
     @staticmethod
     def read(path: str | os.PathLike):
-        from core import session as sessions
+        from core.session import document as sessions
 
         session = sessions.load_session(path)
         if session.model_path is not None and session.model_path.exists():
@@ -193,7 +193,7 @@ class SessionController:
         return session
 
     def save(self, path: str | os.PathLike, fit_settings: dict) -> str:
-        from core import session as sessions
+        from core.session import document as sessions
 
         if self.state.image_path is None:
             raise ValueError("nothing to save: open an image first")
@@ -206,7 +206,7 @@ class SessionController:
 
         An unreadable recovery file is discarded, then its error raised.
         """
-        from core import session as sessions
+        from core.session import document as sessions
 
         try:
             session = sessions.read_recovery()
@@ -228,12 +228,12 @@ class SessionController:
 
     @staticmethod
     def clear_recovery() -> None:
-        from core import session as sessions
+        from core.session import document as sessions
 
         sessions.clear_recovery()
 
     def write_recovery(self, fit_settings: dict) -> None:
-        from core import session as sessions
+        from core.session import document as sessions
 
         sessions.write_recovery(self.to_session(fit_settings))
 
@@ -260,8 +260,8 @@ class ExportController:
 
     def label_map(self, structure: Structure | None = None) -> np.ndarray:
         """The fitted surface as a uint8 label map on the image grid (1 inside), with the
-        structure's manual brush/eraser edits applied (``core.labelmap``)."""
-        from core.labelmap import structure_label_map
+        structure's manual brush/eraser edits applied (``core.geometry.labelmap``)."""
+        from core.geometry.labelmap import structure_label_map
 
         s = structure or self.state.active
         if s.model is None or self.state.volume is None:
@@ -362,13 +362,13 @@ class ExportController:
 
     def import_points(self, path: str | os.PathLike) -> str:
         """Add points from CSV / Slicer markups, grouped by the plane each contour lies on
-        (``core.planes.group_coplanar``), with the file's normals when it has them.
+        (``core.geometry.planes.group_coplanar``), with the file's normals when it has them.
 
         A group on an axial, coronal or sagittal plane is filed on that slice (so *Clear
         slice* removes it); an oblique one on the slice of the axis closest to its normal.
         """
         from core.io import load_points
-        from core.planes import FRAMES, group_coplanar
+        from core.geometry.planes import FRAMES, group_coplanar
 
         pset = load_points(path)
         xyz = np.asarray(pset.points, dtype=np.float64).reshape(-1, 3)
@@ -410,7 +410,7 @@ def _points(xyz, slices) -> Points:
 
 def _top_level_record(session):
     """The one structure of a session without a ``structures`` list."""
-    from core.session import SessionStructure
+    from core.session.document import SessionStructure
 
     return SessionStructure(model_path=session.model_path, points=session.points,
                             point_slices=session.point_slices, coef=session.coef,

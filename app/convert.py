@@ -28,7 +28,7 @@ def face_camera_to(plotter, vertices: np.ndarray, faces: np.ndarray, vertex: int
     The camera keeps its distance and moves onto the surface normal at ``vertex``, so the
     region around it (e.g. the support of a local deformation factor) is in view.
     """
-    from core.geometry import vertex_normals
+    from core.geometry.toolkit import vertex_normals
 
     camera = plotter.camera
     focal = np.asarray(camera.focal_point)

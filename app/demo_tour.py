@@ -5,7 +5,7 @@
 1. zoom to the structure;
 2. contours drawn slice by slice (axial, coronal, sagittal through the held-out caudate,
    ``resources/demo/heldout_caudate.vtk``), point by point as a user would click them
-   (``core.simulated_user.simulate_user`` on those slices), with the live refit after each
+   (``core.evaluation.simulated_user.simulate_user`` on those slices), with the live refit after each
    point;
 3. a sweep of the first factor's slider from -2 to +2 SD with its colour map in 3D;
 4. an export (label map, surface, points) into a temporary folder (or ``DIR/export``).
@@ -44,8 +44,8 @@ def truth_surface():
 def tour_steps(window, truth, out_dir: Path, seed: int = 0, spacing: float = 3.0) -> list[tuple]:
     """The tour as a list of steps ``(kind, *args)`` for :class:`DemoTour`; ``spacing`` (mm)
     between the contour points the simulated user clicks."""
-    from core.planes import FRAMES
-    from core.simulated_user import simulate_user
+    from core.geometry.planes import FRAMES
+    from core.evaluation.simulated_user import simulate_user
 
     vertices, faces = truth
     state = window.state

@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    from core.parallel import Terminated, termination_signals
+    from core.runtime.parallel import Terminated, termination_signals
 
     argv = list(sys.argv[1:] if argv is None else argv)
     try:  # a signal while the commands are imported is not lost (nor a traceback)

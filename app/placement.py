@@ -1,10 +1,10 @@
 """*Place models automatically*: register the image to the models' template, then place them.
 
-The registration (``core.registration``: affine, Mattes mutual information, multi-resolution)
+The registration (``core.registration.volumes``: affine, Mattes mutual information, multi-resolution)
 runs in a :class:`app.workers.Worker` behind a progress dialog with *Cancel*; the GUI stays
 responsive and a cancelled run changes nothing. Its result maps the patient image's world
 onto the template's; every structure whose model lives in that template space is then placed
-through it (``core.placement.placement_through``), as one undoable step per structure, and the
+through it (``core.registration.placement.placement_through``), as one undoable step per structure, and the
 active one is refitted if it has points. *Place here* stays for manual placement.
 """
 
@@ -47,8 +47,8 @@ class AutoPlacement(QObject):
     def start(self, template: str | Path | None = None, show_dialog: bool = True,
               **options) -> bool:
         """Start registering the image to ``template`` (default: the bundled MNI template);
-        ``options`` go to ``core.registration.register_volumes`` (e.g. ``levels_mm``)."""
-        from core import registration
+        ``options`` go to ``core.registration.volumes.register_volumes`` (e.g. ``levels_mm``)."""
+        from core.registration import volumes as registration
 
         if self.task.is_running:
             return False
@@ -69,7 +69,7 @@ class AutoPlacement(QObject):
         return self.task.wait(msecs)
 
     def _on_done(self, result) -> None:
-        from core.placement import placement_through
+        from core.registration.placement import placement_through
 
         placed = []
         for s in self.state.structures:
@@ -87,6 +87,6 @@ class AutoPlacement(QObject):
 
 
 def _register(image, template_path: Path, progress=None, **options):
-    from core.placement import register_to_template
+    from core.registration.placement import register_to_template
 
     return register_to_template(image, template_path, progress=progress, **options)

@@ -2,7 +2,7 @@
 
 Slicer's Logic/Widget split: the planning model is :class:`app.planning.PlanningState`, the
 widget :class:`app.panels.planning.PlanningPanel`; this controller connects them to the views
-and calls the engine (``core.uncertainty`` for the posterior, ``core.plan_report`` for the
+and calls the engine (``core.reconstruction.uncertainty`` for the posterior, ``core.planning.report`` for the
 files). The posterior of a 2,000-vertex model with a few dozen factors takes a few ms, so it is
 computed on the GUI thread, after each refit of the active structure, only while shown.
 """
@@ -20,9 +20,9 @@ from app.panels.planning import PlanningPanel
 from app.planning import PlanningState
 from app.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
-from core.plan_report import export_plan
-from core.planning import anchored_point_weights, format_acpc
-from core.uncertainty import ellipsoid, fit_posterior, suggest_slice
+from core.planning.report import export_plan
+from core.planning.frames import anchored_point_weights, format_acpc
+from core.reconstruction.uncertainty import ellipsoid, fit_posterior, suggest_slice
 
 
 def install_planning(window) -> PlanController:

@@ -4,17 +4,17 @@ Plain Python, no Qt (like :mod:`app.state`; a test checks it). :class:`PlanningS
 to the :class:`app.state.WorkspaceState` and refers to its structures by identity:
 
 - landmarks ``ac``, ``pc``, ``midline`` (world RAS mm, or None); with all three set and valid,
-  :meth:`PlanningState.frame` is the AC-PC frame (``core.planning.ACPCFrame``) and every read-out
+  :meth:`PlanningState.frame` is the AC-PC frame (``core.planning.frames.ACPCFrame``) and every read-out
   also gives AC-PC coordinates;
 - per structure an optional user target (None: the model's default target, which moves with
   the fitted surface: the target stored in the model file, else the fitted surface's
-  centroid; ``core.plan_report.model_target``) and an optional entry point; with both, the
+  centroid; ``core.planning.report.model_target``) and an optional entry point; with both, the
   structure has a trajectory;
 - its own undo history of these edits (the structures' undo stacks stay theirs).
 
 Events (``planning.events.<name>.connect``): ``landmarks``, ``trajectory(structure)``,
-``history``, ``edited(what)``. Every read-out is computed by ``core.planning`` /
-``core.plan_report`` (no maths here).
+``history``, ``edited(what)``. Every read-out is computed by ``core.planning.frames`` /
+``core.planning.report`` (no maths here).
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ import numpy as np
 from app.events import EmitterGroup
 from app.history import UndoHistory
 from app.state import Structure, WorkspaceState
-from core.model_library import structure_info
-from core.plan_report import PlannedStructure, model_target, plan_report
-from core.planning import ACPCFrame, PlanningError, Trajectory
+from core.io.model_library import structure_info
+from core.planning.report import PlannedStructure, model_target, plan_report
+from core.planning.frames import ACPCFrame, PlanningError, Trajectory
 
 LANDMARKS = ("ac", "pc", "midline")
 LANDMARK_LABELS = {"ac": "AC", "pc": "PC", "midline": "Midline"}
@@ -160,7 +160,7 @@ class PlanningState:
         return out
 
     def report(self) -> dict:
-        """The plan report (``core.plan_report.plan_report``) of the current workspace."""
+        """The plan report (``core.planning.report.plan_report``) of the current workspace."""
         image = str(self.workspace.image_path.name) if self.workspace.image_path else None
         return plan_report(self.planned_structures(), self.frame(), image)
 

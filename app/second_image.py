@@ -2,7 +2,7 @@
 
 The first image (``WorkspaceState.volume``) stays the reference: its grid is the one the
 segmentation is exported on, and world RAS mm of its space is where points are drawn. The
-second image arrives already on that grid (``core.coregistration.coregister``: rigidly
+second image arrives already on that grid (``core.registration.coregistration.coregister``: rigidly
 registered when the grids differ), so one slice of each covers the same pixels.
 
 Which image is the *base* (drawn on) can be switched; it changes what is shown, never a
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from app.events import EmitterGroup
-from core.planes import SliceSampler, auto_window
+from core.geometry.planes import SliceSampler, auto_window
 
 MODES = ("blend", "checkerboard")
 BASES = ("first", "second")
@@ -37,7 +37,7 @@ class SecondImage:
         self.workspace = workspace
         self.events = EmitterGroup(loaded=(), display=())
         self.path: Path | None = None
-        self.coregistered = None              # core.coregistration.CoRegistered
+        self.coregistered = None              # core.registration.coregistration.CoRegistered
         self.sampler: SliceSampler | None = None
         self.mode = "blend"
         self.opacity = 0.5

@@ -16,7 +16,7 @@ first, which pushes a snapshot on that structure's undo stack.
 
 Contour points are kept with the slice they were drawn on (frame name and depth), in drawing
 order; their normals are derived per slice from the contour tangent and the slice normal,
-and oriented by the current surface (``core.planes.slice_contour_normals``).
+and oriented by the current surface (``core.geometry.planes.slice_contour_normals``).
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ import numpy as np
 from app.events import EmitterGroup
 from app.history import UndoHistory
 from core.io import Volume
-from core.model_library import structure_info
-from core.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
-from core.shape_model import ShapeModel
+from core.io.model_library import structure_info
+from core.geometry.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
+from core.models.shape_model import ShapeModel
 
 FRAME_NAMES = ("axial", "coronal", "sagittal")
 MAX_HISTORY = 200
@@ -133,7 +133,7 @@ class Points:
 
         Per stroke, from the drawing order (outwards from the points' centroid); with
         ``surface`` = (vertices (N, 3), vertex normals (N, 3)) of the current fit, each
-        stroke's sign is the one agreeing with the surface (``core.planes.slice_contour_normals``).
+        stroke's sign is the one agreeing with the surface (``core.geometry.planes.slice_contour_normals``).
         """
         plane_normals = np.array([FRAMES[name].n for name in FRAME_NAMES], dtype=np.float64)
         out = slice_contour_normals(self.xyz, self.stroke_ids(), plane_normals[self.frame], surface)
@@ -148,7 +148,7 @@ class Snapshot:
     coef: np.ndarray | None
     pose: np.ndarray | None
     placement: np.ndarray | None = None
-    edits: object = None              # core.labelmap.ManualEdits (brush / eraser), or None
+    edits: object = None              # core.geometry.labelmap.ManualEdits (brush / eraser), or None
 
 
 # When a fit is flagged as implausible (issue 17): the GUI's safety net on the numbers of
@@ -238,7 +238,7 @@ class Structure:
         self.fit_info = FitInfo()
         self.last_fit = None                   # core FitResult of the current surface (warm start)
         self.manual_edit = False               # factors set by hand since the last refit
-        self.edits = None                      # core.labelmap.ManualEdits: brush/eraser voxels
+        self.edits = None                      # core.geometry.labelmap.ManualEdits: brush/eraser voxels
         self.model_version = 0                 # bumped when the model is replaced
         self.history = UndoHistory(self._snapshot, self._restore,
                                    lambda: self._notify(self, "history"), MAX_HISTORY)
@@ -316,7 +316,7 @@ class Structure:
         if self.model is None:
             return None
         if self._normals_cache is None or self._normals_cache[0] != self._surface_version:
-            from core.geometry import vertex_normals
+            from core.geometry.toolkit import vertex_normals
 
             self._normals_cache = (self._surface_version,
                                    vertex_normals(self.surface_vertices(), self.model.faces))
@@ -356,7 +356,7 @@ class Structure:
         """Mean distance (mm) from the contour points to the current surface (NaN if none)."""
         if self.model is None or len(self.points) == 0:
             return float("nan")
-        from core.geometry import surface_distance
+        from core.geometry.toolkit import surface_distance
 
         return float(np.mean(surface_distance(self.points.xyz, self.surface_vertices(),
                                               self.model.faces)))

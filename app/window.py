@@ -47,7 +47,7 @@ from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
 from app.tools_install import install_segment_tools
 from app.workers import error_message
-from core.model_library import list_library
+from core.io.model_library import list_library
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "OPEN_DIALOGS", "run_gui"]
 
@@ -255,7 +255,7 @@ class MainWindow(QMainWindow):
 
     # -- sessions and recovery ------------------------------------------------------------------
     def session_object(self):
-        """The current work as a :class:`core.session.Session`."""
+        """The current work as a :class:`core.session.document.Session`."""
         return self.sessions.to_session(self.fit_panel.settings)
 
     def apply_session(self, session) -> None:

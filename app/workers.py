@@ -6,9 +6,9 @@ one function and reports back through Qt signals. Signals emitted from the worke
 slots of objects living in the GUI thread as queued calls, so receivers must be methods of
 QObjects (widgets, the window) created in the GUI thread.
 
-Cancellation follows ``core.progress``: the function is given a ``progress(fraction, message)``
+Cancellation follows ``core.runtime.progress``: the function is given a ``progress(fraction, message)``
 callback; after :meth:`Worker.cancel` the next call of that callback raises
-:class:`core.progress.Cancelled`, which unwinds the computation and ends in ``cancelled``.
+:class:`core.runtime.progress.Cancelled`, which unwinds the computation and ends in ``cancelled``.
 
 :class:`LatestWinsRunner` serialises a stream of requests (one per edit) onto one worker at a
 time: a new request replaces any request still waiting, marks the running one stale (its
@@ -37,7 +37,7 @@ from typing import Any
 
 from PySide6.QtCore import QObject, QThread, Signal
 
-from core.progress import Cancelled
+from core.runtime.progress import Cancelled
 
 __all__ = ["Worker", "DialogTask", "LatestWinsRunner", "error_message", "running_workers"]
 

@@ -3,7 +3,7 @@
 K shapes under random transforms of one class; every pairwise transform T_ij (shape j onto
 shape i) is perturbed by noise (linear part I + 0.03 G with G standard normal, translation
 N(0, 1 mm^2) per axis). The absolute transforms are recovered by
-``core.alignment.synchronize_transforms`` (all pairs at once, no reference) and by chaining
+``core.alignment.transforms.synchronize_transforms`` (all pairs at once, no reference) and by chaining
 through shape 0 (``reference_transforms``, the reference-based peer), from the same noisy
 pairs. Error: RMS point distance of all relative transforms T_i^-1 T_j applied to a
 150-point shape (mm), mean over ``--draws`` draws. Exact pairwise transforms give the
@@ -25,9 +25,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.alignment import (apply_transform, homogeneous, reference_transforms,  # noqa: E402
+from core.alignment.transforms import (apply_transform, homogeneous, reference_transforms,  # noqa: E402
                             synchronize_transforms)
-from core.geometry import random_rotation  # noqa: E402
+from core.geometry.toolkit import random_rotation  # noqa: E402
 
 
 def random_transform(rng: np.random.Generator, transform: str) -> np.ndarray:

@@ -1,11 +1,11 @@
 """Benchmark: cohort scale -- the Dask executor against the process pool, and sparse synchronisation.
 
 A. Executor throughput (issue 15): ``--shapes`` (default 500) synthetic known-homology shapes
-   (``core.correspondence.synthetic``, "bean", 160-220 vertices, own tessellation and pose
+   (``core.datasets.shapes``, "bean", 160-220 vertices, own tessellation and pose
    each) are corresponded to one reference (shape 0, external reference, no grooming, no
    refinement: exactly one per-shape job each) by
    :func:`core.correspondence.establish_correspondence`, whose per-shape jobs go through
-   :func:`core.parallel.run_jobs`: on the process pool (``n_jobs=2``) and as Dask tasks on a
+   :func:`core.runtime.parallel.run_jobs`: on the process pool (``n_jobs=2``) and as Dask tasks on a
    ``LocalCluster`` of 2 single-threaded worker processes (the same cores). Peers configured as
    documented: the pool has one process per core with one BLAS thread each; the LocalCluster
    ``threads_per_worker=1, processes=True`` (Dask's advice for GIL-holding numeric code). The
@@ -16,7 +16,7 @@ A. Executor throughput (issue 15): ``--shapes`` (default 500) synthetic known-ho
    workers, fork server, from /proc and getrusage), and whether the outputs of both are
    identical. The CPU cost per shape is what the README's 50,000-shape projection uses.
 
-B. Sparse synchronisation (``core.alignment.align_shapes_sparse``): synthetic corresponded
+B. Sparse synchronisation (``core.alignment.transforms.align_shapes_sparse``): synthetic corresponded
    shapes (300 vertices: a base shape, 3 random modes, vertex noise, a random similarity pose
    each). 5,000 shapes: wall time and peak memory (in a child process: its max RSS). 200
    shapes: the error of sparse (K = 10 nearest) against dense all-pairs synchronisation
@@ -68,7 +68,7 @@ def tree_cpu_seconds() -> float:
     total = sum(getattr(resource.getrusage(who), f)
                 for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
                 for f in ("ru_utime", "ru_stime"))
-    from core.parallel import descendants
+    from core.runtime.parallel import descendants
 
     for pid in descendants(os.getpid()):
         try:
@@ -81,8 +81,8 @@ def tree_cpu_seconds() -> float:
 
 def part_a(n_shapes: int, chunk: int) -> None:
     from core.correspondence import establish_correspondence
-    from core.correspondence.synthetic import known_homology_shapes
-    from core.parallel import use_scheduler
+    from core.datasets.shapes import known_homology_shapes
+    from core.runtime.parallel import use_scheduler
 
     meshes = known_homology_shapes("bean", n_shapes + 1, seed=0, n_points=(160, 220)).meshes
     reference, shapes = meshes[0], meshes[1:]
@@ -126,14 +126,14 @@ def part_a(n_shapes: int, chunk: int) -> None:
 
 def _on(scheduler: str | None):
     """The pool (inside the cluster's use_scheduler) or the enclosing LocalCluster."""
-    from core.parallel import use_scheduler
+    from core.runtime.parallel import use_scheduler
 
     return use_scheduler(None) if scheduler is None else contextlib.nullcontext()
 
 
 def _sync_child(n_shapes: int) -> None:
     """Runs in a child process: time and (via the parent) peak memory of the sparse sync."""
-    from core.alignment import align_shapes_sparse
+    from core.alignment.transforms import align_shapes_sparse
 
     shapes, _ = synthetic_shapes(n_shapes, 300, np.random.default_rng(0))
     t0 = time.perf_counter()
@@ -145,7 +145,7 @@ def _sync_child(n_shapes: int) -> None:
 def synthetic_shapes(k: int, n: int, rng: np.random.Generator, noise: float = 0.5):
     from scipy.spatial.transform import Rotation
 
-    from core.alignment import apply_transform
+    from core.alignment.transforms import apply_transform
 
     base = rng.normal(0, 10, (n, 3)) * [2.0, 1.2, 0.8]
     modes = rng.normal(0, 1, (3, n, 3))
@@ -174,7 +174,7 @@ def relative_error(transforms, poses, shapes, n_pairs=4000, seed=1) -> float:
 
 
 def part_b(n_large: int) -> None:
-    from core.alignment import align_shapes, align_shapes_sparse
+    from core.alignment.transforms import align_shapes, align_shapes_sparse
 
     print(f"\nB. sparse synchronisation (K = 10 nearest), similarity, 300 vertices per shape "
           f"(load {os.getloadavg()[0]:.1f})")
@@ -221,7 +221,7 @@ def _run_correspond(tree: Path, paths: list[Path], out: Path) -> tuple[float, fl
     """(client peak MB, largest other process's peak MB, wall s) of one `correspond` run."""
     import shutil
 
-    from core.parallel import descendants
+    from core.runtime.parallel import descendants
 
     shutil.rmtree(out, ignore_errors=True)
     env = dict(os.environ, PYTHONPATH=str(tree))
@@ -268,7 +268,7 @@ def _same_outputs(a: Path, b: Path) -> bool:
 def part_c(counts: list[int], baseline: str, n_points: tuple[int, int]) -> None:
     import tempfile
 
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
     from core.io import save_mesh
 
     work = Path(tempfile.mkdtemp(prefix="bench-stream-"))

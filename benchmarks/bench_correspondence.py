@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from core.geometry import random_rotation  # noqa: E402
+from core.geometry.toolkit import random_rotation  # noqa: E402
 from core.io import TriMesh  # noqa: E402
 
 
@@ -176,7 +176,7 @@ def plain_rustcpd(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarr
     """rustcpd alone: rigid + nonrigid CPD on all points, then nearest-point projection."""
     import rustcpd
 
-    from core.geometry import SurfaceProjector
+    from core.geometry.toolkit import SurfaceProjector
 
     xn, centre, scale = _normalised(target.vertices)
     yn, _, _ = _normalised(reference.vertices)
@@ -194,7 +194,7 @@ def plain_pycpd(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarray
     """pycpd: rigid + nonrigid CPD (pure numpy), then nearest-point projection."""
     from pycpd import DeformableRegistration, RigidRegistration
 
-    from core.geometry import SurfaceProjector
+    from core.geometry.toolkit import SurfaceProjector
 
     xn, centre, scale = _normalised(target.vertices)
     yn, _, _ = _normalised(reference.vertices)
@@ -233,7 +233,7 @@ def flipped_fraction(vertices: np.ndarray, faces: np.ndarray, target: TriMesh) -
     fold-overs, where the output surface doubles back on itself."""
     from scipy.spatial import cKDTree
 
-    from core.geometry import face_normals, vertex_normals
+    from core.geometry.toolkit import face_normals, vertex_normals
 
     centroids = vertices[faces].mean(axis=1)
     _, nearest = cKDTree(target.vertices).query(centroids)
@@ -254,7 +254,7 @@ def alignment_on_demo(folder: Path) -> None:
     The demo shapes are s_k R_k y_k + t_k with known unposed shapes y_k; the error is the RMS
     distance between the aligned shapes and the y_k after one common similarity (the gauge).
     """
-    from core.alignment import (align_shapes, apply_transform, fit_transform,
+    from core.alignment.transforms import (align_shapes, apply_transform, fit_transform,
                                 pairwise_transforms, reference_transforms)
 
     gt = np.load(folder / "ground_truth.npz")
@@ -319,7 +319,7 @@ def _spread_of(pop, vertices: list) -> np.ndarray:
 def pipeline_table(kind: str, n_shapes: int, jobs: int, seed: int = 7) -> None:
     """Whole pipeline on raw meshes, reference auto, vs plain rustcpd CPD-then-project."""
     from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
 
     pop = known_homology_shapes(kind, n_shapes, seed=seed, n_points=(1800, 2300))
     scanner = np.array([-96.0, 131.0, 58.0])  # mm: where a structure sits in scanner coordinates
@@ -366,7 +366,7 @@ def pipeline_table(kind: str, n_shapes: int, jobs: int, seed: int = 7) -> None:
 def scaling_table(seed: int = 3) -> None:
     """One pair at ~2,500 and ~10,000 vertices: pair time and assignment time."""
     from core.correspondence import correspond_pair
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
 
     print(f"\nscaling, one bean pair with own tessellations (times: shared machine, upper bounds)")
     print(f"{'vertices':>9}{'pair s':>9}{'cpd s':>8}{'assign s':>10}{'assign %':>9}")
@@ -390,7 +390,7 @@ def _title(what: str, n_shapes: int, vertices: int, seed: int, repeats: int = 1)
           f"{'held-out' if seed >= 100 else 'TUNING'} seeds {seed}-{seed + 3 * repeats - 1}; load {_load()}")
 
 
-# The two populations of core.correspondence.synthetic: "bumps", independent random bumps
+# The two populations of core.datasets.shapes: "bumps", independent random bumps
 # on every shape (the generator's defaults); "features", six consistent features a kind whose
 # size varies between shapes, smaller independent bumps, and independent even remeshes.
 POPULATIONS = {"bumps": {},
@@ -412,7 +412,7 @@ def _param_value(text: str):
 def _populations(n_shapes: int, vertices: int, seed: int, repeats: int = 1):
     """(kind, known-homology population) for the bean, tube and ring, seeds seed, seed+1,
     seed+2; with ``repeats`` R, R populations a kind (seeds seed + i + 3 r), kind by kind."""
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
 
     for i, kind in enumerate(("bean", "tube", "ring")):
         for r in range(repeats):
@@ -485,7 +485,7 @@ def _base_template(pop, vertices: int) -> TriMesh:
     template that differs from the one ours and plain CPD get only in being exact. (Until
     2026-12-02 it was the base at shape 0's own lattice, a different kind of mesh: its
     density follows the material parameter, and CPD matches densities.)"""
-    from core.grooming import remesh
+    from core.correspondence.grooming import remesh
 
     v, f = remesh(pop.material[0], pop.meshes[0].faces, vertices)
     return TriMesh(v, f, "base")
@@ -494,7 +494,7 @@ def _base_template(pop, vertices: int) -> TriMesh:
 def _true_points(pop, k: int, material: np.ndarray) -> np.ndarray:
     """The points of shape ``k`` whose material points are ``material`` (P, 3): a template's
     true homologous points there."""
-    from core.geometry import surface_coordinates
+    from core.geometry.toolkit import surface_coordinates
 
     mesh = pop.meshes[k]
     tri, bary, _ = surface_coordinates(material, pop.material[k], mesh.faces)
@@ -518,11 +518,11 @@ def diagnostics_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int 
       about the ring's axis by 10, 20 and 30 degrees: the mean distance (mm) of its points
       from their true homologues.
     """
-    from core.alignment import apply_transform, fit_transform, generalized_procrustes
+    from core.alignment.transforms import apply_transform, fit_transform, generalized_procrustes
     from core.correspondence import DEFAULT_CPD_PARAMS, correspond_pair, establish_correspondence
     from core.correspondence.batch import _prepare
-    from core.correspondence.synthetic import material_points
-    from core.geometry import SurfaceProjector, rodrigues
+    from core.datasets.shapes import material_points
+    from core.geometry.toolkit import SurfaceProjector, rodrigues
 
     def variance(shapes: list) -> float:
         gpa = generalized_procrustes(np.stack(shapes), "similarity", max_iter=50, tol=1e-8)
@@ -600,10 +600,10 @@ def model_fit_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 
     mean over ``repeats`` populations a kind, and each population's. Not in SSM Studio's
     pipeline: see the README for why.
     """
-    from core.alignment import generalized_procrustes
+    from core.alignment.transforms import generalized_procrustes
     from core.correspondence import establish_correspondence
     from core.correspondence.batch import _prepare
-    from core.geometry import SurfaceProjector, umeyama
+    from core.geometry.toolkit import SurfaceProjector, umeyama
     from core.models.pca import PCA
     from core.reconstruction import fit_points
 
@@ -645,11 +645,11 @@ def limits_table(n_shapes: int, jobs: int, vertices: int = 1200, seed: int = 100
     template and a perfect start); rigid CPD with scale and affine CPD started *at the true
     affine map* (where the surfaces' own optimum lies). All on the groomed meshes ours gets.
     """
-    from core.alignment import apply_transform, fit_transform
+    from core.alignment.transforms import apply_transform, fit_transform
     from core.correspondence import DEFAULT_CPD_PARAMS, correspond_pair, establish_correspondence
     from core.correspondence.batch import _prepare
     from core.correspondence.cpd import cpd_affine, cpd_rigid
-    from core.geometry import SurfaceProjector
+    from core.geometry.toolkit import SurfaceProjector
 
     _title("what the surfaces determine: spread (mm) with the exact bump-free base surface as "
            "template", n_shapes, vertices, seed)
@@ -690,10 +690,10 @@ def _turned_offset_fits(template: TriMesh, target: TriMesh, truth: np.ndarray,
     the template turned about the ring's own axis by 0, +-5, ..., +-30 degrees: (objective,
     fitted points, mm) per start, the unturned first. The least objective is where the
     fit's own posterior puts the turn, given a perfect template and a search over the turn."""
-    from core.alignment import apply_transform, fit_transform
+    from core.alignment.transforms import apply_transform, fit_transform
     from core.correspondence import DEFAULT_CPD_PARAMS
     from core.correspondence.pair import offsets_fit
-    from core.geometry import rodrigues
+    from core.geometry.toolkit import rodrigues
 
     pose = fit_transform(template.vertices, truth, "affine")
     xn, centre, scale = _normalised(target.vertices)
@@ -710,7 +710,7 @@ def _ellipsoid_error(vertices: np.ndarray, faces: np.ndarray, centre: np.ndarray
                      axes: np.ndarray) -> tuple[float, float]:
     """Volume error (%) against the analytic ellipsoid and mean distance (mm) of the vertices
     to its surface (first-order distance |F - 1| / |grad F|, F = sum((x - c)^2 / a^2)^(1/2))."""
-    from core import mesh as meshops
+    from core.geometry import mesh as meshops
 
     q = (vertices - centre) / axes
     r = np.linalg.norm(q, axis=1)
@@ -734,8 +734,8 @@ def labels_table(repeats: int = 3) -> None:
     from vtk.util.numpy_support import numpy_to_vtk
 
     from core.io import load_volume
-    from core.mesh_labels import label_map_surface
-    from core.mesh_labels import _polydata_arrays
+    from core.correspondence.mesh_labels import label_map_surface
+    from core.correspondence.mesh_labels import _polydata_arrays
 
     print("\nmesh-labels, 256^3 uint8 label map (1 mm voxels), one structure, --vertices 2000; "
           "best of %d; shared machine: times are upper bounds" % repeats)

@@ -33,8 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from core.evaluation import Realign, Recorrespond, evaluate_model  # noqa: E402
-from core.models.synthetic import ellipsoid_surface, planted_shapes  # noqa: E402
-from core.pipeline import align  # noqa: E402
+from core.datasets.factors import ellipsoid_surface, planted_shapes  # noqa: E402
+from core.build.pipeline import align  # noqa: E402
 
 DEMO = ROOT / "resources" / "demo"
 MEASURE_KEYS = {"g": "generalisation", "g0.05": "sparse_reconstruction"}
@@ -96,7 +96,7 @@ def protocol_rows(args) -> list[dict]:
 
 def recorrespond_rows(args) -> list[dict]:
     from core.io import load_mesh
-    from core.pipeline import corresponded_shapes, correspond
+    from core.build.pipeline import corresponded_shapes, correspond
 
     files = sorted((DEMO / "meshes").glob("*.vtk"))[:args.recorrespond]
     meshes = [load_mesh(f) for f in files]

@@ -41,7 +41,7 @@ from PySide6.QtWidgets import QApplication  # noqa: E402
 
 from app.window import MainWindow  # noqa: E402
 from core.io import Volume  # noqa: E402
-from core.slicing import polylines, sample_polyline  # noqa: E402
+from core.geometry.slicing import polylines, sample_polyline  # noqa: E402
 
 T_IMPORTED = time.perf_counter()
 
@@ -197,7 +197,7 @@ def main() -> int:
     app.processEvents()
     if not hasattr(window, "add_structure"):    # an older tree (the before column)
         return 0 if args.skip_scroll else bench_scroll_table(app)
-    from core.model_library import list_library
+    from core.io.model_library import list_library
 
     for with_3d in (True, False):
         window = MainWindow(recovery=False, with_3d=with_3d)

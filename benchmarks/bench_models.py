@@ -38,10 +38,10 @@ sys.path.insert(0, str(ROOT))
 
 from core.evaluation import evaluate_methods, evaluate_model, plot_metrics, summary_rows  # noqa: E402
 from core.models import METHODS, make_model  # noqa: E402
-from core.models.synthetic import (ellipsoid_surface, grid_surface, mixed_shapes,  # noqa: E402
+from core.datasets.factors import (ellipsoid_surface, grid_surface, mixed_shapes,  # noqa: E402
                                    planted_shapes, support_iou)
-from core.pipeline import align  # noqa: E402
-from core.progress import Cancelled  # noqa: E402
+from core.build.pipeline import align  # noqa: E402
+from core.runtime.progress import Cancelled  # noqa: E402
 
 DEMO = ROOT / "resources" / "demo" / "ground_truth.npz"
 
@@ -167,7 +167,7 @@ def cancel_latency(run, after: float) -> tuple[float, bool]:
 
 def bench_cancel(shapes, faces, args) -> None:
     from core.io import TriMesh
-    from core.pipeline import correspond
+    from core.build.pipeline import correspond
 
     meshes = [TriMesh(s, faces, f"s{i}") for i, s in enumerate(shapes[:6])]
     stages = {

@@ -10,13 +10,13 @@ Section "known" (known correspondences, no pose; the accuracy target of issue 11
 synthetic family on the demo's 2,000-vertex caudate mesh, x = base + sum of the demo
 generator's 6 local factors + 4 smooth global fields (bend, taper, twist, bulge), each
 coefficient ~ N(0, 1); a PCA-10 model of 40 training shapes
-(``core.simulated_user.pca_model``). Left-out shapes of three kinds: "in span" (new
+(``core.evaluation.simulated_user.pca_model``). Left-out shapes of three kinds: "in span" (new
 coefficients), "bumps" (in span plus 2 Gaussian bumps along the normal, 4 mm wide, 1 mm high:
 not in the model), "other base" (the base shape bent by a quadratic field, 2 mm at the tips,
 plus new coefficients: another base shape). Column "span" is the mean per-vertex distance
 from the truth to its least-squares projection onto the model's span (mean + factors), i.e.
 the part no coefficient can reach. Points: 3 orthogonal contours or 2 parallel axial ones
-(``core.simulated_user.simulate_user``, 2.5 mm spacing, 0.1 mm in-plane noise). Error: mean
+(``core.evaluation.simulated_user.simulate_user``, 2.5 mm spacing, 0.1 mm in-plane noise). Error: mean
 per-vertex distance to the true vertices (mm), the correspondences being known. Methods:
 gmm-aniso, gmm-iso, icp (``fit_points(pose="none")``, defaults otherwise) and rustcpd
 ``register_atlas(optimize_similarity=False, max_iterations=100, tolerance=1e-6)`` with
@@ -56,9 +56,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.geometry import surface_distance  # noqa: E402
+from core.geometry.toolkit import surface_distance  # noqa: E402
 from core.reconstruction import fit_points  # noqa: E402
-from core.simulated_user import pca_model, simulate_user, slice_planes, synthetic_shapes  # noqa: E402
+from core.evaluation.simulated_user import pca_model, simulate_user, slice_planes, synthetic_shapes  # noqa: E402
 
 OURS = ("gmm-aniso", "gmm-iso", "icp")
 NO_PRIOR = "aniso-no-pose-prior"  # gmm-aniso with pose_sd=None
@@ -240,7 +240,7 @@ def known_family(seed: int = 0):
 
 
 def known_shape(base, fields, faces, rng, kind: str) -> np.ndarray:
-    from core.geometry import vertex_normals
+    from core.geometry.toolkit import vertex_normals
 
     x = base + np.tensordot(rng.normal(size=len(fields)), fields, axes=1)
     if kind == "bumps":
@@ -305,7 +305,7 @@ def known_accuracy(which: str, with_rustcpd: bool, quick: bool):
 def latency_model(shapes, faces, n_factors=50, seed=0):
     """The demo topology with random smooth bumps added, so PCA has n_factors real modes."""
     rng = np.random.default_rng(seed)
-    from core.geometry import vertex_normals
+    from core.geometry.toolkit import vertex_normals
 
     base = shapes.mean(axis=0)
     normals = vertex_normals(base, faces)

@@ -77,7 +77,7 @@ def _export_tree(commit: str, into: Path) -> Path:
 
 def _inputs(path: Path, n_fits: int = 30) -> Path:
     from app.demo import demo_model
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
     from core.io import load_model
 
     model = load_model(demo_model())

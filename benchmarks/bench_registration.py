@@ -1,4 +1,4 @@
-"""Benchmark: image registration (core.registration) and multi-image registration (register-images).
+"""Benchmark: image registration (core.registration.volumes) and multi-image registration (register-images).
 
 Part A, automatic model placement (issue 14 item 3): the bundled 1 mm MNI T1 template moved by
 known random affines (+-15 deg, +-20 mm, +-10 % per-axis scale about the brain's centre), with
@@ -7,7 +7,7 @@ scanner coordinates 120 mm away. Each copy is registered back onto the template;
 caudate (template space) is placed on the copy through the recovered transform and compared
 with where the known transform puts it (mean and max vertex error, mm). Peers in the same run:
 
-- ``ssm-studio``: :func:`core.registration.register` with its defaults (8/4/2 mm pyramid,
+- ``ssm-studio``: :func:`core.registration.volumes.register` with its defaults (8/4/2 mm pyramid,
   Mattes MI on 20,000 random samples per level, regular-step gradient descent);
 - ``sitk-tutorial``: SimpleITK's own documented recipe for affine registration (the SimpleITK
   notebooks' "Registration initialisation / multi-resolution" settings: MOMENTS initialiser,
@@ -16,7 +16,7 @@ with where the known transform puts it (mean and max vertex error, mm). Peers in
 
 Part B, multi-image registration (issue 15, thesis chapter 7): N copies of the T1 at 4 mm under
 known random affines (+-10 deg, +-15 mm, +-8 %), each with its own noise and bias field, in
-scanner coordinates up to 60 mm apart; ``core.multi_registration.register_images`` with
+scanner coordinates up to 60 mm apart; ``core.registration.multi_image.register_images`` with
 ``method="sync"`` (every pair registered both ways, then transformation synchronisation)
 against ``method="reference"`` (every image registered to the first). Error: the mean over
 ordered pairs (i, j) of the mean displacement over the brain mask (template grey + white matter
@@ -42,8 +42,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from core.io import load_mesh, load_volume  # noqa: E402
-from core.registration import itk_to_ras, register, volume_to_sitk  # noqa: E402
-from core.synthetic_images import moved_copy, random_affine  # noqa: E402
+from core.registration.volumes import itk_to_ras, register, volume_to_sitk  # noqa: E402
+from core.datasets.images import moved_copy, random_affine  # noqa: E402
 
 TEMPLATE = ROOT / "resources" / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 BRAIN_CENTRE = np.array([0.0, -18.0, 18.0])
@@ -125,8 +125,8 @@ def part_b(n_images: int, n_seeds: int, spacing: float = 4.0) -> None:
     import tempfile
 
     from core.io import save_volume
-    from core.multi_registration import register_images
-    from core.synthetic_images import downsample
+    from core.registration.multi_image import register_images
+    from core.datasets.images import downsample
 
     template = load_volume(TEMPLATE)
     gm = load_volume(ROOT / "resources" / "mni_icbm152_gm_tal_nlin_sym_09a.nii.gz")

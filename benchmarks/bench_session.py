@@ -2,9 +2,9 @@
 
 Peers, on the same session in the same run (median and 95th percentile of 200 writes):
 
-- ``write_recovery``: :func:`core.session.write_recovery` (arrays packed as base64, two
+- ``write_recovery``: :func:`core.session.document.write_recovery` (arrays packed as base64, two
   alternating slots, no rename over an existing file);
-- ``save_session``: :func:`core.session.save_session` (readable JSON, relative paths, atomic
+- ``save_session``: :func:`core.session.document.save_session` (readable JSON, relative paths, atomic
   rename over the previous file);
 - ``naive json``: ``json.dumps(indent=2)`` of nested lists + ``os.replace``, the obvious way.
 
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from core import session as sessions  # noqa: E402
+from core.session import document as sessions  # noqa: E402
 
 
 def _session(n_points: int) -> sessions.Session:

@@ -2,7 +2,7 @@
 
 Leave-one-out on the demo caudates (ground-truth corresponded shapes, so the true position of
 every fitted vertex is known): a PCA model of the other 23 shapes is fitted (gmm-aniso, the
-default) to a simulated user's contours on the left-out shape; ``core.uncertainty`` gives each
+default) to a simulated user's contours on the left-out shape; ``core.reconstruction.uncertainty`` gives each
 vertex's posterior SD along its normal; the true error there is the normal component of
 (true vertex - fitted vertex). Reported per contour count: the share of vertices whose true
 error is within 2 SD (95 % expected for a calibrated posterior), the mean SD and the mean
@@ -10,7 +10,7 @@ true error (mm), and the 2 SD radius of the target (centroid-anchored) ellipsoid
 
 Cases 0-3 are kept for tuning: ``--tune`` prints, from them only, the factor by which the
 Laplace SDs must be widened so that 95 % of their vertices fall within 2 SD
-(``core.uncertainty.SD_CALIBRATION`` holds the value in use); the table reports cases 4-23.
+(``core.reconstruction.uncertainty.SD_CALIBRATION`` holds the value in use); the table reports cases 4-23.
 
     python benchmarks/bench_uncertainty.py [--cases N] [--tune]
 """
@@ -27,11 +27,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.geometry import vertex_normals  # noqa: E402
-from core.planning import anchored_point_weights, volume_centroid  # noqa: E402
+from core.geometry.toolkit import vertex_normals  # noqa: E402
+from core.planning.frames import anchored_point_weights, volume_centroid  # noqa: E402
 from core.reconstruction import fit_points  # noqa: E402
-from core.simulated_user import pca_model, simulate_user  # noqa: E402
-from core.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior  # noqa: E402
+from core.evaluation.simulated_user import pca_model, simulate_user  # noqa: E402
+from core.reconstruction.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior  # noqa: E402
 
 TUNING_CASES = (0, 1, 2, 3)
 

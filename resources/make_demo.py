@@ -56,11 +56,11 @@ RESOURCES = Path(__file__).resolve().parent
 if str(RESOURCES.parent) not in sys.path:  # run as a script from anywhere in the repository
     sys.path.insert(0, str(RESOURCES.parent))
 
-from core import geometry, mesh as meshops  # noqa: E402
+from core.geometry import toolkit as geometry, mesh as meshops  # noqa: E402
 from core.io import (PointSet, TriMesh, atomic_path, atomic_write_json, load_volume,  # noqa: E402
                      save_mesh, save_model, save_points)
-from core.shape_model import ShapeModel  # noqa: E402
-from core.slicing import polylines, sample_polyline  # noqa: E402
+from core.models.shape_model import ShapeModel  # noqa: E402
+from core.geometry.slicing import polylines, sample_polyline  # noqa: E402
 
 DEMO = RESOURCES / "demo"
 STRUCTURE = "left caudate nucleus"
@@ -155,7 +155,7 @@ LIBRARY = ((LEFT_CAUDATE, "left_caudate.npz"), (RIGHT_CAUDATE, "right_caudate.np
            (LEFT_THALAMUS, "left_thalamus.npz"), (LEFT_THALAMUS.mirrored(), "right_thalamus.npz"))
 MODELS = RESOURCES / "models"
 
-# Demo model (when core.pipeline is available).
+# Demo model (when core.build.pipeline is available).
 PIPELINE_REFERENCE = 0        # correspondence reference: the first training mesh
 PIPELINE_METHOD = "lsf"       # local-support factors: each slider moves one region
 PIPELINE_FACTORS = 8          # LSF factors before splitting (6 planted regions + pose/noise)
@@ -517,7 +517,7 @@ def pca_stand_in_model(shapes: np.ndarray, faces: np.ndarray, names: list[str]) 
 def build_with_pipeline(meshes: list[TriMesh], truth: dict) -> ShapeModel | None:
     """Build the demo model with the project's own pipeline, as ``ssm-studio build-model
     resources/demo/meshes --correspond --reference 0 --method lsf --factors 8`` would; None when
-    ``core.pipeline`` is not available.
+    ``core.build.pipeline`` is not available.
 
     The correspondence found by the pipeline is scored against the ground truth: vertex j of
     the reference mesh (mesh 0) lies at a known barycentric point of the base topology, so its
@@ -525,7 +525,7 @@ def build_with_pipeline(meshes: list[TriMesh], truth: dict) -> ShapeModel | None
     statistics (mm) go into the model's ``info``.
     """
     try:
-        from core.pipeline import build_model
+        from core.build.pipeline import build_model
     except ImportError:
         return None
     result = build_model(meshes, correspond=True, reference=PIPELINE_REFERENCE,
@@ -542,7 +542,7 @@ def build_with_pipeline(meshes: list[TriMesh], truth: dict) -> ShapeModel | None
                                              truth["base_faces"][tri]]), axis=1)
         for name, shape in zip(result.names, result.shapes) if name != reference_name])
     model = result.model
-    model.info["built_from"] = ("core.pipeline.build_model on resources/demo/meshes: "
+    model.info["built_from"] = ("core.build.pipeline.build_model on resources/demo/meshes: "
                                 f"correspondence (reference {reference_name}), "
                                 f"sync similarity alignment, {PIPELINE_METHOD.upper()} "
                                 f"with {PIPELINE_FACTORS} factors before splitting")
@@ -657,9 +657,9 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
 
     model = None
     if use_pipeline:
-        print("building the demo model with core.pipeline (correspondence of 24 meshes) ...")
+        print("building the demo model with core.build.pipeline (correspondence of 24 meshes) ...")
         model = build_with_pipeline(meshes, arrays)
-    model_source = "core.pipeline.build_model" if model is not None else "pca stand-in"
+    model_source = "core.build.pipeline.build_model" if model is not None else "pca stand-in"
     if model is None:
         model = pca_stand_in_model(posed[:N_SHAPES], base.faces, names)
     label_demo_model(model, spec)
@@ -731,7 +731,7 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
 
 def label_demo_model(model: ShapeModel, spec: StructureSpec) -> ShapeModel:
     """Describe the structure in the model's header (name, side, colour, template, demo)."""
-    from core.model_library import MNI_TEMPLATE_SPACE, StructureInfo, default_color, with_structure
+    from core.io.model_library import MNI_TEMPLATE_SPACE, StructureInfo, default_color, with_structure
 
     return with_structure(model, StructureInfo(
         name=spec.name, side=spec.side, color=default_color(spec.name),
@@ -783,7 +783,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=SEED, help=f"random seed (default {SEED})")
     parser.add_argument("--no-pipeline", action="store_true",
-                        help="write the PCA stand-in model even if core.pipeline exists")
+                        help="write the PCA stand-in model even if core.build.pipeline exists")
     parser.add_argument("--output", type=Path, default=DEMO,
                         help="folder for the generated demo files (default resources/demo)")
     parser.add_argument("--library", action="store_true",

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.geometry import rodrigues
+from core.geometry.toolkit import rodrigues
 
 MR_IMAGE = "1.2.840.10008.5.1.4.1.1.4"
 ENHANCED_MR = "1.2.840.10008.5.1.4.1.1.4.1"
@@ -23,7 +23,7 @@ UID_ROOT = "1.2.826.0.1.3680043.2.1125.77"
 
 
 def rotation(axis, degrees: float) -> np.ndarray:
-    """Rotation (3, 3) by ``degrees`` about ``axis`` (core.geometry's Rodrigues)."""
+    """Rotation (3, 3) by ``degrees`` about ``axis`` (core.geometry.toolkit's Rodrigues)."""
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     return rodrigues(np.radians(degrees) * axis)
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-# readers by kind: the name of the core.io (or core.session) loader the case goes through
+# readers by kind: the name of the core.io (or core.session.document) loader the case goes through
 KINDS = ("mesh", "volume", "points", "model", "session")
 
 
@@ -150,7 +150,7 @@ def _markups(points: list, system: str = "LPS") -> dict:
 
 
 def _small_model():
-    from core.shape_model import ShapeModel
+    from core.models.shape_model import ShapeModel
 
     mesh = _octahedron()
     factors = np.random.default_rng(0).normal(size=(2, mesh.n_vertices, 3))

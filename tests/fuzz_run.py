@@ -14,7 +14,7 @@ import warnings
 
 
 def main(list_file: str) -> None:
-    from core import session
+    from core.session import document as session
     from core.io import DataFileError, load_mesh, load_model, load_points, load_volume
 
     loaders = {"mesh": load_mesh, "volume": load_volume, "points": load_points,

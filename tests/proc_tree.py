@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from core.parallel import descendants  # noqa: F401  (re-exported for the tests)
+from core.runtime.parallel import descendants  # noqa: F401  (re-exported for the tests)
 
 
 def alive(pid: int) -> bool:

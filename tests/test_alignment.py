@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.alignment import (
+from core.alignment.transforms import (
     TRANSFORMS,
     align_shapes,
     apply_transform,
@@ -18,7 +18,7 @@ from core.alignment import (
     reference_transforms,
     synchronize_transforms,
 )
-from core.geometry import random_rotation
+from core.geometry.toolkit import random_rotation
 
 
 def random_transform(rng: np.random.Generator, transform: str, translation: float = 50.0) -> np.ndarray:

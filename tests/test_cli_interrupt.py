@@ -74,7 +74,7 @@ def test_sigint_to_correspond_leaves_finished_shapes_and_a_report(tmp_path):
     """SIGINT to one `correspond --jobs 2` process while its workers stream outputs: exit 130,
     no traceback, the report lists the finished outputs, each reads back whole, no worker
     (nor fork server) survives."""
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
     from core.io import load_mesh, save_mesh
 
     population = known_homology_shapes("bean", 20, seed=5, n_points=(90, 120))

@@ -1,4 +1,4 @@
-"""A second image (other contrast, moved) brought onto the first image's grid (core.coregistration).
+"""A second image (other contrast, moved) brought onto the first image's grid (core.registration.coregistration).
 
 Known truth: the second image is the demo T1 with its contrast inverted and remapped (like a
 T2: white matter dark, CSF bright), moved by a known rigid transform into scanner coordinates
@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.coregistration import blend, checkerboard_mask, coregister, same_grid
+from core.registration.coregistration import blend, checkerboard_mask, coregister, same_grid
 from core.io import Volume, load_mesh, load_volume
-from core.planes import FRAMES, SliceSampler
-from core.progress import Cancelled
-from core.synthetic_images import moved_copy, random_affine
+from core.geometry.planes import FRAMES, SliceSampler
+from core.runtime.progress import Cancelled
+from core.datasets.images import moved_copy, random_affine
 
 TEMPLATE = "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 
@@ -122,7 +122,7 @@ def test_other_field_of_view_in_the_same_scanner_frame_stays_in_place(t1, caudat
     """A FLAIR-like series of the same session: other contrast, coarser voxels and only the
     upper part of the head, already aligned in world space. The registration starts from the
     centres of mass, which differ here, and must still leave the image where it is."""
-    from core.registration import resample
+    from core.registration.volumes import resample
 
     grid = t1.affine @ np.diag([4.0 / 3.0, 4.0 / 3.0, 4.0 / 3.0, 1.0])
     shape = tuple(int(s * 3 / 4) for s in t1.shape)

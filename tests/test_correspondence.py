@@ -1,6 +1,6 @@
 """Correspondence: the rustcpd adapter, assignment, fairing, and the whole pipeline vs truth.
 
-The synthetic shapes (:mod:`core.correspondence.synthetic`) are smooth deformations of one
+The synthetic shapes (:mod:`core.datasets.shapes`) are smooth deformations of one
 bean-shaped surface, each with its own near-uniform triangulation, randomly permuted and
 posed; the true homologue of any point is known through its material point.
 """
@@ -22,11 +22,11 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from core import correspondence as corr  # noqa: E402
-from core import geometry, mesh as meshops  # noqa: E402
-from core.alignment import apply_transform, homogeneous  # noqa: E402
+from core.geometry import toolkit as geometry, mesh as meshops  # noqa: E402
+from core.alignment.transforms import apply_transform, homogeneous  # noqa: E402
 from core.io import TriMesh, load_mesh, save_mesh  # noqa: E402
-from core.correspondence.synthetic import known_homology_shapes  # noqa: E402
-from core.progress import Cancelled  # noqa: E402
+from core.datasets.shapes import known_homology_shapes  # noqa: E402
+from core.runtime.progress import Cancelled  # noqa: E402
 
 
 def synthetic_population(n_shapes: int, *, seed: int, n_points: tuple[int, int]):
@@ -66,8 +66,8 @@ def test_consistent_features_are_the_same_in_every_population_and_vary_in_size(k
     """With consistent features and no independent bumps, two shapes of different seeds differ
     only by their per-axis scale and pose (an affine map) when the features' sizes do not
     vary, and by more when they do; every remeshed vertex's material point is on the base."""
-    from core.alignment import fit_transform
-    from core.correspondence import synthetic
+    from core.alignment.transforms import fit_transform
+    from core.datasets import shapes as synthetic
 
     def affine_residual(cv):
         a, b = (known_homology_shapes(kind, 1, seed=s, n_points=(800, 900), features=6,
@@ -390,7 +390,7 @@ def test_external_reference_and_selection_subset(population):
 def _homology_error(pop, reference: int, target: int, out: dict) -> float:
     """Mean distance (mm, on the base surface) of the output's material points from the
     reference vertices' material points."""
-    from core.correspondence.synthetic import material_points
+    from core.datasets.shapes import material_points
 
     material = material_points(out["vertices"], pop.meshes[target], pop.material[target])
     return float(np.linalg.norm(material - pop.material[reference], axis=1).mean())
@@ -426,7 +426,7 @@ def test_rigid_pose_still_finds_a_far_rotated_target():
 def _batch_errors(pop, result) -> list[float]:
     """Per shape, mean distance (mm, on the base surface) of its corresponded points'
     material points from the reference's."""
-    from core.correspondence.synthetic import material_points
+    from core.datasets.shapes import material_points
 
     ref = result.reference_index
     ref_material = material_points(result.meshes[ref].vertices, pop.meshes[ref], pop.material[ref])

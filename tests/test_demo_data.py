@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from core import geometry, mesh as meshops
+from core.geometry import toolkit as geometry, mesh as meshops
 from core.io import load_mesh, load_model, load_points, load_volume
 
 LEFT_CAUDATE_MNI = np.array([-13.0, 10.0, 10.0])   # approximate centre of the left caudate, mm
@@ -177,12 +177,12 @@ def test_demo_model_loads_and_sits_on_the_training_shapes(demo, truth):
         residual = (shapes - model.mean).reshape(len(shapes), -1)
         residual -= (residual @ basis) @ basis.T
         assert np.sqrt((residual ** 2).sum(axis=1) / len(model.mean)).max() < 0.3  # mm RMS
-    else:                                                      # built by core.pipeline
+    else:                                                      # built by core.build.pipeline
         # Recomputed here, not read from the file's info: the true training shapes expressed
         # in the model's topology (the reference mesh's vertices sit at known barycentric
         # points of the base surface) are reproduced by the model to under half a millimetre
         # (the correspondence error is the floor), each better than by its mean shape alone.
-        from core.alignment import apply_transform, fit_transform
+        from core.alignment.transforms import apply_transform, fit_transform
 
         names = list(truth["mesh_names"])
         r = names.index(model.info["correspondence"]["reference"])

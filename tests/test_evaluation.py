@@ -13,8 +13,8 @@ from core.evaluation import (MEASURES, Realign, Recorrespond, compactness, evalu
                              evaluate_model, plot_metrics, sparse_fit, specificity,
                              summary_table, to_json, vertex_errors)
 from core.models import LSF, PCA, SPLOCS
-from core.models.synthetic import ellipsoid_surface, planted_shapes
-from core.progress import Cancelled
+from core.datasets.factors import ellipsoid_surface, planted_shapes
+from core.runtime.progress import Cancelled
 
 
 @pytest.fixture(scope="module")
@@ -143,8 +143,8 @@ def test_true_leave_one_out_realigns_each_fold():
     """Realign folds: the fold model is built on the K - 1 shapes aligned without the left-out
     one, which is brought onto the fold mean by Procrustes; the generalisation error equals
     that computed by hand, and differs from the fixed protocol, whose alignment saw it."""
-    from core.alignment import apply_transform, fit_transform
-    from core.pipeline import align
+    from core.alignment.transforms import apply_transform, fit_transform
+    from core.build.pipeline import align
 
     base, faces = ellipsoid_surface(2)
     data = planted_shapes(base, faces, n_shapes=7, n_factors=3, noise=0.3, random_state=4)

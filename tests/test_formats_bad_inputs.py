@@ -179,7 +179,7 @@ IMAGE_CASES = {
 
 
 def _statismo(path: Path, *, drop=(), change=None, **attrs) -> Path:
-    from core.simulated_user import pca_model, synthetic_shapes
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     shapes, faces = synthetic_shapes(6, subdivisions=1, seed=0)
     model = pca_model(shapes, faces)

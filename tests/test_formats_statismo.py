@@ -12,7 +12,7 @@ FLIP = np.array([-1.0, -1.0, 1.0])
 
 def _pca_parts(seed: int = 0, n_shapes: int = 9):
     """Mean (N, 3), orthonormal basis U (3N, M), variances (M,), faces, from synthetic shapes."""
-    from core.simulated_user import synthetic_shapes
+    from core.evaluation.simulated_user import synthetic_shapes
 
     shapes, faces = synthetic_shapes(n_shapes, subdivisions=2, seed=seed)
     shapes = shapes + np.array([-23.0, 11.0, 4.0])  # off the origin: a left-hemisphere structure
@@ -81,7 +81,7 @@ def test_reads_a_model_written_as_statismo_writes_it(tmp_path, version):
 def test_h5_round_trip_of_a_non_orthonormal_model(tmp_path):
     """npz -> h5 -> npz: exact model back; a foreign reader sees the same Gaussian (PCA form)."""
     from core.io import load_model, save_model
-    from core.shape_model import ShapeModel
+    from core.models.shape_model import ShapeModel
 
     mean, basis, variance, faces = _pca_parts(seed=3)
     rng = np.random.default_rng(0)
@@ -120,7 +120,7 @@ def test_h5_round_trip_of_a_non_orthonormal_model(tmp_path):
 def test_convert_model_both_ways_keeps_mean_basis_variances_and_faces(tmp_path, capsys):
     from core.cli import main
     from core.io import load_model, save_model
-    from core.simulated_user import pca_model, synthetic_shapes
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     shapes, faces = synthetic_shapes(8, subdivisions=2, seed=5)
     model = pca_model(shapes, faces)
@@ -150,7 +150,7 @@ def test_noise_variance_floors_the_fit_variance(tmp_path):
     """model/noiseVariance is the GMM variance floor of the fit (a plain info attribute)."""
     from core.io import load_model
     from core.reconstruction import fit_points
-    from core.simulated_user import simulate_user, synthetic_shapes
+    from core.evaluation.simulated_user import simulate_user, synthetic_shapes
 
     mean, basis, variance, faces = _pca_parts(seed=1)
     shapes, _ = synthetic_shapes(1, subdivisions=2, seed=11)
@@ -218,7 +218,7 @@ def test_fit_model_space_reads_an_h5_written_in_ras(tmp_path, capsys):
 
     from core.cli import main
     from core.io import save_points
-    from core.simulated_user import simulate_user, synthetic_shapes
+    from core.evaluation.simulated_user import simulate_user, synthetic_shapes
 
     mean, basis, variance, faces = _pca_parts(seed=6)
     write_like_statismo(tmp_path / "ras.h5", mean, basis, variance, faces)  # RAS, not LPS

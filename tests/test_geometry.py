@@ -1,4 +1,4 @@
-"""The one geometry toolkit (core.geometry) and the check that no copy of it reappears."""
+"""The one geometry toolkit (core.geometry.toolkit) and the check that no copy of it reappears."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core import geometry, mesh as meshops
-from core.models.synthetic import ellipsoid_surface as icosphere
+from core.geometry import toolkit as geometry, mesh as meshops
+from core.datasets.factors import ellipsoid_surface as icosphere
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -21,14 +21,14 @@ def _sources() -> list[Path]:
     return [p for p in files if p.name != "test_geometry.py" and ".venv" not in p.parts]
 
 
-# Routines of the toolkit (and of core.mesh's edge table): a definition of one of these names,
+# Routines of the toolkit (and of core.geometry.mesh's edge table): a definition of one of these names,
 # with or without a leading underscore, anywhere else is a second copy.
-TOOLKIT = {"core/geometry.py": ["face_normals", "vertex_normals", "vertex_face_table",
+TOOLKIT = {"core/geometry/toolkit.py": ["face_normals", "vertex_normals", "vertex_face_table",
                                 "closest_points_on_triangles", "barycentric", "SurfaceProjector",
                                 "closest_points_on_surface", "surface_coordinates",
                                 "surface_distance", "symmetric_surface_distance", "umeyama",
                                 "rodrigues", "rotation_vector", "random_rotation", "skew"],
-           "core/mesh.py": ["edge_table", "edges", "boundary_edges", "is_closed"]}
+           "core/geometry/mesh.py": ["edge_table", "edges", "boundary_edges", "is_closed"]}
 ALIASES = ["vertex_normals_fast", "rotation_log", "random_rotation", "procrustes_svd",
            "closest_point_on_triangle", "cotangent_laplacian"]
 
@@ -53,7 +53,7 @@ def test_no_second_definition_of_a_geometry_routine():
                 if (bare in owners and owners[bare] != rel) or \
                         (bare in ALIASES and rel not in TOOLKIT):
                     offenders.append(f"{rel}:{node.lineno} defines {node.name}")
-    assert not offenders, "use core.geometry / core.mesh instead: " + "; ".join(offenders)
+    assert not offenders, "use core.geometry.toolkit / core.geometry.mesh instead: " + "; ".join(offenders)
 
 
 def test_no_copy_of_a_geometry_algorithm_under_another_name():
@@ -66,7 +66,7 @@ def test_no_copy_of_a_geometry_algorithm_under_another_name():
         for what, pattern in FINGERPRINTS.items():
             for match in pattern.finditer(text):
                 offenders.append(f"{rel}:{text.count(chr(10), 0, match.start()) + 1} ({what})")
-    assert not offenders, "semantic copies of core.geometry: " + "; ".join(offenders)
+    assert not offenders, "semantic copies of core.geometry.toolkit: " + "; ".join(offenders)
 
 
 def test_vertex_normals_of_a_sphere_are_radial_and_the_subset_path_agrees():

@@ -1,4 +1,4 @@
-"""Grooming before correspondence (core.grooming) and the batch's per-shape handling of bad inputs."""
+"""Grooming before correspondence (core.correspondence.grooming) and the batch's per-shape handling of bad inputs."""
 
 from __future__ import annotations
 
@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from core import correspondence as corr
-from core import grooming, mesh as meshops
-from core.correspondence.synthetic import known_homology_shapes
-from core.geometry import closest_points_on_surface
-from core.models.synthetic import ellipsoid_surface
+from core.correspondence import grooming
+from core.geometry import mesh as meshops
+from core.datasets.shapes import known_homology_shapes
+from core.geometry.toolkit import closest_points_on_surface
+from core.datasets.factors import ellipsoid_surface
 from core.types import TriMesh
 
 

@@ -21,7 +21,7 @@ import core.correspondence  # noqa: F401 - imported here, not in the timed worke
 from app.panels.builder_engine import NO_CORRESPONDENCE
 from core.io import TriMesh, load_model, save_mesh
 from core.models import LSF, PCA, Varimax
-from core.models.synthetic import ellipsoid_surface, planted_shapes, support_iou
+from core.datasets.factors import ellipsoid_surface, planted_shapes, support_iou
 
 DEMO = Path(__file__).resolve().parents[1] / "resources" / "demo" / "meshes"
 N_TRAIN = 5
@@ -378,7 +378,7 @@ def test_lsf_factors_from_corresponded_meshes_show_planted_regions(panel, qtbot,
 
 
 def test_mesh_list_shows_what_grooming_repaired(panel, qtbot, tmp_path):
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
 
     pop = known_homology_shapes("bean", 4, seed=8, n_points=(150, 170))
     paths = []

@@ -33,7 +33,7 @@ def test_no_maths_in_the_builder_widgets():
 
 
 def test_stage_cache_and_builder_state_import_no_qt():
-    code = ("import sys; import core.stages, app.panels.builder_state, app.panels.builder_engine;"
+    code = ("import sys; import core.build.stages, app.panels.builder_state, app.panels.builder_engine;"
             "print([m for m in sys.modules if m.startswith(('PySide6', 'PyQt', 'pyvistaqt'))])")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                          check=True, env={"PYTHONPATH": str(ROOT), "PATH": ""})
@@ -61,7 +61,7 @@ def test_builder_views_keep_their_lights_when_redrawn(qtbot):
     from PySide6.QtWidgets import QMainWindow
 
     from app.panels.builder_views import MeshesView
-    from core.models.synthetic import ellipsoid_surface
+    from core.datasets.factors import ellipsoid_surface
 
     vertices, faces = ellipsoid_surface(3, radii=(20.0, 20.0, 20.0))
     window = QMainWindow()
@@ -95,7 +95,7 @@ def test_builder_views_keep_their_lights_when_redrawn(qtbot):
 
 def _planted_meshes(n_shapes=12, n_factors=3):
     from core.io import TriMesh
-    from core.models.synthetic import ellipsoid_surface, planted_shapes
+    from core.datasets.factors import ellipsoid_surface, planted_shapes
 
     base, faces = ellipsoid_surface(2)
     planted = planted_shapes(base, faces, n_shapes=n_shapes, n_factors=n_factors, noise=0.02,
@@ -104,7 +104,7 @@ def _planted_meshes(n_shapes=12, n_factors=3):
 
 
 def _built_model(method="pca", **params):
-    from core.stages import NO_CORRESPONDENCE, BuildSettings, StagedBuild
+    from core.build.stages import NO_CORRESPONDENCE, BuildSettings, StagedBuild
 
     build = StagedBuild()
     model = build.run(BuildSettings(_planted_meshes(), reference=NO_CORRESPONDENCE,
@@ -195,7 +195,7 @@ def test_build_tab_hides_the_segmentation_toolbar(qtbot, tmp_path, monkeypatch):
 
 def test_opening_the_builder_does_not_load_the_correspondence_engine():
     # importing core.correspondence (scipy.optimize) took ~1.8 s of the ~2 s tab switch
-    from core.stages import DEFAULT_N_REFERENCES
+    from core.build.stages import DEFAULT_N_REFERENCES
 
     code = ("import sys; from PySide6.QtWidgets import QApplication; app = QApplication([]);"
             "from app.panels.builder import BuilderPanel; p = BuilderPanel();"
@@ -239,7 +239,7 @@ def test_builder_is_prepared_in_the_background_without_leaving_the_segment_tab(q
 
 
 def test_add_label_maps_makes_training_surfaces_in_a_worker(panel, qtbot, tmp_path):
-    pytest.importorskip("core.mesh_labels")
+    pytest.importorskip("core.correspondence.mesh_labels")
     import numpy as np
 
     from core.io import save_volume

@@ -151,7 +151,7 @@ def _draw_ring(window):
 
 
 def test_slider_edit_updates_the_residual_and_the_next_refit_says_it_refitted(make_window):
-    from core.geometry import surface_distance
+    from core.geometry.toolkit import surface_distance
 
     window = make_window()
     _draw_ring(window)
@@ -353,7 +353,7 @@ def test_implausible_fit_is_flagged_and_export_asks(make_window, tmp_path):
     window.fit_panel.set_settings(pose="similarity")
     window.state.reset_placement()
     centre = window.state.surface_vertices().mean(axis=0)
-    from core.slicing import polylines
+    from core.geometry.slicing import polylines
 
     line = polylines(window.state.surface_vertices(), window.state.model.faces,
                      np.array([0, 0, window.state.crosshair[2]]), np.array([0, 0, 1.0]))[0]

@@ -33,7 +33,7 @@ def window(qtbot, tmp_path, monkeypatch):
 
 
 def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
-    from core.geometry import symmetric_surface_distance
+    from core.geometry.toolkit import symmetric_surface_distance
 
     truth_v, truth_f = demo_tour.truth_surface()
     s = window.state.active

@@ -72,7 +72,7 @@ def test_dropped_dicom_folder_opens_and_leaks_no_patient_name(window, dicom_fold
     _no_patient(title)
     _no_patient(message)
     from core.io import save_model
-    from core.simulated_user import pca_model, synthetic_shapes
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     shapes, faces = synthetic_shapes(5, subdivisions=2, seed=3, size=(3.0, 3.0, 4.0))
     model = pca_model(shapes + vol.voxel_to_world((np.array(vol.shape) - 1) / 2), faces)
@@ -116,7 +116,7 @@ def test_nrrd_image_h5_model_and_seg_nrrd_export(window, tmp_path):
 
     from core.io import load_volume, save_model
     from core.io.nrrd import segmentation_fields
-    from core.simulated_user import pca_model, synthetic_shapes
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     image = synth.oblique_image((30, 28, 20), (1.0, 1.0, 1.5))
     sitk.WriteImage(image, str(tmp_path / "scan.nrrd"))

@@ -1,4 +1,4 @@
-"""World-aligned slice sampling (core.planes): the pixel under a world point shows that voxel."""
+"""World-aligned slice sampling (core.geometry.planes): the pixel under a world point shows that voxel."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.io import Volume
-from core.planes import (AXIAL, CORONAL, FRAMES, SAGITTAL, SliceSampler, auto_window,
+from core.geometry.planes import (AXIAL, CORONAL, FRAMES, SAGITTAL, SliceSampler, auto_window,
                          contour_normals, window_to_uint8)
 
 
@@ -116,7 +116,7 @@ def test_contour_normals_point_outwards():
 def test_slice_contour_normals_take_the_surface_side_for_open_strokes():
     """Two slices of a sphere, each an open quarter arc drawn in either direction: the normals
     take the side of the surface's normals at the nearest vertices."""
-    from core.planes import slice_contour_normals
+    from core.geometry.planes import slice_contour_normals
 
     t = np.linspace(0.0, np.pi / 2, 8)
     rows, ids = [], []

@@ -17,9 +17,9 @@ pytestmark = pytest.mark.gui
 from PySide6.QtCore import QPoint, Qt  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
-from core.coregistration import checkerboard_mask  # noqa: E402
+from core.registration.coregistration import checkerboard_mask  # noqa: E402
 from core.io import save_volume  # noqa: E402
-from core.planes import window_to_uint8  # noqa: E402
+from core.geometry.planes import window_to_uint8  # noqa: E402
 
 
 def inverted(data: np.ndarray) -> np.ndarray:
@@ -124,7 +124,7 @@ def test_second_image_on_another_grid_is_registered_in_a_worker_and_can_be_cance
     """A first image at 3 mm and the inverted copy moved by 6 mm and 5 degrees: loading runs the
     rigid registration in a worker; the recovered transform undoes the motion; a cancelled
     load changes nothing."""
-    from core.synthetic_images import moved_copy
+    from core.datasets.images import moved_copy
 
     t1 = window.state.volume
     data = np.ascontiguousarray(np.asarray(t1.data, np.float32)[::3, ::3, ::3])

@@ -19,9 +19,9 @@ from PySide6.QtTest import QTest  # noqa: E402
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
 from core.io import load_model  # noqa: E402
-from core.planes import window_to_uint8  # noqa: E402
-from core.geometry import surface_distance  # noqa: E402
-from core.slicing import polylines, sample_polyline  # noqa: E402
+from core.geometry.planes import window_to_uint8  # noqa: E402
+from core.geometry.toolkit import surface_distance  # noqa: E402
+from core.geometry.slicing import polylines, sample_polyline  # noqa: E402
 
 NO_MOD = Qt.KeyboardModifier.NoModifier
 LEFT = Qt.MouseButton.LeftButton
@@ -267,7 +267,7 @@ def test_fit_error_keeps_the_surface_and_shows_the_message(window, qtbot):
 
 def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
     from core.io import save_model
-    from core.simulated_user import pca_model, synthetic_shapes
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     shapes, faces = synthetic_shapes(6, subdivisions=2, seed=1)
     model = pca_model(shapes + window.state.crosshair, faces, n_factors=3)
@@ -281,7 +281,7 @@ def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
 def test_builder_tab_is_created_lazily_and_hands_over_its_model(window, qtbot, tmp_path):
     pytest.importorskip("app.panels.builder")
     from core.io import save_model
-    from core.simulated_user import pca_model, synthetic_shapes
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     assert window.builder is None and window.tabs.count() == 2
     window.tabs.setCurrentIndex(1)
@@ -401,7 +401,7 @@ def test_dropping_a_model_file_loads_it(window, tmp_path):
     from PySide6.QtWidgets import QApplication
 
     from core.io import save_model
-    from core.simulated_user import pca_model, synthetic_shapes
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     shapes, faces = synthetic_shapes(5, subdivisions=2, seed=4)
     path = tmp_path / "dropped.npz"
@@ -418,13 +418,13 @@ def test_dropping_a_model_file_loads_it(window, tmp_path):
 
 def test_open_stroke_normals_point_out_of_the_model(window):
     """A stroke along one side only: the sign comes from the model surface, not the centroid."""
-    from core.geometry import vertex_normals
+    from core.geometry.toolkit import vertex_normals
 
     state = window.state
     vertices, faces = state.surface_vertices(), state.model.faces
     normals = vertex_normals(vertices, faces)
     depth = state.crosshair[2]
-    from core.slicing import polylines
+    from core.geometry.slicing import polylines
 
     line = polylines(vertices, faces, np.array([0, 0, depth]), np.array([0, 0, 1.0]))[0]
     stroke = line.points[: max(4, len(line.points) // 4)]      # a quarter of the outline
@@ -443,7 +443,7 @@ def test_factor_sliders_show_each_factors_share_of_the_training_variance(window,
     truth is the SVD of the centred training shapes (eigenvalue ratios)."""
     from core.io import save_model
     from core.models import PCA
-    from core.simulated_user import synthetic_shapes
+    from core.evaluation.simulated_user import synthetic_shapes
 
     shapes, faces = synthetic_shapes(8, subdivisions=2, seed=4)
     shapes = shapes + window.state.crosshair

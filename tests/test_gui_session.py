@@ -19,8 +19,8 @@ from PySide6.QtTest import QTest  # noqa: E402
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
 from core.io import load_mesh, load_points, load_volume  # noqa: E402
-from core.geometry import vertex_normals  # noqa: E402
-from core.mesh import volume as mesh_volume  # noqa: E402
+from core.geometry.toolkit import vertex_normals  # noqa: E402
+from core.geometry.mesh import volume as mesh_volume  # noqa: E402
 
 
 def _need_demo():
@@ -130,7 +130,7 @@ def test_session_round_trip_with_relative_paths(qtbot, tmp_path, state_dir):
 
 def test_autosave_and_recovery_after_a_crash(qtbot, tmp_path, state_dir):
     _need_demo()
-    from core import session as sessions
+    from core.session import document as sessions
 
     window = _window(qtbot, recovery=True)
     window.load_demo()
@@ -144,7 +144,7 @@ def test_autosave_and_recovery_after_a_crash(qtbot, tmp_path, state_dir):
     coef = window.state.coef.copy()
 
     # a run that autosaved the same work and then died without cleaning up
-    code = ("import os, sys; from core.session import load_session, write_recovery; "
+    code = ("import os, sys; from core.session.document import load_session, write_recovery; "
             "write_recovery(load_session(sys.argv[1])); os._exit(3)")
     result = subprocess.run([sys.executable, "-c", code, str(sessions.recovery_path())],
                             capture_output=True, text=True, timeout=60)

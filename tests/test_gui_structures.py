@@ -14,7 +14,7 @@ from PySide6.QtCore import QPoint, Qt  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
 from app.window import MainWindow  # noqa: E402
-from core.model_library import list_library  # noqa: E402
+from core.io.model_library import list_library  # noqa: E402
 
 
 def _library(name: str):

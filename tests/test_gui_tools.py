@@ -15,7 +15,7 @@ from PySide6.QtTest import QTest  # noqa: E402
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
 from core.io import load_volume  # noqa: E402
-from core.segmentation import voxelize  # noqa: E402
+from core.geometry.segmentation import voxelize  # noqa: E402
 
 NO_MOD = Qt.KeyboardModifier.NoModifier
 LEFT = Qt.MouseButton.LeftButton
@@ -243,7 +243,7 @@ def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path
     nav.set_colormap(window, "hot")
     lut = nav.colormap_lut("hot")
     assert lut.shape == (256, 3) and lut[0].tolist() != lut[-1].tolist()
-    from core.planes import window_to_uint8
+    from core.geometry.planes import window_to_uint8
 
     grey = window_to_uint8(view._slice.data, window.state.window, window.state.level)
     r, c = grey.shape[0] // 2, grey.shape[1] // 2

@@ -1,11 +1,11 @@
-"""core.handles: the transforms that drags in a slice stand for (known transforms recovered)."""
+"""core.registration.handles: the transforms that drags in a slice stand for (known transforms recovered)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from core.handles import about_point, drag_transform
+from core.registration.handles import about_point, drag_transform
 
 
 def apply(m, x):

@@ -23,7 +23,7 @@ import vtk
 
 from core import io
 from core.io import DataFileError, PointSet, TriMesh
-from core.shape_model import ShapeModel
+from core.models.shape_model import ShapeModel
 
 NIBABEL_DATA = Path(nib.__file__).parent / "tests" / "data"
 GIFTI_DATA = Path(nib.__file__).parent / "gifti" / "tests" / "data"
@@ -1483,7 +1483,7 @@ def test_slicer_point_files_read_in_ras(tmp_path, name, text, expected):
 
 def test_markups_json_is_recognised_as_points_not_session(tmp_path):
     from core.io.points import is_markups_file
-    from core.session import Session, save_session
+    from core.session.document import Session, save_session
 
     io.save_points(tmp_path / "p.json", np.array([[1.0, 2, 3]]))
     save_session(tmp_path / "s.json", Session(points=[[1.0, 2, 3]]))

@@ -1,4 +1,4 @@
-"""core.labelmap: manual edits of a label map (brush / eraser), kept apart from the model's."""
+"""core.geometry.labelmap: manual edits of a label map (brush / eraser), kept apart from the model's."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from core.labelmap import (
+from core.geometry.labelmap import (
     ManualEdits,
     brush_voxels,
     mask_volume_mm3,
     structure_label_map,
 )
-from core.models.synthetic import ellipsoid_surface
+from core.datasets.factors import ellipsoid_surface
 
 
 def test_round_brush_covers_the_disc_on_one_slice():

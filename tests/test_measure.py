@@ -1,4 +1,4 @@
-"""core.measure: ruler and angle values, session JSON, CSV and Slicer markups files."""
+"""core.planning.measure: ruler and angle values, session JSON, CSV and Slicer markups files."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from core.measure import (
+from core.planning.measure import (
     Measurement,
     measurements_from_json,
     measurements_to_json,

@@ -1,4 +1,4 @@
-"""Label maps -> training surfaces (core.mesh_labels, ssm-studio mesh-labels) against analytic truth."""
+"""Label maps -> training surfaces (core.correspondence.mesh_labels, ssm-studio mesh-labels) against analytic truth."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from core import mesh as meshops
-from core.geometry import random_rotation
-from core.mesh_labels import LabelError, label_map_surface, label_surface, resolve_label
+from core.geometry import mesh as meshops
+from core.geometry.toolkit import random_rotation
+from core.correspondence.mesh_labels import LabelError, label_map_surface, label_surface, resolve_label
 from core.types import Volume
 
 RADII = np.array([12.0, 9.0, 7.0])  # mm

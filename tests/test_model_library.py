@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from core.io import load_model, save_model
-from core.model_library import (MNI_TEMPLATE_SPACE, RESOURCES_MODELS, StructureInfo,
+from core.io.model_library import (MNI_TEMPLATE_SPACE, RESOURCES_MODELS, StructureInfo,
                                 list_library, structure_info, user_models_dir, with_structure)
-from core.planning import volume_centroid
-from core.shape_model import ShapeModel
+from core.planning.frames import volume_centroid
+from core.models.shape_model import ShapeModel
 
 
 def _tiny_model(info=None) -> ShapeModel:

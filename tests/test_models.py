@@ -13,9 +13,9 @@ from core.models import (LSF, METHODS, PCA, SPLOCS, Varimax, clone, make_model,
 from core.models.base import edge_adjacency
 from core.models.lsf import (FactorNorm, graph_gradient, project_l1_ball, prox_sparse_group,
                              split_factors)
-from core.models.synthetic import ellipsoid_surface, planted_shapes, support_iou
-from core.progress import Cancelled
-from core import mesh as meshops
+from core.datasets.factors import ellipsoid_surface, planted_shapes, support_iou
+from core.runtime.progress import Cancelled
+from core.geometry import mesh as meshops
 
 
 @pytest.fixture(scope="module")

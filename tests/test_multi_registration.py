@@ -1,4 +1,4 @@
-"""Multi-image registration by transformation synchronisation (core.multi_registration,
+"""Multi-image registration by transformation synchronisation (core.registration.multi_image,
 ``ssm-studio register-images``) on images with known transforms."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 
 from core.cli import main as cli_main
 from core.io import load_volume, save_volume
-from core.multi_registration import knn_pairs, register_images, robust_synchronize
-from core.synthetic_images import downsample, moved_copy, random_affine
+from core.registration.multi_image import knn_pairs, register_images, robust_synchronize
+from core.datasets.images import downsample, moved_copy, random_affine
 
 TEMPLATE = "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 FAST = {"levels_mm": (10.0, 5.0), "n_samples": 6000}
@@ -101,7 +101,7 @@ def test_knn_pairs_connect_the_graph():
     rng = np.random.default_rng(0)
     d = np.concatenate([rng.normal(0, 1, (10, 6)), rng.normal(50, 1, (10, 6))])  # two clusters
     pairs = knn_pairs(d, 2)
-    from core.multi_registration import _components
+    from core.registration.multi_image import _components
 
     assert _components(20, set(pairs)).max() == 0
     assert all(i < j for i, j in pairs)

@@ -1,4 +1,4 @@
-"""The job executor (core.parallel): process pool, Dask, interruption."""
+"""The job executor (core.runtime.parallel): process pool, Dask, interruption."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.parallel import JobError, check_scheduler, dask_jobs_per_task, run_jobs, use_scheduler
-from core.progress import Cancelled
+from core.runtime.parallel import JobError, check_scheduler, dask_jobs_per_task, run_jobs, use_scheduler
+from core.runtime.progress import Cancelled
 from proc_tree import descendants, still_alive
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -144,7 +144,7 @@ def test_dask_run_survives_a_killed_worker(local_cluster):
 
 _SCRIPT = textwrap.dedent("""
     import sys, time
-    from core.parallel import run_jobs, termination_signals, Terminated
+    from core.runtime.parallel import run_jobs, termination_signals, Terminated
     import helper_jobs
 
     with termination_signals():
@@ -181,7 +181,7 @@ def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
 @pytest.fixture(scope="module")
 def small_meshes():
     """Five known-homology beans of ~120 vertices, own tessellations and poses."""
-    from core.correspondence.synthetic import known_homology_shapes
+    from core.datasets.shapes import known_homology_shapes
 
     return known_homology_shapes("bean", 5, seed=3, n_points=(100, 140)).meshes
 

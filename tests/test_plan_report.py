@@ -10,9 +10,9 @@ import pytest
 from analytic import sphere as icosphere
 from core.io import Volume, load_points, load_volume
 from core.io.nrrd import segmentation_fields
-from core.plan_report import (PlannedStructure, export_plan, itksnap_label_description,
+from core.planning.report import (PlannedStructure, export_plan, itksnap_label_description,
                               model_target, multi_label_map, plan_report)
-from core.planning import ACPCFrame
+from core.planning.frames import ACPCFrame
 
 
 @pytest.fixture

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.mesh import volume
+from core.geometry.mesh import volume
 from analytic import sphere as icosphere
-from core.planning import (ACPCFrame, PlanningError, Trajectory, anchored_point,
+from core.planning.frames import (ACPCFrame, PlanningError, Trajectory, anchored_point,
                            anchored_point_weights, format_acpc, ray_surface_crossings,
                            structure_row, volume_centroid)
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.progress import Cancelled
-from core.geometry import closest_points_on_triangles, rodrigues, surface_distance, vertex_normals
+from core.runtime.progress import Cancelled
+from core.geometry.toolkit import closest_points_on_triangles, rodrigues, surface_distance, vertex_normals
 from core.reconstruction import FitResult, fit_points
-from core.simulated_user import pca_model, simulate_user, synthetic_shapes
+from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The image registration engine (core.registration) and ``ssm-studio register``."""
+"""The image registration engine (core.registration.volumes) and ``ssm-studio register``."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import pytest
 
 from core.cli import main as cli_main
 from core.io import load_mesh, load_volume, save_volume
-from core.progress import Cancelled
-from core.registration import (itk_to_ras, ras_to_itk, register, resample, sitk_affine,
+from core.runtime.progress import Cancelled
+from core.registration.volumes import (itk_to_ras, ras_to_itk, register, resample, sitk_affine,
                                volume_to_sitk)
-from core.synthetic_images import downsample, moved_copy, random_affine
+from core.datasets.images import downsample, moved_copy, random_affine
 
 TEMPLATE = "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 

@@ -1,4 +1,4 @@
-"""Tests for core.session: session files (relative paths, versions, bad files) and recovery."""
+"""Tests for core.session.document: session files (relative paths, versions, bad files) and recovery."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core import session as sessions
+from core.session import document as sessions
 from core.io import DataFileError
-from core.session import Session
+from core.session.document import Session
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -370,7 +370,7 @@ def test_session_errors_name_the_session(tmp_path, name, doc, phrase):
 
 
 def _model(n_factors: int):
-    from core.shape_model import ShapeModel
+    from core.models.shape_model import ShapeModel
 
     mean = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
     return ShapeModel(mean=mean, factors=np.ones((n_factors, 4, 3)),

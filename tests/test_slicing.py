@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import pyvista as pv
 
-from core.slicing import intersect_plane, polylines, sample_polyline
+from core.geometry.slicing import intersect_plane, polylines, sample_polyline
 
 
 def _arrays(poly: pv.PolyData) -> tuple[np.ndarray, np.ndarray]:
@@ -82,7 +82,7 @@ def test_sample_polyline_equal_steps(cube):
 
 @pytest.mark.parametrize("noise", [0.0, 0.3])
 def test_simulated_user_draws_in_plane_contours_with_outward_normals(sphere, noise):
-    from core.simulated_user import simulate_user
+    from core.evaluation.simulated_user import simulate_user
 
     v, f = sphere
     user = simulate_user(v, f, 6, orientations="mixed", spacing=1.0, noise=noise,

@@ -1,4 +1,4 @@
-"""Sparse transformation synchronisation at cohort scale (core.alignment, issue 15)."""
+"""Sparse transformation synchronisation at cohort scale (core.alignment.transforms, issue 15)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.alignment import (align_shapes, align_shapes_sparse, apply_transform,
+from core.alignment.transforms import (align_shapes, align_shapes_sparse, apply_transform,
                             batched_fit_transforms, fit_transform, shape_neighbours,
                             synchronize_sparse, synchronize_transforms)
 
@@ -119,7 +119,7 @@ def test_sync_sparse_is_an_alignment_method_of_the_pipeline_and_the_cli(tmp_path
 
     from core.cli import main as cli_main
     from core.io import TriMesh, save_mesh
-    from core.pipeline import ALIGN_METHODS, align
+    from core.build.pipeline import ALIGN_METHODS, align
 
     assert "sync-sparse" in ALIGN_METHODS
     rng = np.random.default_rng(12)

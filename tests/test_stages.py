@@ -1,4 +1,4 @@
-"""core.stages: the model build cached stage by stage (no Qt).
+"""core.build.stages: the model build cached stage by stage (no Qt).
 
 Shapes share one topology (planted local deformations of an ellipsoid), so the correspondence
 stage is the cheap "already corresponded" check and each build takes milliseconds.
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from core.io import TriMesh
-from core.models.synthetic import ellipsoid_surface, planted_shapes
-from core.stages import (
+from core.datasets.factors import ellipsoid_surface, planted_shapes
+from core.build.stages import (
     DEFAULT_N_REFERENCES,
     NO_CORRESPONDENCE,
     STAGES,

@@ -12,10 +12,10 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from core.alignment import generalized_procrustes, procrustes_mean
+from core.alignment.transforms import generalized_procrustes, procrustes_mean
 from core.correspondence import establish_correspondence
 from core.correspondence.store import VertexRows
-from core.correspondence.synthetic import known_homology_shapes
+from core.datasets.shapes import known_homology_shapes
 from core.io import load_mesh, save_mesh
 
 
@@ -59,7 +59,7 @@ def test_streamed_gpa_is_the_stacked_gpa_bit_for_bit(tmp_path):
         assert rmsd.tobytes() == stacked.rmsd_.tobytes()
     # known truth: the mean is the base shape up to a similarity, to the noise level
     centred = base - base.mean(axis=0)
-    from core.alignment import apply_transform, fit_transform
+    from core.alignment.transforms import apply_transform, fit_transform
 
     back = apply_transform(fit_transform(mean, centred, "similarity"), mean)
     assert np.sqrt(((back - centred) ** 2).sum(axis=1).mean()) < 0.05
@@ -180,7 +180,7 @@ def test_build_model_correspond_streams_the_correspondence_and_builds_the_same_m
     scratch folder next to the model, removed): the model equals the in-memory build's."""
     from core.cli import main
     from core.io import load_model
-    from core.pipeline import build_model
+    from core.build.pipeline import build_model
 
     population = known_homology_shapes("bean", 6, seed=13, n_points=(80, 100))
     paths = _write(population.meshes, tmp_path / "in")

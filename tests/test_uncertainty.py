@@ -11,8 +11,8 @@ from scipy import stats
 from analytic import sphere
 from core.io import load_model, load_points
 from core.reconstruction import fit_points
-from core.shape_model import ShapeModel
-from core.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior, suggest_slice
+from core.models.shape_model import ShapeModel
+from core.reconstruction.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior, suggest_slice
 
 
 def _smooth_model(n_factors: int = 4) -> ShapeModel:

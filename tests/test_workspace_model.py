@@ -16,7 +16,7 @@ import pytest
 from app.events import EmitterGroup
 from app.state import STRUCTURE_COLORS, Structure, WorkspaceState
 from core.io import Volume
-from core.simulated_user import pca_model, synthetic_shapes
+from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
 ROOT = Path(__file__).resolve().parents[1]
 QT_MODULES = ("PySide6", "PyQt5", "PyQt6", "pyvistaqt", "qtpy", "vtk", "pyvista")
@@ -221,7 +221,7 @@ def test_events_hold_bound_methods_weakly():
 def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
     """The autosave (packed arrays) carries all structures; the sessions open as they were."""
     from app.controllers import SessionController
-    from core import session as sessions
+    from core.session import document as sessions
     from core.io import save_model
 
     monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
@@ -253,7 +253,7 @@ def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
 def test_second_image_state_swaps_the_window_with_the_base_and_keeps_its_settings():
     """app.second_image is plain Python: the base image owns the workspace's window/level."""
     from app.second_image import SecondImage
-    from core.coregistration import coregister
+    from core.registration.coregistration import coregister
 
     state = WorkspaceState()
     data = np.arange(4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6)

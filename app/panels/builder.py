@@ -7,10 +7,10 @@ parameters (:mod:`app.panels.builder_pipeline`), Build / Cancel with a progress 
 training meshes, factors, random samples, and the evaluation table and boxplots.
 
 Design (cf. 3D Slicer's Widget/Logic split): the computation and the stage cache are
-:mod:`core.stages` (``StagedBuild``: correspond -> align -> fit model, each stage kept with the
+:mod:`core.build.stages` (``StagedBuild``: correspond -> align -> fit model, each stage kept with the
 key of its inputs, so a Build reruns only the stages whose inputs changed) and
 ``core.evaluation``; this module wires the parts together. Each stage runs in a worker; Cancel
-raises ``core.progress.Cancelled`` from its progress callback and completed stages stay cached.
+raises ``core.runtime.progress.Cancelled`` from its progress callback and completed stages stay cached.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from app.panels.builder_runner import STAGE_TITLES, RunBox, StageRunner
 from app.panels.builder_state import BuilderState
 from app.panels.builder_views import BuilderViews
 from core.io import MESH_SUFFIXES, expand_mesh_paths
-from core.stages import STAGES, run_evaluation
+from core.build.stages import STAGES, run_evaluation
 
 __all__ = ["BuilderPanel", "BuilderState", "STAGES", "STAGE_TITLES"]
 
@@ -43,7 +43,7 @@ class BuilderPanel(QWidget):
     use_for_segmentation(str)
         Path of the saved model file the user wants to segment with.
     model_built(object)
-        The new :class:`core.shape_model.ShapeModel` after a build.
+        The new :class:`core.models.shape_model.ShapeModel` after a build.
     busy_changed(bool)
         A worker started (True) or the panel became idle (False).
     status_changed(str)
@@ -158,7 +158,7 @@ class BuilderPanel(QWidget):
         return self.state.usable_entries()
 
     def settings(self):
-        """The current :class:`core.stages.BuildSettings` (ValueError: malformed parameter)."""
+        """The current :class:`core.build.stages.BuildSettings` (ValueError: malformed parameter)."""
         return self.pipeline.settings(self.usable_entries())
 
     def stage_keys(self) -> dict[str, tuple]:

@@ -2,7 +2,7 @@
 parameter forms, and the evaluation table's cells.
 
 The build itself (correspond -> align -> fit model, cached stage by stage) is
-:mod:`core.stages`; the functions here that run in an :class:`app.workers.Worker` take plain
+:mod:`core.build.stages`; the functions here that run in an :class:`app.workers.Worker` take plain
 data, return plain data and report ``progress(fraction, message)``.
 """
 
@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 
 from core.io import TriMesh, load_meshes
-from core.mesh import surface_problems
+from core.geometry.mesh import surface_problems
 from core.models import MODELS
-from core.pipeline import ALIGN_METHODS, TRANSFORMS
-from core.progress import ProgressCallback
-from core.stages import DEFAULT_N_REFERENCES, NO_CORRESPONDENCE
+from core.build.pipeline import ALIGN_METHODS, TRANSFORMS
+from core.runtime.progress import ProgressCallback
+from core.build.stages import DEFAULT_N_REFERENCES, NO_CORRESPONDENCE
 
 __all__ = ["ALIGN_METHODS", "TRANSFORMS", "NO_CORRESPONDENCE", "MeshEntry", "load_entries",
            "model_classes", "method_summary", "default_n_references", "evaluation_table",
@@ -64,18 +64,18 @@ def load_entries(files: list[str | os.PathLike], progress: ProgressCallback | No
 
 
 def label_maps_available() -> bool:
-    """Whether ``core.mesh_labels`` (label maps -> surfaces) is installed."""
+    """Whether ``core.correspondence.mesh_labels`` (label maps -> surfaces) is installed."""
     import importlib.util
 
-    return importlib.util.find_spec("core.mesh_labels") is not None
+    return importlib.util.find_spec("core.correspondence.mesh_labels") is not None
 
 
 def load_label_entries(files: list[str | os.PathLike], label: str | int,
                        n_vertices: int | None = 2000,
                        progress: ProgressCallback | None = None) -> list[MeshEntry]:
-    """One label of each label map as a training mesh (core.mesh_labels); errors per file
+    """One label of each label map as a training mesh (core.correspondence.mesh_labels); errors per file
     (a missing or empty label names the file and the label; the other files still load)."""
-    from core.mesh_labels import label_map_surfaces
+    from core.correspondence.mesh_labels import label_map_surfaces
 
     entries = []
     for path, mesh, error in label_map_surfaces(files, label, n_vertices=n_vertices,
@@ -110,7 +110,7 @@ def method_summary(cls: type) -> str:
 
 def default_n_references() -> int:
     """``establish_correspondence``'s default number of candidate references (read from
-    ``core.stages`` so that opening the builder does not import the correspondence engine and
+    ``core.build.stages`` so that opening the builder does not import the correspondence engine and
     scipy.optimize, ~1.8 s; a test keeps the two equal)."""
     return DEFAULT_N_REFERENCES
 

@@ -2,7 +2,7 @@
 
 Three group boxes ("2. Correspondence", "3. Alignment", "4. Model"); the model's form is
 generated from the estimator's signature (:class:`app.panels.builder_forms.ParameterForm`).
-:meth:`PipelineForm.settings` reads them into a :class:`core.stages.BuildSettings`, which
+:meth:`PipelineForm.settings` reads them into a :class:`core.build.stages.BuildSettings`, which
 gives the stage cache its keys; the widget itself keeps no state besides its editors.
 """
 
@@ -29,7 +29,7 @@ from PySide6.QtWidgets import (
 from app.panels import builder_engine as engine
 from app.panels.builder_engine import MeshEntry
 from app.panels.builder_forms import ParameterForm
-from core.stages import NO_CORRESPONDENCE, BuildSettings
+from core.build.stages import NO_CORRESPONDENCE, BuildSettings
 
 
 class PipelineForm(QWidget):

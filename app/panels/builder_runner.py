@@ -3,7 +3,7 @@
 :class:`StageRunner` (no widgets) runs jobs in :class:`app.workers.Worker` threads: a single
 job (loading meshes, an evaluation) or a *plan* of build stages, asking for each stage's job
 only when the stage before it has been stored, since a stage's inputs are the previous stage's
-result (``core.stages.StagedBuild.job``). Cancel stops the running job at its next progress
+result (``core.build.stages.StagedBuild.job``). Cancel stops the running job at its next progress
 report and drops the rest of the plan; completed stages stay with the receiver.
 
 :class:`RunBox` is the "5. Build" group: Build / Cancel, the progress bar, each stage's state
@@ -29,7 +29,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.workers import Worker
-from core.stages import STAGES
+from core.build.stages import STAGES
 
 STAGE_TITLES = {"load": "Loading meshes", "correspondence": "Correspondence",
                 "alignment": "Alignment", "model": "Model", "evaluation": "Evaluation",
@@ -236,7 +236,7 @@ class RunBox(QGroupBox):
 
     def show_stages(self, status: Mapping[str, str], seconds: Mapping[str, float],
                     running: str | None) -> None:
-        """``status`` per stage from ``core.stages.StageCache.status``."""
+        """``status`` per stage from ``core.build.stages.StageCache.status``."""
         for stage in STAGES:
             label = self.stage_labels[stage]
             if running == stage:

@@ -1,6 +1,6 @@
 """What the model builder knows, apart from widgets: plain Python, no Qt (testable headless).
 
-The training-mesh entries, the staged build (:class:`core.stages.StagedBuild` with its stage
+The training-mesh entries, the staged build (:class:`core.build.stages.StagedBuild` with its stage
 cache), the model shown and whether it is saved, and the last evaluation. The panel's widgets
 read and change it; nothing here draws or asks.
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from app.panels.builder_engine import MeshEntry
-from core.stages import StageCache, StagedBuild, aligned_meshes, corresponded_meshes
+from core.build.stages import StageCache, StagedBuild, aligned_meshes, corresponded_meshes
 
 MeshTriples = list[tuple[str, Any, Any]]  # (name, vertices (N, 3), faces (F, 3))
 
@@ -23,7 +23,7 @@ class BuilderState:
 
     entries: list[MeshEntry] = field(default_factory=list)
     build: StagedBuild = field(default_factory=StagedBuild)
-    model: Any = None  # core.shape_model.ShapeModel
+    model: Any = None  # core.models.shape_model.ShapeModel
     model_key: tuple | None = None  # the model stage's key when it was built here
     saved_path: str | None = None
     saved_key: int | None = None  # id() of the model the saved file holds
@@ -48,10 +48,10 @@ class BuilderState:
 
     def grooming_report(self) -> dict[str, str]:
         """What grooming repaired or dropped, one line by mesh name, from the cached
-        correspondence (:func:`core.grooming.describe`)."""
+        correspondence (:func:`core.correspondence.grooming.describe`)."""
         if "correspondence" not in self.stages:
             return {}
-        from core.grooming import describe
+        from core.correspondence.grooming import describe
 
         grooming = getattr(self.stages["correspondence"].result, "grooming", None) or {}
         return {name: describe(rep) for name, rep in grooming.items()}

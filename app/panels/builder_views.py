@@ -251,7 +251,7 @@ class FactorView(QWidget):
         layout.addLayout(slider_row)
         layout.addWidget(self.info_label)
 
-        self._model = None  # core.shape_model.ShapeModel
+        self._model = None  # core.models.shape_model.ShapeModel
         self.explained: np.ndarray | None = None  # (M,) share of variance per factor
         self._poly = None
         self.actor = None  # the drawn mean/deformed shape
@@ -263,7 +263,7 @@ class FactorView(QWidget):
     # -- model ---------------------------------------------------------------------------
 
     def set_model(self, model, title: str = "") -> None:
-        """Show ``model`` (a ``core.shape_model.ShapeModel``); None clears."""
+        """Show ``model`` (a ``core.models.shape_model.ShapeModel``); None clears."""
         self.factor_list.blockSignals(True)
         self.factor_list.clear()
         self.factor_list.blockSignals(False)

@@ -197,7 +197,7 @@ def edits_document(state) -> dict:
 
 def apply_edits_document(state, document: dict | None) -> None:
     """Restore :func:`edits_document` (no undo step); ValueError for edits on another grid."""
-    from core.labelmap import ManualEdits
+    from core.geometry.labelmap import ManualEdits
 
     shape = None if state.volume is None else state.volume.shape
     for i, s in enumerate(state.structures):

@@ -2,7 +2,7 @@
 
 Tools: *Ruler* (M): drag from one end to the other; *Angle* (A): click the first point, the
 vertex, then the second point. Each measurement is drawn on the slice it was made on, with
-its value (mm or degrees, ``core.measure``); they are kept with the session and exported
+its value (mm or degrees, ``core.planning.measure``); they are kept with the session and exported
 with the points (``measurements.csv`` and Slicer ``measurements.mrk.json``).
 """
 
@@ -12,7 +12,7 @@ import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QPainter, QPen
 
-from core.measure import (
+from core.planning.measure import (
     Measurement,
     measurements_from_json,
     measurements_to_json,

@@ -2,8 +2,8 @@
 probe's-eye view, how sure the fit is, and the plan export.
 
 Widgets and wiring only: the state is :class:`app.planning.PlanningState`; geometry comes from
-``core.planning``, the posterior from ``core.uncertainty``, the files from
-``core.plan_report``. Points are set at the crosshair (move it in any slice view, then press
+``core.planning.frames``, the posterior from ``core.reconstruction.uncertainty``, the files from
+``core.planning.report``. Points are set at the crosshair (move it in any slice view, then press
 the button), as in frame-based planning software.
 """
 
@@ -15,7 +15,7 @@ from PySide6.QtWidgets import (QCheckBox, QGridLayout, QGroupBox, QHBoxLayout, Q
 
 from app.planning import LANDMARK_LABELS, LANDMARKS, PlanningState
 from app.views.plan_overlays import ProbeView
-from core.planning import format_acpc
+from core.planning.frames import format_acpc
 
 
 def _xyz(p) -> str:

@@ -4,7 +4,7 @@
 
 - File > *Open second image…* (Ctrl+Shift+I): any image the app reads (NIfTI, NRRD,
   MetaImage, a DICOM series). Reading, the rigid registration onto the first image when the
-  grids differ (``core.registration`` through ``core.coregistration``) and the resampling run
+  grids differ (``core.registration.volumes`` through ``core.registration.coregistration``) and the resampling run
   in a :class:`app.workers.DialogTask` (progress, Cancel: a cancelled load changes nothing);
 - the composite layer in every slice view (:class:`app.views.second_image_layer.
   SecondImageLayer`): blend with an opacity, or checkerboard (View > K);
@@ -27,7 +27,7 @@ from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QGroupBox, QHBoxLayout
 from app.second_image import SecondImage
 from app.views.second_image_layer import SecondImageLayer
 from app.workers import DialogTask
-from core.planes import window_to_uint8
+from core.geometry.planes import window_to_uint8
 
 SHORTCUTS = [("Ctrl+Shift+I", "Open a second image (T2, FLAIR, CT) over the first"),
              ("K", "Second image: checkerboard / blend"),
@@ -36,7 +36,7 @@ SHORTCUTS = [("Ctrl+Shift+I", "Open a second image (T2, FLAIR, CT) over the firs
 
 def _load(path: str, reference, transform=None, series=None, progress=None):
     """Worker: read the second image and bring it onto the reference grid."""
-    from core.coregistration import coregister
+    from core.registration.coregistration import coregister
     from core.io import DataFileError, load_volume
 
     second = load_volume(path, series=series)

@@ -4,7 +4,7 @@ The selected row is the active structure (drawing, sliders, refit and undo act o
 side, colour, visibility and lock are edited here and written to the workspace model
 (:meth:`app.state.Structure.set_properties`); the table follows the model's events, with
 its own signals blocked while it does (no feedback loop). *Add* offers the model library
-(``core.model_library``: ``resources/models/`` and the user's model folder), a model file, or
+(``core.io.model_library``: ``resources/models/`` and the user's model folder), a model file, or
 an empty structure; adding and removing go through the session controller (and stop the
 removed structure's refit). ``add_file()`` asks the window for a file dialog; ``message`` and
 ``error`` are for its status bar.
@@ -38,7 +38,7 @@ class StructuresPanel(QWidget):
         self.state = state
         self.sessions = sessions      # app.controllers.SessionController
         self.refit = refit            # app.refit.RefitController
-        self._library = library       # () -> list of core.model_library.LibraryEntry
+        self._library = library       # () -> list of core.io.model_library.LibraryEntry
         self._syncing = False
         layout = QVBoxLayout(self)
         layout.setContentsMargins(4, 4, 4, 4)

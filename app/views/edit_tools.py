@@ -2,12 +2,12 @@
 
 - :class:`BrushTool` paints the active structure's label map (or erases it: the eraser, or
   Ctrl with the brush): a round brush of ``radius_mm`` on the slice, one slice thick, in
-  strokes that join the mouse positions (``core.labelmap.brush_voxels``). A stroke is one undo
+  strokes that join the mouse positions (``core.geometry.labelmap.brush_voxels``). A stroke is one undo
   step; the edits are kept apart from the model's result (``Structure.edits``), so refits keep
   them, sessions store them and exports mark them.
 - :class:`MoveTool` moves the model by hand: drag = translate in the slice, Ctrl+drag = rotate
   about the slice normal through the model's centre, Shift+drag = scale about the centre
-  (``core.handles.drag_transform``). A drag is one undo step; the new pose becomes the
+  (``core.registration.handles.drag_transform``). A drag is one undo step; the new pose becomes the
   placement the pose prior of the next fit is centred on.
 
 Each tool implements ``press/move/release(view, x, y, modifiers)`` for
@@ -21,8 +21,8 @@ import math
 import numpy as np
 from PySide6.QtCore import Qt
 
-from core.handles import drag_transform
-from core.labelmap import ManualEdits, brush_voxels
+from core.registration.handles import drag_transform
+from core.geometry.labelmap import ManualEdits, brush_voxels
 
 
 def _editable(view) -> object | None:

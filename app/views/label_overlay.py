@@ -1,9 +1,9 @@
 """The segmentation as a filled label overlay on the slice views, and its volume.
 
 What is drawn is exactly what is exported: each structure's label map
-(``core.labelmap.structure_label_map``: the fitted surface voxelised on the image grid, with
+(``core.geometry.labelmap.structure_label_map``: the fitted surface voxelised on the image grid, with
 the manual brush/eraser edits) resampled on the view's slice by the same
-``core.planes.SliceSampler`` as the image, so every label voxel covers the image voxel it
+``core.geometry.planes.SliceSampler`` as the image, so every label voxel covers the image voxel it
 labels. The fill is the structure's colour at the chosen opacity (0-1); the model's outline
 (the surface's cross-section, painted by the view) can be shown with it or instead of it.
 
@@ -22,8 +22,8 @@ from PySide6.QtGui import QImage, QPainter
 
 from app.events import EmitterGroup
 from app.state import Structure, WorkspaceState
-from core.labelmap import mask_volume_mm3, structure_label_map
-from core.planes import SliceSampler
+from core.geometry.labelmap import mask_volume_mm3, structure_label_map
+from core.geometry.planes import SliceSampler
 
 
 @dataclass

@@ -8,7 +8,7 @@
   tube per trajectory, spheres at targets and entries, the landmarks, and the target's
   uncertainty ellipsoid when shown.
 - :class:`ProbeView` is the probe's-eye view: the image on the plane orthogonal to the
-  trajectory at an adjustable depth (``core.planes.frame_along`` / ``sample_patch``), with the
+  trajectory at an adjustable depth (``core.geometry.planes.frame_along`` / ``sample_patch``), with the
   structures' cross-sections and the trajectory's centre.
 """
 
@@ -21,9 +21,9 @@ from PySide6.QtGui import QColor, QImage, QPainter, QPen
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
 from app.planning import LANDMARK_LABELS, PlanningState
-from core.planes import frame_along, window_to_uint8
-from core.slicing import intersect_plane
-from core.uncertainty import section_sd
+from core.geometry.planes import frame_along, window_to_uint8
+from core.geometry.slicing import intersect_plane
+from core.reconstruction.uncertainty import section_sd
 
 LANDMARK_COLOR = QColor(255, 80, 200)
 LANDMARK_RGB = (1.0, 0.31, 0.78)
@@ -115,7 +115,7 @@ class VolumePlanOverlay:
         self.planning = planning
         self.view = volume_view
         self._keys: dict[str, tuple] = {}   # name -> the geometry and style last shown
-        self.ellipsoid = None            # core.uncertainty.Ellipsoid of the active target
+        self.ellipsoid = None            # core.reconstruction.uncertainty.Ellipsoid of the active target
 
     def update(self) -> None:
         planning = self.planning
@@ -171,7 +171,7 @@ def _sphere(radius: float, centre) -> pv.PolyData:
 
 
 def _ellipsoid_mesh(e) -> pv.PolyData:
-    """A sphere mesh stretched onto ``core.uncertainty.Ellipsoid`` ``e``."""
+    """A sphere mesh stretched onto ``core.reconstruction.uncertainty.Ellipsoid`` ``e``."""
     sphere = pv.Sphere(radius=1.0, theta_resolution=24, phi_resolution=16)
     sphere.points = np.asarray(sphere.points) * np.maximum(e.semi_axes, 1e-3) @ e.axes + e.centre
     return sphere

@@ -4,7 +4,7 @@ Both images are on the first image's grid (:mod:`app.second_image`), so the view
 the first image and this layer's slice of the second cover the same pixels. Each is windowed
 with its own window/level; the base image is at the bottom, the other on top blended with its
 opacity, or in the alternate squares of a checkerboard fixed in mm
-(``core.coregistration``). The view's colour map applies to the composite. The composite is
+(``core.registration.coregistration``). The view's colour map applies to the composite. The composite is
 painted over the view's own image (the first layer, under the label fill and the contours)
 and kept per view until the slice or a display setting changes, so repaints for contours or
 points reuse it.
@@ -17,8 +17,8 @@ from PySide6.QtCore import QRectF
 from PySide6.QtGui import QImage, QPainter
 
 from app.second_image import SecondImage
-from core.coregistration import blend, checkerboard_mask
-from core.planes import window_to_uint8
+from core.registration.coregistration import blend, checkerboard_mask
+from core.geometry.planes import window_to_uint8
 
 
 class SecondImageLayer:
@@ -38,7 +38,7 @@ class SecondImageLayer:
         return None if view._slice is None else self.composite_slice(view.frame, view._slice)
 
     def composite_slice(self, frame, first_slice) -> np.ndarray | None:
-        """The composite on a slice of the first image (``core.planes.SliceImage`` on
+        """The composite on a slice of the first image (``core.geometry.planes.SliceImage`` on
         ``frame``), e.g. the 3D view's planes; None without a second image."""
         s = self.second
         if s.sampler is None:

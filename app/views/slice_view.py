@@ -1,6 +1,6 @@
 """One orthogonal slice view (axial, coronal or sagittal) painted with QPainter.
 
-The slice is resampled in world coordinates by ``core.planes.SliceSampler`` and drawn as a
+The slice is resampled in world coordinates by ``core.geometry.planes.SliceSampler`` and drawn as a
 QImage; overlays (crosshair, the model's cross-section contours, contour points, orientation
 letters, slice position) are painted on top in screen space. A view transform maps in-plane
 world coordinates (U, V) in mm to widget pixels::
@@ -25,8 +25,8 @@ from PySide6.QtGui import QColor, QFont, QImage, QPainter
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
 from app.state import FRAME_NAMES, Structure, WorkspaceState
-from core.planes import FRAMES, SliceImage, window_to_uint8
-from core.slicing import intersect_plane
+from core.geometry.planes import FRAMES, SliceImage, window_to_uint8
+from core.geometry.slicing import intersect_plane
 
 from app.views import slice_points
 from app.views.slice_overlays import (CONTOUR_COLOR, POINT_COLOR, VIEW_COLORS,  # noqa: F401

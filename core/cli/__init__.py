@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from types import ModuleType
 
 from core import __version__
-from core.progress import Cancelled
+from core.runtime.progress import Cancelled
 
 
 def command_names() -> dict[str, str]:
@@ -87,7 +87,7 @@ def one_line_warnings(command: str) -> Iterator[None]:
 
 def run_command(args: argparse.Namespace) -> int:
     """Run a parsed subcommand, turning user-fixable errors into one-line messages."""
-    from core.parallel import JobError, Terminated, termination_signals
+    from core.runtime.parallel import JobError, Terminated, termination_signals
 
     try:
         # SIGTERM raises Terminated; SIGINT interrupts even when the shell started us with it
@@ -127,7 +127,7 @@ def exit_if_interrupted(code: int, as_program: bool) -> int:
     can wait for a worker still being started by the fork server (seconds on a fresh machine,
     before its modules are compiled), so the exit came long after the report. The report and
     the finished outputs are written by then; the fork server and its workers follow their
-    parent (core.parallel)."""
+    parent (core.runtime.parallel)."""
     if as_program and code in (130, 143):
         # multiprocessing's own first exit step: finalizers of priority >= 0 unlink the stopped
         # pool's semaphores and close its queues (the joins that can block have priority < 0);
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    from core.parallel import Terminated, termination_signals
+    from core.runtime.parallel import Terminated, termination_signals
 
     try:
         # before the commands are imported: a signal sent while they load is not lost

@@ -6,12 +6,12 @@ import argparse
 import sys
 from pathlib import Path
 
-from core.pipeline import ALIGN_METHODS, TRANSFORMS
+from core.build.pipeline import ALIGN_METHODS, TRANSFORMS
 
 
 def add_scheduler_option(parser: argparse.ArgumentParser) -> None:
     """``--scheduler``: run the per-shape / per-fold / per-pair jobs as Dask tasks
-    (:func:`core.parallel.use_scheduler`)."""
+    (:func:`core.runtime.parallel.use_scheduler`)."""
     parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="run the jobs as Dask tasks on this scheduler (tcp://host:8786), or "
                              "local:N for a local cluster of N workers (default: process pool)")

@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from core.alignment import METHODS, TRANSFORMS, align_shapes
+from core.alignment.transforms import METHODS, TRANSFORMS, align_shapes
 from core.cli._options import say_changed_formats
 from core.correspondence import mesh_problem
 from core.io import TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
-from core.progress import StderrProgress
+from core.runtime.progress import StderrProgress
 
 COMMAND = "align"
 HELP = "align corresponded meshes (GPA or transformation synchronisation) and write the transforms"

@@ -33,10 +33,10 @@ from pathlib import Path
 from core.io import DataFileError, save_model
 from core.models import METHODS
 from core.cli._options import add_preparation_options, add_scheduler_option
-from core.pipeline import build_model, load_training_meshes, parse_param_values, \
+from core.build.pipeline import build_model, load_training_meshes, parse_param_values, \
     training_mesh_paths
-from core.parallel import use_scheduler
-from core.progress import StderrProgress
+from core.runtime.parallel import use_scheduler
+from core.runtime.progress import StderrProgress
 
 COMMAND = "build-model"
 HELP = "build a shape model (PCA, local-support LSF, SPLOCS, Varimax) from training meshes"

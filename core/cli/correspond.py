@@ -3,7 +3,7 @@
 Every input mesh is re-expressed with the vertices and faces of one reference mesh: rigid and
 nonrigid Coherent Point Drift (rustcpd engine), a linear assignment on the CPD posterior, and
 fairing on the target surface (``core.correspondence``), after grooming every input
-(``core.grooming``: largest piece kept, small holes filled, orientation fixed, remeshed to a
+(``core.correspondence.grooming``: largest piece kept, small holes filled, orientation fixed, remeshed to a
 common ``--vertices``; each step reported per shape and switchable off) and followed by
 ``--refine`` groupwise passes to the mean shape. ``--reference auto`` takes the most typical
 input (coarse, repaired and unrepresentative ones excluded; the reason is in the report), or
@@ -48,8 +48,8 @@ from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
 from core.correspondence.store import SCRATCH_NAME
 from core.io import DataFileError, TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
-from core.parallel import Terminated, signals_deferred, use_scheduler
-from core.progress import StderrProgress
+from core.runtime.parallel import Terminated, signals_deferred, use_scheduler
+from core.runtime.progress import StderrProgress
 
 COMMAND = "correspond"
 HELP = "bring training meshes into correspondence with one reference topology (CPD + assignment)"

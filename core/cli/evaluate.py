@@ -27,10 +27,10 @@ from core.evaluation import (Realign, Recorrespond, evaluate_methods, plot_metri
 from core.io import atomic_write_json
 from core.models import METHODS, model_class
 from core.cli._options import add_preparation_options, add_scheduler_option
-from core.pipeline import align, corresponded_shapes, correspond, \
+from core.build.pipeline import align, corresponded_shapes, correspond, \
     load_training_meshes, parse_param_values
-from core.parallel import use_scheduler
-from core.progress import StderrProgress
+from core.runtime.parallel import use_scheduler
+from core.runtime.progress import StderrProgress
 
 COMMAND = "evaluate"
 HELP = "evaluate model methods: reconstruction, generalisation, specificity, sparse reconstruction"

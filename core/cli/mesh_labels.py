@@ -4,7 +4,7 @@ For each LABELMAP (NIfTI, NRRD, Slicer .seg.nrrd, MetaImage, ...), the label giv
 or by name (a Slicer segment name in a .seg.nrrd, else a FreeSurfer colour-table name such as
 Left-Caudate) becomes one closed surface: Surface Nets on the label's voxels, windowed-sinc
 smoothing that removes the staircase without shrinking, the image's voxel -> RAS affine, and
-a remesh to an even density of about --vertices vertices (``core.mesh_labels``). Writes
+a remesh to an even density of about --vertices vertices (``core.correspondence.mesh_labels``). Writes
 ``DIR/<file stem>_<label>.vtk`` per input and ``DIR/mesh_labels.json`` (per input: output,
 vertices, voxels, dropped pieces, or the error). A missing file, or a label that is missing or
 empty in a file, is reported with the file and the label; the other inputs are still done.
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from core.io import atomic_write_json, save_mesh
-from core.mesh_labels import label_map_surface
+from core.correspondence.mesh_labels import label_map_surface
 
 COMMAND = "mesh-labels"
 HELP = "one label of label maps -> closed surfaces in world mm (training meshes)"

@@ -15,8 +15,8 @@ import argparse
 from pathlib import Path
 
 from core.io import load_volume
-from core.plan_report import export_plan, plan_from_session, plan_report, save_plan_report
-from core.session import load_session
+from core.planning.report import export_plan, plan_from_session, plan_report, save_plan_report
+from core.session.document import load_session
 
 COMMAND = "plan"
 HELP = "compute the plan report (structures, AC-PC, trajectories) of a saved session"

@@ -1,7 +1,7 @@
 """Register a patient image to the models' template image (affine, mutual information).
 
 Linear registration of IMAGE (moving) onto TEMPLATE (fixed; default: the bundled MNI ICBM152
-2009a T1, the space of the demo models) with ``core.registration``: Mattes mutual information,
+2009a T1, the space of the demo models) with ``core.registration.volumes``: Mattes mutual information,
 a multi-resolution pyramid in mm (default 8, 4, 2 mm), centre-of-mass initialisation.
 
 Writes ``--out transform.json``: a JSON object whose ``"transform"`` is the 4x4 RAS matrix
@@ -17,8 +17,8 @@ import argparse
 from pathlib import Path
 
 from core.io import atomic_write_json, load_volume
-from core.progress import StderrProgress
-from core.registration import DEFAULT_LEVELS_MM, TRANSFORMS, default_template_path, register_volumes
+from core.runtime.progress import StderrProgress
+from core.registration.volumes import DEFAULT_LEVELS_MM, TRANSFORMS, default_template_path, register_volumes
 
 COMMAND = "register"
 HELP = "register an image to the template (affine, mutual information): writes transform.json"

@@ -1,9 +1,9 @@
 """Register several images into one unbiased common space (transformation synchronisation).
 
 Multi-image registration of the thesis' chapter 7 (Bernard et al., MICCAI workshop on spectral
-analysis in medical imaging, 2015): pairwise registrations of the images (``core.registration``:
+analysis in medical imaging, 2015): pairwise registrations of the images (``core.registration.volumes``:
 Mattes mutual information, multi-resolution; ``--pairs all`` or each image with its K nearest,
-``knn:K``), then the numerically stable transformation synchronisation of ``core.alignment``
+``knn:K``), then the numerically stable transformation synchronisation of ``core.alignment.transforms``
 (``--method sync``, default): transitively consistent transforms into a common space that no
 image is the reference of. ``--method reference`` registers every image to ``--reference``
 (default: the first), the classic, biased baseline.
@@ -26,9 +26,9 @@ from pathlib import Path
 from core.cli._options import add_scheduler_option
 from core.cli.register import add_registration_options, registration_kwargs
 from core.io import atomic_write_json
-from core.multi_registration import METHODS, parse_pairs, register_images
-from core.parallel import use_scheduler
-from core.progress import StderrProgress
+from core.registration.multi_image import METHODS, parse_pairs, register_images
+from core.runtime.parallel import use_scheduler
+from core.runtime.progress import StderrProgress
 
 COMMAND = "register-images"
 HELP = "register images into one unbiased common space (pairwise + synchronisation) and average them"

@@ -1,7 +1,7 @@
 """Fit a shape model to contour points and voxelise the fitted surface on an image's grid.
 
 Like ``ssm-studio fit``, then the fitted (closed) surface is turned into a uint8 label map with
-the image's shape and affine (``core.segmentation.voxelize``: ray parity in voxel-index space,
+the image's shape and affine (``core.geometry.segmentation.voxelize``: ray parity in voxel-index space,
 so oblique images are handled). The image may be NIfTI, NRRD, MetaImage or a DICOM series
 (a folder, or one of its files; ``--series UID`` picks one of a folder's series, otherwise
 the one with most files is used and named). The label map's format follows ``--out``:
@@ -12,7 +12,7 @@ read the qform where nibabel reads the sform agree; else the affine as both), NR
 
 ``--auto-place`` registers the image to the models' template first (``--template``, default the
 bundled MNI T1; affine, mutual information) and places the model through that transform
-(``core.placement``) instead of using the model's stored placement.
+(``core.registration.placement``) instead of using the model's stored placement.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from core.cli.fit import add_fit_arguments, fit_from_args, summary, write_json
 from core.io import TriMesh, load_volume, save_mesh, save_volume
-from core.segmentation import mask_volume_mm3, voxelize
+from core.geometry.segmentation import mask_volume_mm3, voxelize
 
 COMMAND = "segment"
 HELP = "fit a shape model to contour points and write the label map on the image's grid"
@@ -95,8 +95,8 @@ def run(args: argparse.Namespace) -> int:
     if args.auto_place:
         if args.placement is not None:
             raise ValueError("--auto-place and --placement exclude each other")
-        from core.placement import placement_through, register_to_template
-        from core.progress import StderrProgress
+        from core.registration.placement import placement_through, register_to_template
+        from core.runtime.progress import StderrProgress
 
         registration = register_to_template(image, args.template,
                                             progress=StderrProgress("registering"))

@@ -29,7 +29,7 @@ Structures", SPIE Medical Imaging 2016. For every training mesh (the *target*):
    irregular triangles left by snapping to target vertices: each step moves vertices
    tangentially towards the Laplacian coordinates of the (posed) reference, so that the
    reference's own vertex distribution is restored, and projects them back onto the target
-   surface (:func:`core.mesh.fair_mesh`).
+   surface (:func:`core.geometry.mesh.fair_mesh`).
 
 **Unequal vertex counts.** The candidate target points are exactly M (the reference's count):
 the target's vertices, topped up with edge midpoints when there are fewer, or without the
@@ -38,7 +38,7 @@ N - M vertices farthest from the moved reference when there are more
 close in the first place.
 
 **Grooming, reference choice, refinement** (:mod:`core.correspondence.batch`): every input is
-groomed first (:mod:`core.grooming`: largest piece, small holes, orientation, a common vertex
+groomed first (:mod:`core.correspondence.grooming`: largest piece, small holes, orientation, a common vertex
 density), reported per shape. ``reference="auto"`` takes the most typical input, excluding
 coarse, repaired and unrepresentative ones, and says why; with ``n_references`` > 1 several
 candidates are tried and the most compact model kept. Shapes far from every other shape
@@ -75,7 +75,7 @@ from core.correspondence.cpd import (CPDResult, cpd_affine, cpd_log_posterior, c
 from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _rigid_pose,
                                       correspond_pair, label_points, mesh_problem,
                                       mirror_fit_ratio)
-from core.mesh import fair_mesh
+from core.geometry.mesh import fair_mesh
 
 __all__ = ["CPDResult", "CorrespondenceResult", "DEFAULT_CPD_PARAMS", "auction_assign",
            "correspond_pair", "cpd_affine", "cpd_log_posterior", "cpd_nonrigid", "cpd_rigid",

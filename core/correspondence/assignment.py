@@ -37,7 +37,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import maximum_bipartite_matching
 from scipy.spatial import cKDTree
 
-from core import mesh as meshops
+from core.geometry import mesh as meshops
 
 
 def _log_normaliser(moved: np.ndarray, candidates: np.ndarray, sigma2: float, w: float,

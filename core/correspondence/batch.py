@@ -1,7 +1,7 @@
 """Correspondence of a whole training set: grooming, reference choice, pairwise runs, refinement.
 
 The batch layer of Bernard et al., SPIE MI 2016 (the package docstring has the method): it
-grooms every input (:mod:`core.grooming`), picks a representative reference, corresponds
+grooms every input (:mod:`core.correspondence.grooming`), picks a representative reference, corresponds
 every shape to it in a process pool, flags shapes that lie far from all others, and
 refines groupwise: every shape is corresponded again to the evolving mean shape (as
 population-based methods do; Heimann & Meinzer, Medical Image Analysis 2009), which removes
@@ -18,15 +18,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core import mesh as meshops
-from core.alignment import apply_transform, fit_transform
+from core.geometry import mesh as meshops
+from core.alignment.transforms import apply_transform, fit_transform
 from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _principal_axes, _task,
                                      mesh_problem, mirror_fit_ratio)
-from core.grooming import GroomingError, groom_mesh
+from core.correspondence.grooming import GroomingError, groom_mesh
 from core.correspondence.store import (InputFile, Scratch, VertexRows, open_mesh,
                                       open_rows, read_input, write_scratch_mesh)
-from core.parallel import JobError, preload_in_workers, run_jobs, runs_inline
-from core.progress import ProgressCallback, report, sub_progress
+from core.runtime.parallel import JobError, preload_in_workers, run_jobs, runs_inline
+from core.runtime.progress import ProgressCallback, report, sub_progress
 from core.types import TriMesh
 
 preload_in_workers(__name__)  # per-shape jobs: workers start with this module imported
@@ -60,7 +60,7 @@ class CorrespondenceResult:
     params : dict
         The CPD/fairing parameters used.
     grooming : dict
-        Mesh name -> what grooming did (:class:`core.grooming.GroomReport` as a dict).
+        Mesh name -> what grooming did (:class:`core.correspondence.grooming.GroomReport` as a dict).
     reference_reason : str
         Why this reference was chosen (and which candidates were excluded).
     refinement : list of float
@@ -163,7 +163,7 @@ def _shape_info(mesh: TriMesh) -> dict:
 
 
 def _read_job(item: tuple, raw_dir: str | None) -> tuple:
-    """core.parallel job: read one input file -> (vertex count or None, problem or None, the
+    """core.runtime.parallel job: read one input file -> (vertex count or None, problem or None, the
     reader's warnings for the client to show, the mesh to groom: in ``raw_dir`` if given
     (the grooming job then needs no second read of the file in a child), else itself)."""
     index, handle = item
@@ -175,7 +175,7 @@ def _read_job(item: tuple, raw_dir: str | None) -> tuple:
 
 
 def _groom_job(item: tuple, common: tuple) -> tuple:
-    """core.parallel job: groom (or, with no options, only check) one input ->
+    """core.runtime.parallel job: groom (or, with no options, only check) one input ->
     (groomed mesh or its scratch handle, report dict or None, None, info) or
     (None, None, problem, None). With a scratch directory the groomed mesh is written there
     and only its handle travels back."""
@@ -229,7 +229,7 @@ def _prepare(meshes: list, names: list[str], groom: bool | dict, vertices: int |
              progress: ProgressCallback | None = None, n_jobs: int | None = 1,
              scratch: Scratch | None = None) -> tuple[list, dict, dict]:
     """Groomed (or checked) inputs, per-shape failures and grooming reports. Grooming is a
-    per-shape job too (:func:`core.parallel.run_jobs`: pool or Dask).
+    per-shape job too (:func:`core.runtime.parallel.run_jobs`: pool or Dask).
 
     ``meshes`` holds TriMesh objects or :class:`~core.correspondence.store.InputFile`
     handles (read by the workers). The groomed inputs come back as meshes, or with a
@@ -342,7 +342,7 @@ def _pick_candidates(info: dict[int, dict], usable: list[int], n: int, grooming:
 
 def _compactness(shapes: np.ndarray) -> float:
     """Mean per-vertex variance after similarity GPA, over the squared mean size (lower = compact)."""
-    from core.alignment import generalized_procrustes
+    from core.alignment.transforms import generalized_procrustes
 
     if len(shapes) < 2:
         return 0.0
@@ -352,13 +352,13 @@ def _compactness(shapes: np.ndarray) -> float:
 
 
 def _task_job(task: tuple, references: dict) -> tuple:
-    """core.parallel job: one correspondence task whose reference arrays come from
+    """core.runtime.parallel job: one correspondence task whose reference arrays come from
     ``references`` (sent once per worker) -> (result or None, error or None).
 
     The target is a handle (:func:`core.correspondence.store.open_mesh`: the mesh itself, or
     a file the worker reads). A refinement task carries the shape's current correspondence
     (a handle too, :func:`~core.correspondence.store.open_rows`) instead of the posed mean:
-    the worker poses the mean on it (core.alignment.fit_transform), as the client did before.
+    the worker poses the mean on it (core.alignment.transforms.fit_transform), as the client did before.
     """
     key, _, _, target, _, params, parallel, *rest = task
     ref_v, ref_f = references[key[0]]
@@ -375,8 +375,8 @@ def _task_job(task: tuple, references: dict) -> tuple:
 
 def _run_tasks(tasks: list[tuple], n_jobs: int, progress: ProgressCallback | None,
                start: float, stop: float, on_result: Callable | None = None) -> dict:
-    """Run correspondence tasks in this process or through :func:`core.parallel.run_jobs`
-    (process pool, or Dask inside :func:`core.parallel.use_scheduler`); cancellable via
+    """Run correspondence tasks in this process or through :func:`core.runtime.parallel.run_jobs`
+    (process pool, or Dask inside :func:`core.runtime.parallel.use_scheduler`); cancellable via
     progress. ``on_result(key, (out, err))`` sees each result as it arrives (streaming);
     what it returns, if not None, is kept instead of the result (a summary: the client then
     holds no vertices).
@@ -608,7 +608,7 @@ def _flag_outliers(vertices: MutableMapping, names: list[str], protect) -> dict[
     by mistake; mirrored sides: :func:`_flag_mirrored`).
 
     Flagged: a robust z-score over 5 and a distance over :data:`OUTLIER_FACTOR` times the
-    median. Measured on 6-shape sets of :mod:`core.correspondence.synthetic`: shapes of the
+    median. Measured on 6-shape sets of :mod:`core.datasets.shapes`: shapes of the
     right structure reach 2.65x the median (bent tubes whose correspondence is
     off by over a millimetre), a ring or a tube among beans 3.9-4.4x. With 2x such a tube
     was dropped from its training set as "a different structure".
@@ -649,7 +649,7 @@ def _retry_from_mean(vertices: MutableMapping, keys: list[int], faces: np.ndarra
 def _gpa(vertices: Mapping, keys: list[int], tol: float) -> tuple[np.ndarray, np.ndarray]:
     """(mean, per-shape rmsd) of the similarity GPA of ``vertices[k]`` over ``keys`` (20
     iterations at most), one shape at a time (``vertices`` in memory or a vertex store)."""
-    from core.alignment import procrustes_mean
+    from core.alignment.transforms import procrustes_mean
 
     return procrustes_mean(vertices, keys, "similarity", max_iter=20, tol=tol)
 
@@ -747,14 +747,14 @@ def establish_correspondence(meshes: list[TriMesh | InputFile | str | os.PathLik
     n_jobs : int, optional
         Worker processes (default: CPU count). 1 runs in this process.
     progress : callable, optional
-        ``progress(fraction, message)``; may raise :class:`core.progress.Cancelled`, which
+        ``progress(fraction, message)``; may raise :class:`core.runtime.progress.Cancelled`, which
         terminates the worker pool and propagates.
     selection : {"compactness", "residual"}
         How several ``"auto"`` candidates are ranked.
     selection_shapes : int
         Candidates are compared on this many shapes.
     groom : bool or dict
-        Grooming before correspondence (:mod:`core.grooming`; a dict overrides its options,
+        Grooming before correspondence (:mod:`core.correspondence.grooming`; a dict overrides its options,
         e.g. ``{"remesh": False}``); False only checks the inputs.
     vertices : int, optional
         Common vertex count of the groomed inputs (default :func:`default_vertex_count`).
@@ -919,9 +919,9 @@ def _collect(results: dict, chosen, ref: TriMesh, usable: list[int], names: list
 
 
 def _residual_job(item: tuple, faces: np.ndarray) -> float:
-    """core.parallel job: symmetric mean surface distance (mm) between a corresponded shape
+    """core.runtime.parallel job: symmetric mean surface distance (mm) between a corresponded shape
     (vertices or their handle) and its groomed input (a mesh handle)."""
-    from core.geometry import symmetric_surface_distance
+    from core.geometry.toolkit import symmetric_surface_distance
 
     vertices, target = item
     mesh = open_mesh(target)

@@ -2,7 +2,7 @@
 
 Bernard et al., SPIE MI 2016: rigid then nonrigid CPD (Myronenko & Song, TPAMI 2010), a
 bijective labelling by linear assignment (:mod:`core.correspondence.assignment`), the
-reference's faces, and fairing (:func:`core.mesh.fair_mesh`).
+reference's faces, and fairing (:func:`core.geometry.mesh.fair_mesh`).
 """
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ import time
 
 import numpy as np
 
-from core import mesh as meshops
+from core.geometry import mesh as meshops
 from core.correspondence.assignment import auction_assign, labelling_candidates
 from core.correspondence.cpd import cpd_nonrigid, cpd_rigid
 from core.correspondence.offsets import NormalOffsetFit, fit_normal_offsets
-from core.geometry import SurfaceProjector, symmetric_surface_distance
+from core.geometry.toolkit import SurfaceProjector, symmetric_surface_distance
 from core.types import TriMesh
 
 DEFAULT_CPD_PARAMS = {
@@ -151,7 +151,7 @@ def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, para
     principal-axes start fits far better (sigma^2 below ``pose_switch`` times the
     identity's): inputs in scanner coordinates share the patient's axes, and a nearly
     symmetric shape fits about as well or better flipped end to end. Measured on the bent
-    tubes of :mod:`core.correspondence.synthetic` (all within 45 degrees of one pose, so every
+    tubes of :mod:`core.datasets.shapes` (all within 45 degrees of one pose, so every
     switch is a flip): the flipped pose had 0.41-1.0 times the right pose's sigma^2 over 25
     pairs (the ring has an exact 180-degree symmetry), so "smallest sigma^2 wins" flips them
     and ruins the homologies; a bean turned far (120-180 degrees) has 0.15-0.6 times the
@@ -223,7 +223,7 @@ def mirror_fit_ratio(reference: np.ndarray, target: np.ndarray, params: dict | N
     when already known).
 
     Below 1 the target fits better mirrored: for a chiral structure, a left/right mix-up
-    (measured on the twisted beans of :mod:`core.correspondence.synthetic`: 1.2-1.6 for
+    (measured on the twisted beans of :mod:`core.datasets.shapes`: 1.2-1.6 for
     correctly sided shapes, 0.6-0.8 for mirrored ones). A nearly achiral shape stays near 1
     either way, and cannot be told (nor does its side matter much to the model).
     """

@@ -13,13 +13,13 @@ cohort. So the per-shape data can live in two places:
   (:class:`InputFile`), write the groomed mesh (:class:`ScratchMesh`), and read the current
   correspondence of their shape (:class:`Row` of a :class:`VertexRows` file); the client
   keeps per-shape scalars only, and streams the GPA mean over the rows
-  (:func:`core.alignment.procrustes_mean`). Its memory stays flat in the number of shapes (measured in
+  (:func:`core.alignment.transforms.procrustes_mean`). Its memory stays flat in the number of shapes (measured in
   ``benchmarks/bench_cluster.py --part C``).
 
 Jobs receive *handles* -- a :class:`~core.types.TriMesh` or array (in memory), or one of the
 small path records below -- and open them with :func:`open_mesh` / :func:`open_rows`, so one
-job function serves both places. The streamed GPA, :func:`core.alignment.procrustes_mean`,
-runs the iterations of :func:`core.alignment.generalized_procrustes` (Gower 1975) one shape at
+job function serves both places. The streamed GPA, :func:`core.alignment.transforms.procrustes_mean`,
+runs the iterations of :func:`core.alignment.transforms.generalized_procrustes` (Gower 1975) one shape at
 a time: its results are bit-identical (tested).
 """
 
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.parallel import preload_in_workers
+from core.runtime.parallel import preload_in_workers
 from core.types import TriMesh
 
 # the workers read input meshes (VTK readers, each file in a forked child): the fork server

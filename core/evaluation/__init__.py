@@ -15,7 +15,7 @@ from core.evaluation.plotting import (LABELS, PER_SHAPE_MEASURES, plot_metrics, 
                                       summary_table, to_json)
 from core.evaluation.protocol import (LEAVE_ONE_OUT, MEASURES, Realign, Recorrespond,
                                       evaluate_methods, evaluate_model)
-from core.progress import Cancelled
+from core.runtime.progress import Cancelled
 
 __all__ = ["MEASURES", "LEAVE_ONE_OUT", "LABELS", "PER_SHAPE_MEASURES", "evaluate_model",
            "evaluate_methods", "Realign", "Recorrespond", "vertex_errors",

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.models.base import ShapeModelEstimator
-from core.progress import ProgressCallback, report
+from core.runtime.progress import ProgressCallback, report
 
 
 def vertex_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -45,8 +45,8 @@ from core.evaluation.measures import (
 )
 from core.models import make_model, model_class
 from core.models.base import check_shapes
-from core.parallel import JobError, preload_in_workers, run_jobs, runs_inline
-from core.progress import ProgressCallback, report, sub_progress
+from core.runtime.parallel import JobError, preload_in_workers, run_jobs, runs_inline
+from core.runtime.progress import ProgressCallback, report, sub_progress
 
 MEASURES = ("reconstruction", "generalisation", "specificity", "sparse_reconstruction",
             "compactness")
@@ -62,8 +62,8 @@ preload_in_workers(__name__)  # fold jobs: workers start with this module import
 def _align_fold(train: np.ndarray, test: np.ndarray, method: str, transform: str
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Align the training shapes among themselves, then the left-out one onto their mean."""
-    from core.alignment import apply_transform, fit_transform
-    from core.pipeline import align
+    from core.alignment.transforms import apply_transform, fit_transform
+    from core.build.pipeline import align
 
     fold = align(train, method=method, transform=transform)
     cls = transform if method != "none" else "rigid"
@@ -73,7 +73,7 @@ def _align_fold(train: np.ndarray, test: np.ndarray, method: str, transform: str
 @dataclass
 class Realign:
     """True leave-one-out folds: corresponded but unaligned shapes (K, N, 3), aligned per fold
-    by ``core.pipeline.align(method, transform)``."""
+    by ``core.build.pipeline.align(method, transform)``."""
 
     shapes: np.ndarray
     faces: np.ndarray | None = None
@@ -106,7 +106,7 @@ class Recorrespond:
 
     def prepare(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from core.correspondence import correspond_pair, establish_correspondence
-        from core.pipeline import corresponded_shapes
+        from core.build.pipeline import corresponded_shapes
 
         train = [m for i, m in enumerate(self.meshes) if i != k]
         # the reference's index among the K - 1 training meshes (the first one if left out)
@@ -166,13 +166,13 @@ def _run_serial(tasks: list[dict], progress: ProgressCallback | None) -> list[di
 
 
 def _fold_job(task: dict, common: dict) -> dict:
-    """core.parallel job: one fold; the shapes, faces and fold source come once per worker."""
+    """core.runtime.parallel job: one fold; the shapes, faces and fold source come once per worker."""
     return _fold({**task, **common})
 
 
 def _run_folds(tasks: list[dict], n_jobs: int, progress: ProgressCallback | None) -> list[dict]:
-    """The folds in this process, or through :func:`core.parallel.run_jobs` (process pool, or
-    Dask inside :func:`core.parallel.use_scheduler`); the data every fold shares is sent once."""
+    """The folds in this process, or through :func:`core.runtime.parallel.run_jobs` (process pool, or
+    Dask inside :func:`core.runtime.parallel.use_scheduler`); the data every fold shares is sent once."""
     if runs_inline(n_jobs, len(tasks)):
         return _run_serial(tasks, progress)
     common = {key: tasks[0][key] for key in ("shapes", "faces", "folds")}

@@ -23,7 +23,7 @@ table of :mod:`core.io.registry` (suffix -> reader/writer), as nibabel and trime
   renamed); :mod:`core.io.errors`: every load error is a :class:`DataFileError` naming the
   file and the problem.
 
-Sessions are in :mod:`core.session`; the data types in :mod:`core.types` (re-exported here).
+Sessions are in :mod:`core.session.document`; the data types in :mod:`core.types` (re-exported here).
 """
 
 from core.io.atomic import atomic_path, atomic_write_json, atomic_write_text

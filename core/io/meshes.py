@@ -106,7 +106,7 @@ def load_meshes(paths: Sequence[str | os.PathLike], progress: Callable | None = 
     """Read several mesh files, going on past unreadable ones (a batch is not lost to one file).
 
     Returns the (path, mesh) pairs read, in input order, and the problem of each file that
-    could not be read (path -> message). ``progress(fraction, message)`` as in core.progress.
+    could not be read (path -> message). ``progress(fraction, message)`` as in core.runtime.progress.
 
     ``isolate``: read in a child process (POSIX fork), so that a native crash of a VTK
     reader on a damaged file is reported for that file instead of ending this process; the
@@ -162,7 +162,7 @@ def _child_reader(paths: list[Path], conn, parent: int) -> None:  # runs in the 
     # ... and so does the parent's death (a pool worker terminated mid-read): an orphan
     # would block forever writing a mesh into the pipe, holding the command's stderr open
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    from core.parallel import die_with_parent
+    from core.runtime.parallel import die_with_parent
 
     die_with_parent()
     if os.getppid() != parent:  # the parent died before the request took effect
@@ -236,7 +236,7 @@ def _children_allowed() -> Iterator[None]:
     """Let a daemonic process (a Dask or pool worker) start the reader's child:
     multiprocessing refuses children there because a daemon's children would be orphaned at
     its exit, but the reader's child is waited for, or killed, before the read returns (and
-    dies with its parent, :func:`core.parallel.die_with_parent`)."""
+    dies with its parent, :func:`core.runtime.parallel.die_with_parent`)."""
     import multiprocessing
 
     config = getattr(multiprocessing.current_process(), "_config", {})

@@ -12,7 +12,7 @@ import numpy as np
 from core.io.atomic import atomic_path, json_default
 from core.io.errors import DataFileError, require_file, why
 from core.io.registry import FileFormat, lookup, register
-from core.shape_model import ShapeModel
+from core.models.shape_model import ShapeModel
 
 MODEL_FORMAT = "ssm-studio-model"
 MODEL_FORMAT_VERSION = 1

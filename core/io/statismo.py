@@ -18,7 +18,7 @@ path                                shape         meaning
 ``modelinfo/...``                   any           build time, scores, builder info (kept)
 ==================================  ============  ===========================================
 
-Mapping onto :class:`core.shape_model.ShapeModel` (exact): a statismo sample is
+Mapping onto :class:`core.models.shape_model.ShapeModel` (exact): a statismo sample is
 ``x = mean + U a`` with ``a ~ N(0, diag(lambda))``; ours is ``x = mean + sum_m a_m factor_m``
 with ``a ~ N(0, diag(coef_var))``. So ``factors[m] = U[:, m].reshape(N, 3)`` and
 ``coef_var = lambda``; ``noiseVariance`` goes to ``info["noise_variance"]`` (the fit's
@@ -49,7 +49,7 @@ import numpy as np
 from core.io.atomic import atomic_path
 from core.io.errors import DataFileError, require_file
 from core.io.registry import FileFormat, register
-from core.shape_model import ShapeModel
+from core.models.shape_model import ShapeModel
 
 STATISMO_SUFFIXES = (".h5", ".hdf5")
 MESH_REPRESENTERS = ("itkStandardMeshRepresenter", "vtkStandardMeshRepresenter")

@@ -1,6 +1,6 @@
 """Linear shape models x = mean + Phi a learnt from shapes in correspondence.
 
-One model type, :class:`core.shape_model.ShapeModel`; one estimator interface that learns it
+One model type, :class:`core.models.shape_model.ShapeModel`; one estimator interface that learns it
 (:class:`core.models.base.ShapeModelEstimator`, scikit-learn's contract) for every method:
 
 - ``pca``: principal component analysis (global support);
@@ -10,7 +10,7 @@ One model type, :class:`core.shape_model.ShapeModel`; one estimator interface th
 - ``varimax``: varimax-rotated PCA.
 
 ``make_model(method, **params)`` builds an estimator by name; ``model_from_shape_model``
-rebuilds a fitted one from a :class:`core.shape_model.ShapeModel` (e.g. a loaded model file);
+rebuilds a fitted one from a :class:`core.models.shape_model.ShapeModel` (e.g. a loaded model file);
 :func:`clone` gives an unfitted copy with the same parameters.
 """
 
@@ -23,7 +23,7 @@ from core.models.lsf import LSF
 from core.models.pca import PCA
 from core.models.splocs import SPLOCS
 from core.models.varimax import Varimax
-from core.shape_model import ShapeModel
+from core.models.shape_model import ShapeModel
 
 MODELS: dict[str, type[ShapeModelEstimator]] = {
     "pca": PCA,

@@ -1,6 +1,6 @@
 """The estimator contract shared by every shape-model building method.
 
-One model, one type: the model is a :class:`core.shape_model.ShapeModel` (mean, factors,
+One model, one type: the model is a :class:`core.models.shape_model.ShapeModel` (mean, factors,
 coefficient prior, mesh; the type the model file, the fit and the GUI use). The classes here are
 its *learners* (scikit-learn estimators): ``fit`` learns a ShapeModel from shapes in
 correspondence and keeps it as ``model_``; ``mean_``, ``factors_`` and ``coef_var_`` are that
@@ -40,10 +40,10 @@ from typing import Any, ClassVar
 import numpy as np
 import scipy.sparse as sp
 
-from core.mesh import edges as mesh_edges
+from core.geometry.mesh import edges as mesh_edges
 from core.models._params import editor_rule, is_data_parameter, validate_params
-from core.progress import ProgressCallback
-from core.shape_model import ShapeModel
+from core.runtime.progress import ProgressCallback
+from core.models.shape_model import ShapeModel
 
 
 def check_shapes(X: np.ndarray, name: str = "X", min_shapes: int = 2) -> np.ndarray:
@@ -193,7 +193,7 @@ class ShapeModelEstimator:
             Ignored (scikit-learn convention). The mesh graph is the ``connectivity``
             parameter, not an argument of ``fit``.
         progress : callable(fraction, message), optional
-            Called at least once per outer iteration; may raise ``core.progress.Cancelled``.
+            Called at least once per outer iteration; may raise ``core.runtime.progress.Cancelled``.
 
         Returns
         -------

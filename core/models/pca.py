@@ -13,7 +13,7 @@ import numpy as np
 
 from core.models._params import Integral, Interval, Real
 from core.models.base import ShapeModelEstimator
-from core.progress import ProgressCallback, report
+from core.runtime.progress import ProgressCallback, report
 
 
 def pca_basis(Xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -33,7 +33,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from core.models._params import Integral, Interval, Real
 from core.models.base import ShapeModelEstimator, edge_adjacency
-from core.progress import ProgressCallback, report
+from core.runtime.progress import ProgressCallback, report
 
 
 def _group_shrink(Y: np.ndarray, t: np.ndarray) -> np.ndarray:

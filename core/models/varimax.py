@@ -15,7 +15,7 @@ import numpy as np
 from core.models._params import Integral, Interval, Real
 from core.models.base import ShapeModelEstimator
 from core.models.pca import pca_basis
-from core.progress import ProgressCallback, report
+from core.runtime.progress import ProgressCallback, report
 
 
 def varimax_rotation(loadings: np.ndarray, *, max_iter: int = 500, tol: float = 1e-8,

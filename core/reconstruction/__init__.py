@@ -21,7 +21,7 @@ Modules: ``em`` (:class:`GMMFitter`, the EM loop in scikit-learn's GaussianMixtu
 ``covariance`` (the strategies), ``pose`` (similarity, Procrustes, Gauss-Newton pose step,
 pose prior), ``snapshot`` (the immutable, content-keyed model snapshot), ``result``
 (:class:`FitResult`), ``fit`` (:func:`fit_points`, the entry point). Normals, closest points,
-Umeyama and rotations come from ``core.geometry``.
+Umeyama and rotations come from ``core.geometry.toolkit``.
 
 E-step (Eq. 2): p_ij = g_j(y_i) / (sum_k g_k(y_i) + c), c = (N w) / (P (1 - w)), over each
 point's K nearest vertices with K covering the vertices within 4.5 standard deviations (all
@@ -67,8 +67,8 @@ The reported ``pose`` is the full model frame -> world transform (the fitted sim
 composed with ``model.world_transform``).
 """
 
-from core.geometry import rodrigues as _rodrigues  # noqa: F401 (the former import path)
-from core.geometry import surface_distance
+from core.geometry.toolkit import rodrigues as _rodrigues  # noqa: F401 (the former import path)
+from core.geometry.toolkit import surface_distance
 from core.reconstruction.em import FitState, GMMFitter
 from core.reconstruction.fit import METHODS, MIN_POINTS, POSES, fit_points
 from core.reconstruction.result import FitResult

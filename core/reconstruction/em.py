@@ -30,7 +30,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.geometry import vertex_normals
+from core.geometry.toolkit import vertex_normals
 from core.reconstruction.pose import PosePrior, Similarity, gauss_newton_step, procrustes
 from core.reconstruction.snapshot import ModelSnapshot
 
@@ -93,7 +93,7 @@ class GMMFitter:
     n_neighbors, max_neighbors : bounds of K in the E-step (None: all vertices)
     pose_first : cold start: pose-only EM to convergence first
     warm_start : start ``fit`` from the previous ``state_`` when no ``init`` is given
-    callback : callable(iteration, objective), may raise ``core.progress.Cancelled``
+    callback : callable(iteration, objective), may raise ``core.runtime.progress.Cancelled``
     """
 
     def __init__(self, covariance, *, pose: str = "similarity", prior_weight: float = 1.0,

@@ -11,13 +11,13 @@ from typing import Callable
 
 import numpy as np
 
-from core.geometry import surface_distance
+from core.geometry.toolkit import surface_distance
 from core.reconstruction.covariance import make_covariance
 from core.reconstruction.em import FitState, GMMFitter
 from core.reconstruction.pose import PosePrior, Similarity
 from core.reconstruction.result import FitResult
 from core.reconstruction.snapshot import ModelSnapshot, model_snapshot
-from core.shape_model import ShapeModel
+from core.models.shape_model import ShapeModel
 
 METHODS = ("gmm-aniso", "gmm-iso", "icp")
 POSES = ("similarity", "rigid", "none")
@@ -177,7 +177,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     max_distance_factor : float
         Points farther than this many model diagonals from the model's box are refused.
     callback : callable(iteration, objective), optional
-        Called once per iteration; may raise ``core.progress.Cancelled``.
+        Called once per iteration; may raise ``core.runtime.progress.Cancelled``.
 
     Returns
     -------

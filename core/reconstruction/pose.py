@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.geometry import rodrigues, skew, umeyama
-from core.geometry import rotation_vector
+from core.geometry.toolkit import rodrigues, skew, umeyama
+from core.geometry.toolkit import rotation_vector
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.geometry import rotation_vector
+from core.geometry.toolkit import rotation_vector
 from core.reconstruction.pose import Similarity
 
 

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.geometry import vertex_face_table
-from core.mesh import mean_edge_length
-from core.shape_model import ShapeModel
+from core.geometry.toolkit import vertex_face_table
+from core.geometry.mesh import mean_edge_length
+from core.models.shape_model import ShapeModel
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:

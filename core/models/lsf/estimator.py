@@ -26,7 +26,7 @@ from core.models.lsf.graph import graph_gradient
 from core.models.lsf.prox import GROUP_NORMS, FactorNorm
 from core.models.lsf.solver import structured_factorisation
 from core.models.lsf.splitting import split_factors
-from core.progress import ProgressCallback, report
+from core.runtime.progress import ProgressCallback, report
 
 
 def drop_unexplaining(factors: np.ndarray, X: np.ndarray, min_explained: float) -> np.ndarray:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.models.lsf.prox import FactorNorm, row_shrink
-from core.progress import ProgressCallback, report
+from core.runtime.progress import ProgressCallback, report
 
 
 @dataclass

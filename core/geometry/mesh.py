@@ -2,7 +2,7 @@
 
 The shared toolbox of the algorithm modules (fairing in correspondence, the graph gradient of
 the local-support factorisation, mesh checks). Normals, closest points and other metric
-geometry are in :mod:`core.geometry`. Everything is vectorised;
+geometry are in :mod:`core.geometry.toolkit`. Everything is vectorised;
 sparse operators are ``scipy.sparse`` CSR matrices. Shapes: vertices (N, 3) float, faces (F, 3)
 int.
 """
@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from core.geometry import SurfaceProjector, face_normals, vertex_normals
+from core.geometry.toolkit import SurfaceProjector, face_normals, vertex_normals
 
 
 def _directed_edges(faces: np.ndarray) -> np.ndarray:

@@ -47,8 +47,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.geometry import vertex_normals
-from core.shape_model import ShapeModel
+from core.geometry.toolkit import vertex_normals
+from core.models.shape_model import ShapeModel
 
 #: World axes of the three view orientations (normal of each slice plane): RAS x, y, z.
 VIEW_AXES = {"sagittal": 0, "coronal": 1, "axial": 2}
@@ -183,7 +183,7 @@ def section_sd(vertices: np.ndarray, faces: np.ndarray, sd: np.ndarray, origin,
     Returns (segments (S, 2, 3) world, sd (S,) mm: the mean SD of the triangle each segment
     lies in), so a slice view can colour the contour by how sure the fit is there.
     """
-    from core.slicing import section
+    from core.geometry.slicing import section
 
     cut = section(vertices, faces, origin, normal)
     return cut.segments, np.asarray(sd, dtype=np.float64)[np.asarray(faces)[cut.faces]].mean(axis=1)

@@ -1,7 +1,7 @@
 """The DBS plan of one patient as data and files: report, structure table, label map, markups.
 
 A plan is the patient's fitted structures (world RAS surfaces), the AC-PC landmarks and, per
-structure, a target and an entry point (``core.planning`` has the geometry). This module turns
+structure, a target and an entry point (``core.planning.frames`` has the geometry). This module turns
 it into what planning and navigation tools read:
 
 - a JSON report (structure table, AC-PC frame, trajectories with length, ring/arc angles and
@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from core.io import TriMesh, atomic_write_json, atomic_write_text, save_mesh
-from core.model_library import structure_info
-from core.planning import (ACPCFrame, Trajectory, anchored_point, anchored_point_weights,
+from core.io.model_library import structure_info
+from core.planning.frames import (ACPCFrame, Trajectory, anchored_point, anchored_point_weights,
                            structure_row, volume_centroid)
-from core.segmentation import voxelize
+from core.geometry.segmentation import voxelize
 
 REPORT_FORMAT = "ssm-studio-plan"
 REPORT_VERSION = 1
@@ -92,7 +92,7 @@ def planned_structure(name: str, model, coef=None, pose=None, color=None, target
 
 
 def plan_from_session(session) -> tuple[list[PlannedStructure], ACPCFrame | None]:
-    """The structures and AC-PC frame of a saved session (``core.session.Session``).
+    """The structures and AC-PC frame of a saved session (``core.session.document.Session``).
 
     Reads the session's structures (``session.structures`` when it has several, else its one
     model at the top level) and the ``info.planning`` block written by the workspace

@@ -7,7 +7,7 @@ changed (e.g. only :func:`fit_model` when the method's parameters change):
 1. :func:`correspond` -- put raw meshes in correspondence with a reference
    (``core.correspondence.establish_correspondence``; CPD + assignment + fairing);
    or :func:`corresponded_shapes` for meshes that already share one topology;
-2. :func:`align` -- remove pose (``core.alignment.align_shapes``: transformation
+2. :func:`align` -- remove pose (``core.alignment.transforms.align_shapes``: transformation
    synchronisation or GPA; or ``"none"``);
 3. :func:`fit_model` -- fit a ``core.models`` estimator on the aligned shapes;
 4. :func:`world_placement` -- the model frame -> world transform that puts the model's mean
@@ -31,8 +31,8 @@ import numpy as np
 from core.io import TriMesh
 from core.models import make_model, model_class
 from core.models.base import ShapeModelEstimator
-from core.progress import ProgressCallback, report, sub_progress
-from core.shape_model import ShapeModel
+from core.runtime.progress import ProgressCallback, report, sub_progress
+from core.models.shape_model import ShapeModel
 
 ALIGN_METHODS = ("sync", "sync-sparse", "gpa", "none")
 TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
@@ -40,7 +40,7 @@ TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
 
 @dataclass
 class AlignedShapes:
-    """Result of :func:`align` (same fields as ``core.alignment.AlignmentResult``).
+    """Result of :func:`align` (same fields as ``core.alignment.transforms.AlignmentResult``).
 
     aligned (K, N, 3); transforms (K, 4, 4) mapping input k into the common frame
     (column vectors); mean (N, 3); method; transform.
@@ -123,8 +123,8 @@ def align(shapes: np.ndarray, *, method: str = "sync", transform: str = "similar
     """Stage 2: remove pose from corresponded shapes (K, N, 3).
 
     method "sync" (transformation synchronisation) or "gpa" (generalised Procrustes) via
-    ``core.alignment.align_shapes``; "sync-sparse" the same synchronisation on the graph of
-    each shape's 10 nearest (``core.alignment.align_shapes_sparse``: cohort scale, time and
+    ``core.alignment.transforms.align_shapes``; "sync-sparse" the same synchronisation on the graph of
+    each shape's 10 nearest (``core.alignment.transforms.align_shapes_sparse``: cohort scale, time and
     memory linear in the number of shapes); "none" keeps the shapes as they are (identity
     transforms).
     """
@@ -137,7 +137,7 @@ def align(shapes: np.ndarray, *, method: str = "sync", transform: str = "similar
         report(progress, 1.0, "no alignment")
         return AlignedShapes(shapes.copy(), np.tile(np.eye(4), (len(shapes), 1, 1)),
                              shapes.mean(axis=0), "none", transform)
-    from core.alignment import align_shapes
+    from core.alignment.transforms import align_shapes
 
     res = align_shapes(shapes, method=method, transform=transform, progress=progress)
     return AlignedShapes(res.aligned, res.transforms, res.mean, method, transform)
@@ -147,7 +147,7 @@ def world_placement(model_mean: np.ndarray, shapes_world: np.ndarray,
                     transform: str = "similarity") -> np.ndarray:
     """Model frame -> world (4, 4): the least-squares ``transform`` of the model mean (N, 3)
     onto the vertex-wise average of the unaligned training shapes (K, N, 3)."""
-    from core.alignment import fit_transform
+    from core.alignment.transforms import fit_transform
 
     cls = transform if transform in TRANSFORMS else "similarity"
     return fit_transform(np.asarray(model_mean), np.asarray(shapes_world).mean(axis=0), cls)
@@ -187,7 +187,7 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
     reference, n_references, n_jobs : correspondence options
     align : "sync", "sync-sparse", "gpa" or "none"; transform : "similarity", "euclidean", "rigid", "affine"
     method : "pca", "lsf", "splocs", "varimax"; n_factors; method_params : other parameters
-    progress : progress(fraction, message); may raise ``core.progress.Cancelled``
+    progress : progress(fraction, message); may raise ``core.runtime.progress.Cancelled``
     correspond_options : more keyword arguments of the correspondence stage
         (``establish_correspondence``: e.g. ``scratch``, with input paths, to stream)
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core import geometry, mesh as meshops
+from core.geometry import toolkit as geometry, mesh as meshops
 
 
 @dataclass

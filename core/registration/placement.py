@@ -3,7 +3,7 @@
 Every library model lives in a template space (``info.structure.template_space``; the demo
 models in the MNI ICBM152 2009a template bundled in ``resources/``): its ``world_transform``
 places it on that template. To place it on a patient image, the image is registered to the
-template once (``core.registration``: affine, Mattes mutual information, multi-resolution),
+template once (``core.registration.volumes``: affine, Mattes mutual information, multi-resolution),
 giving T: image world -> template world; every model is then placed with
 
     placement = T^-1 @ model.world_transform        (model frame -> image world)
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.progress import ProgressCallback
-from core.shape_model import ShapeModel
+from core.runtime.progress import ProgressCallback
+from core.models.shape_model import ShapeModel
 
 
 def register_to_template(image, template=None, *, transform: str = "affine",
@@ -27,11 +27,11 @@ def register_to_template(image, template=None, *, transform: str = "affine",
     """Register ``image`` (a ``core.io.Volume``) to the models' template.
 
     ``template``: a Volume, a path, or None for the bundled MNI T1. Returns the
-    ``core.registration.RegistrationResult`` whose ``transform`` maps image world -> template
+    ``core.registration.volumes.RegistrationResult`` whose ``transform`` maps image world -> template
     world (RAS, column vectors).
     """
     from core.io import load_volume
-    from core.registration import default_template_path, register_volumes
+    from core.registration.volumes import default_template_path, register_volumes
 
     if template is None or isinstance(template, (str, Path)):
         template = load_volume(template or default_template_path())

@@ -3,10 +3,10 @@
 Bernard, Thunberg, Gemmar, Hertel, Husch, Goncalves: "Transitively consistent and unbiased
 multi-image registration using numerically stable transformation synchronisation", MICCAI
 workshop on spectral analysis in medical imaging, 2015 (thesis chapter 7). Pairwise linear
-registrations of N images (``core.registration``: mutual information, multi-resolution) give
+registrations of N images (``core.registration.volumes``: mutual information, multi-resolution) give
 noisy transforms T_ij (image j -> image i) that are not transitively consistent
-(T_ij T_jk != T_ik). The numerically stable synchronisation of ``core.alignment``
-(:func:`core.alignment.synchronize_transforms`: the linear parts spectrally, the translations
+(T_ij T_jk != T_ik). The numerically stable synchronisation of ``core.alignment.transforms``
+(:func:`core.alignment.transforms.synchronize_transforms`: the linear parts spectrally, the translations
 by least squares) turns them into N absolute transforms into one common space, consistent by
 construction, with no image as reference; every pair's noise is averaged out. The baseline,
 ``method="reference"``, registers every image to one reference image only (biased towards it).
@@ -19,7 +19,7 @@ Steps of :func:`register_images`:
 2. pairwise registrations over the pair graph: ``all`` pairs i < j (the transform j -> i; the
    reverse is its inverse), or ``knn:K`` (each image with its K nearest by pose descriptor --
    centre of mass and principal extents -- plus links that keep the graph connected); every
-   pair is one job of :func:`core.parallel.run_jobs` (process pool or Dask);
+   pair is one job of :func:`core.runtime.parallel.run_jobs` (process pool or Dask);
 3. robust synchronisation: a pair whose registration failed is left out; after synchronising,
    each pair's residual (mean distance, mm, over the moving image's foreground samples, between
    the pair's own transform and the synchronised one) is compared with the others', and pairs
@@ -31,7 +31,7 @@ Steps of :func:`register_images`:
 
 Conventions: RAS mm, 4x4 matrices on column vectors. ``transforms[k]`` maps image k's world to
 the common space; ``pairwise[i][j]`` maps image j's world onto image i's (as in
-``core.alignment``).
+``core.alignment.transforms``).
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.alignment import synchronize_transforms
-from core.parallel import resolve_jobs, run_jobs, runs_inline
-from core.progress import ProgressCallback, report, sub_progress
+from core.alignment.transforms import synchronize_transforms
+from core.runtime.parallel import resolve_jobs, run_jobs, runs_inline
+from core.runtime.progress import ProgressCallback, report, sub_progress
 
 METHODS = ("sync", "reference")
 N_SAMPLES = 2000
@@ -151,7 +151,7 @@ def _inspect_job(arg, common) -> dict:
 
 
 def _pair_job(arg, common) -> dict:
-    from core.registration import register_volumes
+    from core.registration.volumes import register_volumes
 
     i, j = arg
     t0 = time.perf_counter()
@@ -172,7 +172,7 @@ def _pair_job(arg, common) -> dict:
 
 def _resample_job(arg, common) -> dict:
     from core.io import save_volume
-    from core.registration import resample
+    from core.registration.volumes import resample
 
     k, transform, out_path = arg
     vol = _load(common["paths"][k])
@@ -333,8 +333,8 @@ def register_images(paths: Sequence[str | os.PathLike], transform: str = "affine
     spacing : common grid spacing in mm (default: the finest input spacing).
     outlier_mm : pairs whose residual exceeds this (and the robust spread of the others) are
         dropped.
-    n_jobs : pool processes (ignored on a Dask scheduler set by ``core.parallel.use_scheduler``).
-    registration : keyword arguments of :func:`core.registration.register` (levels_mm, ...).
+    n_jobs : pool processes (ignored on a Dask scheduler set by ``core.runtime.parallel.use_scheduler``).
+    registration : keyword arguments of :func:`core.registration.volumes.register` (levels_mm, ...).
     progress : ``progress(fraction, message)``; may raise ``Cancelled``.
     """
     kind, k_nn = _check_options(transform, method, pairs)
@@ -400,7 +400,7 @@ _PAIR_FIELDS = ("i", "j", "transform", "metric", "initial_metric", "seconds", "r
 
 def _check_options(transform: str, method: str, pairs: str) -> tuple[str, int]:
     """The pair-graph kind and K of ``pairs``, after checking the transform and method."""
-    from core.registration import TRANSFORMS
+    from core.registration.volumes import TRANSFORMS
 
     if transform not in TRANSFORMS:
         raise ValueError(f"transform must be one of {', '.join(TRANSFORMS)}; got {transform!r}")

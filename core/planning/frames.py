@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.mesh import volume as mesh_volume
+from core.geometry.mesh import volume as mesh_volume
 
 #: AC and PC closer than this (mm) are refused: in adults they are ~23-28 mm apart.
 MIN_AC_PC_MM = 5.0

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.registration import resample, sitk_affine, sitk_to_array, volume_to_sitk
+from core.registration.volumes import resample, sitk_affine, sitk_to_array, volume_to_sitk
 
 
 @dataclass
@@ -55,7 +55,7 @@ def random_affine(rng: np.random.Generator, *, rotation_deg: float = 15.0,
 
 def downsample(data: np.ndarray, affine: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian-smoothed copy of an image on an isotropic grid of ``spacing_mm`` (same box)."""
-    from core.registration import _pyramid_level
+    from core.registration.volumes import _pyramid_level
 
     small = _pyramid_level(volume_to_sitk(data, affine), float(spacing_mm))
     return sitk_to_array(small), sitk_affine(small)

@@ -10,14 +10,14 @@ of 3D Slicer and ITK-SNAP do:
 - ``"scale"``: uniformly about ``c`` by ``|b - c| / |a - c|`` (clamped to [0.2, 5] per drag).
 
 The result is a 4x4 world transform ``M`` (column vectors) to apply *after* the model's pose:
-``pose' = M @ pose``. Rotation matrices come from ``core.geometry.rodrigues``.
+``pose' = M @ pose``. Rotation matrices come from ``core.geometry.toolkit.rodrigues``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from core.geometry import rodrigues
+from core.geometry.toolkit import rodrigues
 
 __all__ = ["MOVES", "drag_transform", "about_point"]
 

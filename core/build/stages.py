@@ -1,6 +1,6 @@
 """The model build as cached stages: rerun only the stages whose inputs changed.
 
-The build ``correspondence -> alignment -> model`` (``core.pipeline``'s stage functions) is
+The build ``correspondence -> alignment -> model`` (``core.build.pipeline``'s stage functions) is
 memoised stage by stage, as scikit-learn's ``Pipeline(memory=...)`` caches its fitted
 transformers: each completed stage is stored with the *key* of everything it was computed from
 (the training meshes and its own parameters, plus the key of the stage before it). A later build
@@ -20,7 +20,7 @@ Usage::
     for stage in build.plan(settings):
         result = build.job(stage, settings)(progress=None)     # in a worker, cancellable
         build.store(stage, settings, result, seconds=...)
-    model = build.cache["model"].result                         # a core.shape_model.ShapeModel
+    model = build.cache["model"].result                         # a core.models.shape_model.ShapeModel
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from core.io import TriMesh
-from core.progress import ProgressCallback, report, sub_progress
+from core.runtime.progress import ProgressCallback, report, sub_progress
 
 __all__ = ["STAGES", "NO_CORRESPONDENCE", "DEFAULT_N_REFERENCES", "BuildSettings", "CachedStage", "StageCache",
            "StagedBuild", "run_correspondence", "run_alignment", "run_model", "run_evaluation",
@@ -70,7 +70,7 @@ class BuildSettings:
     n_references : int
         Candidate references tried with ``reference="auto"`` (ignored otherwise).
     align_method, align_transform : str
-        ``core.pipeline.align``'s ``method`` and ``transform``.
+        ``core.build.pipeline.align``'s ``method`` and ``transform``.
     method : str
         Model-building method (a ``core.models`` name).
     params : mapping
@@ -262,13 +262,13 @@ class StagedBuild:
 
 def run_correspondence(meshes: list[TriMesh], reference: str | int = "auto",
                        n_references: int = DEFAULT_N_REFERENCES, progress: ProgressCallback | None = None):
-    """Stage 1 (``core.pipeline.correspond``): every mesh with the reference's topology.
+    """Stage 1 (``core.build.pipeline.correspond``): every mesh with the reference's topology.
 
     ``reference`` is "auto", an index into ``meshes``, or :data:`NO_CORRESPONDENCE` for meshes
     that already share one topology (checked; they are used as they are).
     Returns a ``core.correspondence.CorrespondenceResult``.
     """
-    from core import pipeline
+    from core.build import pipeline
     from core.correspondence import CorrespondenceResult
 
     if reference == NO_CORRESPONDENCE:
@@ -295,8 +295,8 @@ def _corresponded(corr) -> tuple[list[str], np.ndarray]:
 
 def run_alignment(corr, method: str = "sync", transform: str = "similarity",
                   progress: ProgressCallback | None = None):
-    """Stage 2 (``core.pipeline.align``): remove the pose of the corresponded shapes."""
-    from core import pipeline
+    """Stage 2 (``core.build.pipeline.align``): remove the pose of the corresponded shapes."""
+    from core.build import pipeline
 
     _, shapes = _corresponded(corr)
     return pipeline.align(shapes, method=method, transform=transform, progress=progress)
@@ -304,9 +304,9 @@ def run_alignment(corr, method: str = "sync", transform: str = "similarity",
 
 def run_model(corr, aligned, method: str = "pca", params: Mapping[str, Any] | None = None,
               progress: ProgressCallback | None = None):
-    """Stage 3 (``core.pipeline.fit_model``): fit the model on the aligned shapes; returns a
-    ShapeModel placed in world by ``core.pipeline.world_placement``."""
-    from core import pipeline
+    """Stage 3 (``core.build.pipeline.fit_model``): fit the model on the aligned shapes; returns a
+    ShapeModel placed in world by ``core.build.pipeline.world_placement``."""
+    from core.build import pipeline
 
     names, shapes = _corresponded(corr)
     estimator = pipeline.fit_model(aligned.aligned, corr.faces, method=method,

@@ -1,7 +1,7 @@
 """Cross-sections of a triangle mesh with a plane: segments and ordered contour polylines.
 
 Used by the slice views (the model's outline in an axial/coronal/sagittal/oblique slice) and
-by the simulated user of the evaluation (``core.simulated_user``), which samples points
+by the simulated user of the evaluation (``core.evaluation.simulated_user``), which samples points
 along the contours of a true surface in a few slice planes.
 
 Method: signed distances d_v = (v - origin) . n of every vertex; a vertex with d_v >= 0
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.geometry import face_normals
+from core.geometry.toolkit import face_normals
 
 
 @dataclass

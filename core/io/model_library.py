@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from core.shape_model import ShapeModel
+from core.models.shape_model import ShapeModel
 
 RESOURCES_MODELS = Path(__file__).resolve().parent.parent / "resources" / "models"
 MNI_TEMPLATE_SPACE = "MNI152NLin2009aSym"

@@ -42,8 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.geometry import umeyama
-from core.progress import ProgressCallback, report
+from core.geometry.toolkit import umeyama
+from core.runtime.progress import ProgressCallback, report
 
 TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")
 METHODS = ("sync", "sync-sparse", "gpa")

@@ -31,8 +31,8 @@ conversion ``F T_itk^-1 F``: the 4x4 RAS matrix mapping **moving world -> fixed 
 on column vectors (``x_fixed = T @ [x_moving, 1]``). Placing a model built in the fixed
 (template) space onto the moving (patient) image therefore uses ``inv(T)``.
 
-Cancellation and progress follow :mod:`core.progress`: the callback is called at every
-optimiser iteration; raising :class:`core.progress.Cancelled` from it stops the optimiser at
+Cancellation and progress follow :mod:`core.runtime.progress`: the callback is called at every
+optimiser iteration; raising :class:`core.runtime.progress.Cancelled` from it stops the optimiser at
 once and the exception propagates.
 """
 
@@ -46,7 +46,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.progress import Cancelled, ProgressCallback, report, sub_progress
+from core.runtime.progress import Cancelled, ProgressCallback, report, sub_progress
 
 TRANSFORMS = ("rigid", "similarity", "affine")
 DEFAULT_LEVELS_MM = (8.0, 4.0, 2.0)

@@ -3,7 +3,7 @@
 The user of SSM Studio draws contour points in 2D slice views. To evaluate the fit without a
 person, we intersect a held-out true surface with k slice planes (axial, coronal, sagittal or a
 mix; see :func:`slice_planes`), sample points at a fixed spacing along each contour
-(:func:`core.slicing.polylines`, :func:`core.slicing.sample_polyline`), add in-plane Gaussian
+(:func:`core.geometry.slicing.polylines`, :func:`core.geometry.slicing.sample_polyline`), add in-plane Gaussian
 noise (the user clicks in the slice, so the points stay in it), and estimate each point's
 normal as a user's drawing would give it: the contour tangent (central difference of the
 noisy neighbours along the contour) crossed with the slice normal, pointing outwards (the
@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.shape_model import ShapeModel
-from core.slicing import polylines, sample_polyline
+from core.models.shape_model import ShapeModel
+from core.geometry.slicing import polylines, sample_polyline
 
 AXES = {"sagittal": np.array([1.0, 0.0, 0.0]), "coronal": np.array([0.0, 1.0, 0.0]),
         "axial": np.array([0.0, 0.0, 1.0])}

@@ -13,7 +13,7 @@ the same results.
   to ``on_result(key, result)`` as soon as it arrives, so a caller can write it and keep only a
   summary: memory on the client stays flat in the number of jobs;
 - ``progress(fraction, message)`` follows completed jobs (and is called every 0.1 s while
-  waiting, a heartbeat); raising :class:`core.progress.Cancelled` from it (the GUI's Cancel)
+  waiting, a heartbeat); raising :class:`core.runtime.progress.Cancelled` from it (the GUI's Cancel)
   stops everything, also while the workers are still starting.
 
 Interruption (issue 18 item 14). :func:`termination_signals` (installed by the command line for
@@ -50,7 +50,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from core.progress import ProgressCallback, report
+from core.runtime.progress import ProgressCallback, report
 
 _SCHEDULER: contextvars.ContextVar = contextvars.ContextVar("ssm_studio_scheduler", default=None)
 _COMMON: Any = None  # a pool worker's copy of ``common``

@@ -29,8 +29,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
-from core import mesh as meshops
-from core.geometry import SurfaceProjector, face_normals
+from core.geometry import mesh as meshops
+from core.geometry.toolkit import SurfaceProjector, face_normals
 from core.types import TriMesh
 
 REMESH_ATTEMPTS = 5  # decimations tried by :func:`remesh` before it gives up on a clean result
@@ -255,7 +255,7 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
     Linear subdivision (the shape is unchanged) until there are at least twice as many
     faces as the target needs, quadric decimation with volume preservation to the target,
     then tangential relaxation towards a uniform vertex distribution, each step projected
-    back onto the (subdivided) input surface (:func:`core.mesh.fair_mesh` with no rest
+    back onto the (subdivided) input surface (:func:`core.geometry.mesh.fair_mesh` with no rest
     shape).
 
     Quadric decimation now and then folds a thin part into a non-manifold edge (a clean,

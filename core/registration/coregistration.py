@@ -5,7 +5,7 @@ foreground layers) show a second scan of the patient over the first one, blended
 checkerboard, so the user can draw where a structure is best seen. Two scans of one patient
 differ by a rigid motion (the head moved between series; another scanner): when the two grids
 differ, the second image is registered rigidly onto the first with the one image registration
-engine, :func:`core.registration.register_volumes` (Mattes mutual information, Mattes et al.,
+engine, :func:`core.registration.volumes.register_volumes` (Mattes mutual information, Mattes et al.,
 IEEE TMI 2003, so T1/T2/CT contrasts register; multi-resolution, centre-of-mass start), then
 resampled (trilinear) onto the first image's voxel grid. On that common grid one slice sampler
 geometry serves both images: a view's slice of the second image covers exactly the pixels of
@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from core.planes import SliceImage
-from core.progress import ProgressCallback, report
+from core.geometry.planes import SliceImage
+from core.runtime.progress import ProgressCallback, report
 from core.types.volume import Volume
 
 __all__ = ["CoRegistered", "same_grid", "coregister", "blend", "checkerboard_mask"]
@@ -43,7 +43,7 @@ class CoRegistered:
         RAS matrix mapping the second image's world onto the reference's world (column vectors;
         identity when the grids were the same).
     registered : bool
-        True when :func:`core.registration.register_volumes` computed ``transform`` (False for
+        True when :func:`core.registration.volumes.register_volumes` computed ``transform`` (False for
         identical grids or a given transform, e.g. from a session).
     metric : float or None
         Final Mattes mutual information of the registration (lower is better).
@@ -80,15 +80,15 @@ def coregister(reference: Volume, second: Volume, transform: np.ndarray | None =
         The other image (3D; the first volume of a 4D image is used).
     transform : (4, 4) float, optional
         A known second-world -> reference-world matrix (a saved session); no registration.
-    progress : callable ``progress(fraction, message)``; may raise ``core.progress.Cancelled``.
+    progress : callable ``progress(fraction, message)``; may raise ``core.runtime.progress.Cancelled``.
     **options
-        Passed to :func:`core.registration.register_volumes` (e.g. ``levels_mm``).
+        Passed to :func:`core.registration.volumes.register_volumes` (e.g. ``levels_mm``).
 
     Returns
     -------
     CoRegistered
     """
-    from core.registration import register_volumes, resample
+    from core.registration.volumes import register_volumes, resample
 
     data = np.asarray(second.data)
     if data.ndim == 4:

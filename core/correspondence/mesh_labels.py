@@ -14,7 +14,7 @@ Slicer ``.seg.nrrd``, MetaImage, ...):
    shrinkage of Laplacian smoothing, which removes the voxel staircase;
 4. voxel indices -> world RAS mm through the volume's affine (oblique and LPS-stored images
    included: the readers give the RAS affine), faces turned outward if the affine flips;
-5. remeshed to an even density of ``n_vertices`` (:func:`core.grooming.remesh`).
+5. remeshed to an even density of ``n_vertices`` (:func:`core.correspondence.grooming.remesh`).
 
 Labels are chosen by number, or by name: Slicer segment names from a ``.seg.nrrd`` header,
 otherwise FreeSurfer colour-table names (``FreeSurferColorLUT.txt`` from ``$FREESURFER_HOME``
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core import mesh as meshops
+from core.geometry import mesh as meshops
 from core.types import TriMesh, Volume
 
 # The subcortical (aseg) part of FreeSurfer's FreeSurferColorLUT.txt: value -> name.
@@ -178,7 +178,7 @@ def label_surface(volume: Volume, value: int, *, n_vertices: int | None = 2000,
     gets ``voxels``, ``dropped_pieces`` and ``dropped_area_share``. Raises
     :class:`LabelError` naming ``source`` and the label when the label has no voxel.
     """
-    from core.grooming import largest_piece, remesh, weld
+    from core.correspondence.grooming import largest_piece, remesh, weld
 
     data = np.asarray(volume.data)
     mask = data == value
@@ -226,7 +226,7 @@ def label_map_surfaces(paths: list, label: str | int, *, n_vertices: int | None 
                        progress=None) -> list[tuple[str, TriMesh | None, str | None]]:
     """:func:`label_map_surface` for several files: (path, mesh or None, error or None) each,
     so that one bad file does not stop the others (the builder's *Add label maps...*)."""
-    from core.progress import report
+    from core.runtime.progress import report
 
     out = []
     for i, path in enumerate(paths):

@@ -1,6 +1,6 @@
 """A structure's label map: the fitted surface voxelised on the image grid, plus manual edits.
 
-The model gives the segmentation (``core.segmentation.voxelize``: voxel centres inside the
+The model gives the segmentation (``core.geometry.segmentation.voxelize``: voxel centres inside the
 closed surface); where the user insists, a brush adds voxels and an eraser removes them, as in
 ITK-SNAP's and 3D Slicer's paint tools. The edits are kept *apart* from the model's result
 (:class:`ManualEdits`: the voxels painted in and the voxels erased), so that they survive every
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from core.segmentation import mask_volume_mm3, voxelize
+from core.geometry.segmentation import mask_volume_mm3, voxelize
 
 __all__ = ["ManualEdits", "brush_voxels", "structure_label_map", "mask_volume_mm3"]
 

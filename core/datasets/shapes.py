@@ -45,8 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core import mesh as meshops
-from core.geometry import face_normals, random_rotation, surface_coordinates
+from core.geometry import mesh as meshops
+from core.geometry.toolkit import face_normals, random_rotation, surface_coordinates
 from core.types import TriMesh
 
 KINDS = ("bean", "tube", "ring", "twist")
@@ -218,7 +218,7 @@ def _retessellated(faces: np.ndarray, shape: np.ndarray, base: np.ndarray,
                    n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An independent even remesh of one shape's surface: vertices, faces and the vertices'
     base-surface (material) positions, interpolated over the lattice's triangles."""
-    from core.grooming import remesh
+    from core.correspondence.grooming import remesh
 
     vertices, new_faces = remesh(shape, faces, n_vertices)
     return vertices, new_faces, material_points(vertices, TriMesh(shape, faces), base)

@@ -1,0 +1,1 @@
+"""Alignment: Procrustes/GPA and transformation synchronisation (CVPR 2015)."""

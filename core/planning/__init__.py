@@ -1,0 +1,1 @@
+"""Planning: AC-PC frames and trajectories, the plan report, measurements."""

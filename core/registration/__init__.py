@@ -1,0 +1,1 @@
+"""Registration: volumes, multi-image, second images, automatic placement, drag handles."""

@@ -1,0 +1,1 @@
+"""Runtime: executors and signals, progress and cancellation."""

@@ -1,0 +1,1 @@
+"""The session document (JSON, relative paths) and its crash recovery."""
