@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from app.state import FRAME_NAMES, STRUCTURE_COLORS, FitInfo, Points, Structure, WorkspaceState
+from core.geometry.planes import PLANE_NAMES
 from core.io import DataFileError, load_model, load_volume, save_mesh, save_points, save_volume
 
 
@@ -378,7 +379,7 @@ class ExportController:
         tilted = 0
         for g, normal in enumerate(normals):
             axis = int(np.argmax(np.abs(normal)))          # 0 x: sagittal, 1 y: coronal, 2 z: axial
-            name = ("sagittal", "coronal", "axial")[axis]
+            name = PLANE_NAMES[axis]
             tilted += int(abs(normal[axis]) < 0.999)
             members = labels == g
             frames[members] = FRAME_NAMES.index(name)
@@ -402,7 +403,7 @@ def _points(xyz, slices) -> Points:
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     slices = slices or [("axial", float(p[2])) for p in xyz]
     frames = [FRAME_NAMES.index(name if isinstance(name, str)
-                                else ("sagittal", "coronal", "axial")[int(name)])
+                                else PLANE_NAMES[int(name)])
               for name, _ in slices]
     return Points(xyz.copy(), np.asarray(frames, dtype=np.int64).reshape(-1),
                   np.asarray([float(d) for _, d in slices]).reshape(-1))

@@ -100,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None = None) -> int:
     from core.runtime.parallel import Terminated, termination_signals
 
-    argv = list(sys.argv[1:] if argv is None else argv)
+    from core.cli import attach_negative_lists
+
+    argv = attach_negative_lists(list(sys.argv[1:] if argv is None else argv))
     try:  # a signal while the commands are imported is not lost (nor a traceback)
         with termination_signals():
             args = build_parser(argv).parse_args(argv)

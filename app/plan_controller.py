@@ -20,6 +20,7 @@ from app.panels.planning import PlanningPanel
 from app.planning import PlanningState
 from app.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
+from core.geometry.planes import PLANE_AXIS
 from core.planning.report import export_plan
 from core.planning.frames import anchored_point_weights, format_acpc
 from core.reconstruction.uncertainty import ellipsoid, fit_posterior, suggest_slice
@@ -177,7 +178,7 @@ class PlanController(QObject):
         volume = self.workspace.volume
         step = float(volume.spacing.min()) if volume is not None else 1.0
         best = suggest_slice(s.surface_vertices(), sd, spacing=step, drawn=drawn)
-        axis = {"sagittal": 0, "coronal": 1, "axial": 2}[best.view]
+        axis = PLANE_AXIS[best.view]
         crosshair = self.workspace.crosshair.copy()
         crosshair[axis] = best.depth
         self.workspace.set_crosshair(crosshair)

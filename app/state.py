@@ -32,6 +32,7 @@ from app.events import EmitterGroup
 from app.history import UndoHistory
 from core.io import Volume
 from core.io.model_library import structure_info
+from core.reconstruction.plausibility import plausibility_warnings
 from core.geometry.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
 from core.models.shape_model import ShapeModel
 
@@ -149,38 +150,6 @@ class Snapshot:
     pose: np.ndarray | None
     placement: np.ndarray | None = None
     edits: object = None              # core.geometry.labelmap.ManualEdits (brush / eraser), or None
-
-
-# When a fit is flagged as implausible (issue 17): the GUI's safety net on the numbers of
-# ``FitResult.plausibility()``. Residuals are relative to the model's size (RMS radius).
-PLAUSIBLE_RESIDUAL = (3.0, 0.2)           # mm, and fraction of the model size (the larger)
-PLAUSIBLE_COEF_SD = 3.0                   # |coefficient| in prior SD
-PLAUSIBLE_SHIFT = (10.0, 1.0)             # mm, and model sizes (the larger), from the placement
-PLAUSIBLE_ROTATION_DEG = 20.0
-PLAUSIBLE_SCALE = (0.75, 1.33)
-
-
-def plausibility_warnings(p: dict) -> tuple[str, ...]:
-    """Why a fit with plausibility numbers ``p`` (``FitResult.plausibility()``) is doubtful."""
-    size = p.get("model_size_mm", float("nan"))
-    size = size if size == size and size > 0 else 0.0
-    out = []
-    limit = max(PLAUSIBLE_RESIDUAL[0], PLAUSIBLE_RESIDUAL[1] * size)
-    if p.get("residual_mm", 0.0) > limit:
-        out.append(f"points {p['residual_mm']:.1f} mm from the surface on average "
-                   f"(more than {limit:.1f} mm)")
-    if p.get("max_abs_coef_sd", 0.0) > PLAUSIBLE_COEF_SD:
-        out.append(f"{p.get('n_coef_beyond_3sd', 1)} shape factor(s) beyond ±3 SD "
-                   f"(up to {p['max_abs_coef_sd']:.1f} SD)")
-    limit = max(PLAUSIBLE_SHIFT[0], PLAUSIBLE_SHIFT[1] * size)
-    if p.get("placement_shift_mm", 0.0) > limit:
-        out.append(f"moved {p['placement_shift_mm']:.0f} mm from where it was placed")
-    if p.get("placement_rotation_deg", 0.0) > PLAUSIBLE_ROTATION_DEG:
-        out.append(f"turned {p['placement_rotation_deg']:.0f}° from its placement")
-    scale = p.get("placement_scale_ratio", 1.0)
-    if not PLAUSIBLE_SCALE[0] <= scale <= PLAUSIBLE_SCALE[1]:
-        out.append(f"scaled by {scale:.2f} from its placement")
-    return tuple(out)
 
 
 @dataclass

@@ -35,7 +35,7 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-from PySide6.QtCore import QObject, QThread, Signal
+from PySide6.QtCore import QObject, Qt, QThread, Signal, Slot
 
 from core.runtime.progress import Cancelled
 
@@ -184,11 +184,13 @@ class DialogTask(QObject):
         if self.worker is not None:
             return False
         self.worker = Worker(fn, *args, **kwargs)
-        self.worker.succeeded.connect(lambda result: self._finish(self.succeeded, result))
-        self.worker.failed.connect(lambda message: self._finish(self.failed, message))
-        self.worker.cancelled.connect(lambda: self._finish(self.cancelled))
+        # The worker emits from its own thread: queued connections to this object's slots
+        # deliver the outcome in the GUI thread (a lambda has no thread affinity of its own)
+        queued = Qt.ConnectionType.QueuedConnection
+        self.worker.succeeded.connect(self._on_succeeded, queued)
+        self.worker.failed.connect(self._on_failed, queued)
+        self.worker.cancelled.connect(self._on_cancelled, queued)
         if show_dialog:
-            from PySide6.QtCore import Qt
             from PySide6.QtWidgets import QProgressDialog
 
             self.dialog = QProgressDialog(self.label, "Cancel", 0, 100, self._parent)
@@ -216,6 +218,18 @@ class DialogTask(QObject):
         # last: a modal dialog's setValue processes events, which may deliver the end of the
         # job and close the dialog (self.dialog is None afterwards)
         dialog.setValue(int(100 * fraction))
+
+    @Slot(object)
+    def _on_succeeded(self, result: Any) -> None:
+        self._finish(self.succeeded, result)
+
+    @Slot(str)
+    def _on_failed(self, message: str) -> None:
+        self._finish(self.failed, message)
+
+    @Slot()
+    def _on_cancelled(self) -> None:
+        self._finish(self.cancelled)
 
     def _finish(self, signal, *args) -> None:
         self.worker = None

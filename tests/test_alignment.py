@@ -163,6 +163,9 @@ def test_synchronize_rejects_bad_input():
         synchronize_transforms(np.zeros((3, 2, 4, 4)))
     with pytest.raises(ValueError, match="transform must be one of"):
         synchronize_transforms(np.tile(np.eye(4), (3, 3, 1, 1)), "projective")
+    # a mask of the wrong shape is named, not a numpy broadcasting error
+    with pytest.raises(ValueError, match=r"mask must be \(3, 3\), got shape \(2, 2\)"):
+        synchronize_transforms(np.tile(np.eye(4), (3, 3, 1, 1)), mask=np.ones((2, 2), bool))
 
 
 # ------------------------------------------------------------------------- GPA and front end

@@ -118,3 +118,34 @@ def test_latest_wins_error_keeps_running(qtbot):
     runner.submit(lambda progress: 5)
     qtbot.waitUntil(lambda: not runner.is_busy, timeout=5000)
     assert errors == ["need at least 3 points"] and results == [5]
+
+
+@pytest.mark.parametrize("outcome", ["succeeded", "failed", "cancelled"])
+def test_dialog_task_delivers_its_outcome_in_the_gui_thread(qtbot, outcome):
+    """DialogTask's outcome signals are emitted from its own (GUI-thread) slots, whichever
+    thread the worker finished in, so receivers may touch widgets."""
+    from app.workers import DialogTask
+    from core.runtime.progress import Cancelled
+
+    gui_thread = threading.current_thread()
+
+    def job(progress=None):
+        assert threading.current_thread() is not gui_thread  # the job runs in the worker
+        if outcome == "failed":
+            raise ValueError("bad input")
+        if outcome == "cancelled":
+            raise Cancelled()
+        return 5
+
+    task = DialogTask("Title", "Working")
+    delivered = []
+    getattr(task, outcome).connect(lambda *args: delivered.append(
+        (threading.current_thread() is gui_thread, args)))
+    with qtbot.waitSignal(getattr(task, outcome), timeout=5000):
+        assert task.start(job, show_dialog=False)
+    assert delivered and delivered[0][0] is True
+    assert not task.is_running
+    if outcome == "succeeded":
+        assert delivered[0][1] == (5,)
+    elif outcome == "failed":
+        assert "bad input" in delivered[0][1][0]

@@ -317,3 +317,17 @@ def test_a_job_error_is_one_line_on_the_command_line(capsys):
     err = capsys.readouterr().err
     assert code == 2
     assert err.strip().count("\n") == 0 and "job 3 failed" in err and "bad item three" in err
+
+
+def test_a_job_failure_from_data_is_one_line_and_a_bug_keeps_its_traceback():
+    """Batches report failed items and go on: bad data is one line, a programming error
+    carries its traceback into the report instead of passing for a bad shape."""
+    from core.runtime.failures import describe_failure
+
+    assert describe_failure(ValueError("singular geometry")) == "ValueError: singular geometry"
+    try:
+        [][1]
+    except IndexError as exc:
+        text = describe_failure(exc)
+    assert text.startswith("internal error") and "IndexError" in text
+    assert "Traceback" in text and "test_parallel.py" in text

@@ -203,6 +203,44 @@ def test_fit_cli_writes_mesh_and_json(tmp_path, family):
                  str(tmp_path / "nan.csv"), "--out", str(tmp_path / "x.vtk")]) == 2
 
 
+def test_fit_cli_takes_a_negative_placement_and_warns_of_an_implausible_fit(tmp_path, family,
+                                                                          capsys):
+    """``--placement -x,y,z`` is a coordinate list, not an option; a fit the GUI would flag
+    as implausible (points far from any surface the model can take) is flagged headless too:
+    one warning line, and ``warnings`` in --json, by the same policy."""
+    import json
+
+    from core.cli import main
+    from core.io import save_model, save_points
+
+    shapes, faces, model = family
+    save_model(tmp_path / "model.npz", model)
+    user = simulate_user(shapes[0], faces, 5, rng=np.random.default_rng(3))
+    centre = model.world_instance().mean(axis=0)
+    placement = ",".join(f"{v:.3f}" for v in centre - [abs(centre[0]) + 1.0, 0.0, 0.0])
+    assert placement.startswith("-")  # argparse alone reads it as an unknown option
+    save_points(tmp_path / "pts.csv", user.points, user.normals)
+    rc = main(["fit", "--model", str(tmp_path / "model.npz"), "--points", str(tmp_path / "pts.csv"),
+               "--placement", placement, "--out", str(tmp_path / "fitted.vtk"),
+               "--json", str(tmp_path / "result.json")])
+    assert rc == 0
+    assert "warnings" in json.loads((tmp_path / "result.json").read_text())
+    capsys.readouterr()
+    # points scattered in a box three times the model's size: no shape fits them
+    rng = np.random.default_rng(0)
+    span = np.ptp(shapes[0], axis=0)
+    scatter = shapes[0].mean(axis=0) + rng.uniform(-1.5, 1.5, size=(60, 3)) * span
+    save_points(tmp_path / "scatter.csv", scatter)
+    rc = main(["fit", "--model", str(tmp_path / "model.npz"), "--points",
+               str(tmp_path / "scatter.csv"), "--out", str(tmp_path / "bad.vtk"),
+               "--json", str(tmp_path / "bad.json")])
+    assert rc == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    flagged = [line for line in err if "warning: implausible fit" in line]
+    assert len(flagged) == 1 and "mm from the surface" in flagged[0], err
+    assert json.loads((tmp_path / "bad.json").read_text())["warnings"]
+
+
 def test_pose_prior_steadies_a_single_contour_fit(family):
     """One axial contour leaves the pose nearly free: the prior on the deviation from the
     model's placement keeps the fit closer to the truth than an unconstrained similarity."""

@@ -411,10 +411,10 @@ def synchronize_transforms(pairwise, transform: str = "similarity", *, mask=None
     if k < 2:
         raise ValueError("at least 2 shapes are needed")
     known = np.ones((k, k), bool) if mask is None else np.asarray(mask, bool).copy()
+    if known.shape != (k, k):  # checked before use: a wrong shape would fail in numpy
+        raise ValueError(f"mask must be ({k}, {k}), got shape {known.shape}")
     known[np.arange(k), np.arange(k)] = False
     known &= np.all(np.isfinite(p.reshape(k, k, -1)), axis=2)
-    if known.shape != (k, k):
-        raise ValueError(f"mask must be ({k}, {k})")
     if p.shape[2] == 3:
         full = np.tile(np.eye(4), (k, k, 1, 1))
         full[:, :, :3, :3] = p

@@ -15,6 +15,7 @@ import importlib
 import contextlib
 import pkgutil
 import os
+import re
 import sys
 import warnings
 from collections.abc import Iterator
@@ -83,6 +84,24 @@ def one_line_warnings(command: str) -> Iterator[None]:
         yield
     finally:
         warnings.showwarning = previous
+
+
+_NUMBER = r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+_NEGATIVE_LIST = re.compile(rf"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,{_NUMBER})+")
+
+
+def attach_negative_lists(argv: list[str]) -> list[str]:
+    """``--placement -22.4,29.2,29.2`` as ``--placement=-22.4,29.2,29.2``: argparse takes a
+    value that starts with a minus for an option unless it is a single number, so coordinate
+    lists (x,y,z) with a negative first value are attached to the option before them."""
+    out: list[str] = []
+    for token in argv:
+        if (out and out[-1].startswith("--") and "=" not in out[-1]
+                and _NEGATIVE_LIST.fullmatch(token)):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -156,7 +175,7 @@ def _main(argv: list[str] | None = None) -> int:
         with termination_signals():
             parser = argparse.ArgumentParser(prog="ssm-studio", description=__doc__)
             parser.add_argument("--version", action="version", version=f"ssm-studio {__version__}")
-            argv = list(sys.argv[1:] if argv is None else argv)
+            argv = attach_negative_lists(list(sys.argv[1:] if argv is None else argv))
             add_commands(parser.add_subparsers(title="commands", metavar="COMMAND"),
                          only=requested_command(argv))
             args = parser.parse_args(argv)

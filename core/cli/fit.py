@@ -5,19 +5,23 @@ world RAS mm (CSV with header ``x,y,z[,nx,ny,nz]`` or a 3D Slicer markups .mrk.j
 (``core.reconstruction.fit_points``: anisotropic or isotropic GMM, or ICP, with the model's
 Gaussian prior and a similarity/rigid/no pose) and writes the fitted mesh (.vtk, .vtp, .stl,
 .ply, .obj, .gii). ``--json`` also writes the coefficients, the pose, the per-iteration
-objective, the stopping reason and the mean point-to-surface residual.
+objective, the stopping reason, the mean point-to-surface residual and ``warnings``: why the
+fit looks implausible, by the same policy as the GUI (:mod:`core.reconstruction.plausibility`);
+they are also printed as one ``warning:`` line.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from core.io import TriMesh, atomic_write_json, load_model, load_points, save_mesh
 from core.reconstruction import METHODS, POSES, FitResult, fit_points
+from core.reconstruction.plausibility import plausibility_warnings
 
 COMMAND = "fit"
 HELP = "fit a shape model to contour points (GMM or ICP) and write the fitted surface"
@@ -118,7 +122,21 @@ def fit_from_args(args: argparse.Namespace, placement_of=None):
 
 def write_json(path: Path | None, result: FitResult, **extra) -> None:
     if path is not None:
-        atomic_write_json(path, {**result.to_dict(), **extra})
+        atomic_write_json(path, {**result.to_dict(), "warnings": list(fit_warnings(result)),
+                                 **extra})
+
+
+def fit_warnings(result: FitResult) -> tuple[str, ...]:
+    """Why the fit looks implausible (the GUI's policy, core.reconstruction.plausibility)."""
+    return plausibility_warnings(result.plausibility())
+
+
+def warn_if_implausible(command: str, result: FitResult) -> None:
+    """One warning line on stderr when the fit looks implausible, as the GUI flags it."""
+    warnings = fit_warnings(result)
+    if warnings:
+        print(f"ssm-studio {command}: warning: implausible fit: {'; '.join(warnings)}",
+              file=sys.stderr)
 
 
 def summary(result: FitResult) -> str:
@@ -139,4 +157,5 @@ def run(args: argparse.Namespace) -> int:
     write_json(args.json, result, model=str(args.model), points=str(args.points),
                mesh=str(args.out))
     print(f"{args.out}: {summary(result)}")
+    warn_if_implausible("fit", result)
     return 0

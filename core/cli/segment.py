@@ -21,7 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from core.cli.fit import add_fit_arguments, fit_from_args, summary, write_json
+from core.cli.fit import add_fit_arguments, fit_from_args, summary, warn_if_implausible, write_json
 from core.io import TriMesh, load_volume, save_mesh, save_volume
 from core.geometry.segmentation import mask_volume_mm3, voxelize
 
@@ -118,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
     write_json(args.json, result, model=str(args.model), points=str(args.points),
                image=str(args.image), mask=str(args.out), mask_volume_mm3=volume_mm3, **extra)
     print(f"{args.out}: {summary(result)}; mask {volume_mm3 / 1000:.2f} cm^3")
+    warn_if_implausible("segment", result)
     if volume_mm3 == 0:
         print(f"ssm-studio segment: warning: the fitted surface does not overlap {args.image}")
     return 0

@@ -16,6 +16,7 @@ from core.correspondence.assignment import auction_assign, labelling_candidates
 from core.correspondence.cpd import cpd_nonrigid, cpd_rigid
 from core.correspondence.offsets import NormalOffsetFit, fit_normal_offsets
 from core.geometry.toolkit import SurfaceProjector, symmetric_surface_distance
+from core.runtime.failures import describe_failure
 from core.types import TriMesh
 
 DEFAULT_CPD_PARAMS = {
@@ -348,5 +349,5 @@ def _task(args: tuple) -> tuple:
         out = correspond_pair(TriMesh(ref_v, ref_f), TriMesh(tgt_v, tgt_f), params, parallel,
                               posed=rest[0] if rest else None)
         return key, out, None
-    except Exception as exc:  # reported per shape, the batch goes on
-        return key, None, f"{type(exc).__name__}: {exc}"
+    except Exception as exc:  # reported per shape, the batch goes on; a bug with its traceback
+        return key, None, describe_failure(exc)

@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.models.shape_model import ShapeModel
+from core.geometry.planes import PLANE_AXIS
 from core.geometry.slicing import polylines, sample_polyline
 
-AXES = {"sagittal": np.array([1.0, 0.0, 0.0]), "coronal": np.array([0.0, 1.0, 0.0]),
-        "axial": np.array([0.0, 0.0, 1.0])}
+AXES = {name: np.eye(3)[axis] for name, axis in PLANE_AXIS.items()}  # slice normals
 
 
 @dataclass

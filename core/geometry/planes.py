@@ -27,6 +27,11 @@ from scipy import ndimage
 
 from core.io import Volume
 
+#: Slice planes by the world axis along their normal (0 x: sagittal, 1 y: coronal, 2 z: axial):
+#: the one definition of plane name <-> axis (sessions store the index).
+PLANE_NAMES = ("sagittal", "coronal", "axial")
+PLANE_AXIS = {name: axis for axis, name in enumerate(PLANE_NAMES)}
+
 _AXIS_LETTERS = {(0, 1): "R", (0, -1): "L", (1, 1): "A", (1, -1): "P", (2, 1): "S", (2, -1): "I"}
 
 

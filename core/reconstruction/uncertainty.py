@@ -47,11 +47,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from core.geometry.planes import PLANE_AXIS
 from core.geometry.toolkit import vertex_normals
 from core.models.shape_model import ShapeModel
 
 #: World axes of the three view orientations (normal of each slice plane): RAS x, y, z.
-VIEW_AXES = {"sagittal": 0, "coronal": 1, "axial": 2}
 #: Pose parameters of the posterior: translation (3, mm), rotation (3, rad), log scale (1).
 POSE_PARAMETERS = {"similarity": 7, "rigid": 6, "none": 0}
 DEFAULT_POSE_SD = (3.0, 1.0, 0.03)  # as core.reconstruction: deg, mm, log scale
@@ -234,7 +234,7 @@ def suggest_slice(vertices: np.ndarray, sd: np.ndarray, *, spacing: float = 1.0,
     exclusion = 2.0 * spacing if exclusion is None else exclusion
     drawn = drawn or []
     best = SliceSuggestion("axial", float(vertices[:, 2].mean()), -1.0)
-    for view, axis in VIEW_AXES.items():
+    for view, axis in PLANE_AXIS.items():
         coord = vertices[:, axis]
         lo, hi = coord.min(), coord.max()
         depths = np.arange(np.ceil(lo / spacing) * spacing, hi, spacing)

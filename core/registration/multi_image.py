@@ -46,6 +46,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from core.alignment.transforms import synchronize_transforms
+from core.runtime.failures import EXPECTED_ERRORS, describe_failure
 from core.runtime.parallel import resolve_jobs, run_jobs, runs_inline
 from core.runtime.progress import ProgressCallback, report, sub_progress
 
@@ -146,8 +147,9 @@ def _inspect_job(arg, common) -> dict:
         scale = float(np.percentile(fg, 99)) if fg.size else 1.0
         return {"ok": True, "samples": pts, "spacing": float(vol.spacing.min()), "scale": scale,
                 "shape": vol.shape}
-    except Exception as exc:  # reported per image, the rest go on
-        return {"ok": False, "error": str(exc)}
+    except Exception as exc:  # reported per image, the rest go on; a bug with its traceback
+        return {"ok": False,
+                "error": str(exc) if isinstance(exc, EXPECTED_ERRORS) else describe_failure(exc)}
 
 
 def _pair_job(arg, common) -> dict:
@@ -165,9 +167,9 @@ def _pair_job(arg, common) -> dict:
         return {"i": i, "j": j, "transform": res.transform, "metric": res.metric,
                 "initial_metric": res.initial_metric, "seconds": time.perf_counter() - t0,
                 "error": None}
-    except Exception as exc:  # a failed pair is reported and left out
+    except Exception as exc:  # a failed pair is reported and left out; a bug with its traceback
         return {"i": i, "j": j, "transform": None, "metric": None, "initial_metric": None,
-                "seconds": time.perf_counter() - t0, "error": f"{type(exc).__name__}: {exc}"}
+                "seconds": time.perf_counter() - t0, "error": describe_failure(exc)}
 
 
 def _resample_job(arg, common) -> dict:

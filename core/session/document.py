@@ -83,11 +83,11 @@ import numpy as np
 
 from core.io import DataFileError, atomic_path
 from core.io.errors import require_file
+from core.geometry.planes import PLANE_NAMES  # a point's plane is stored by its index
 
 SESSION_FORMAT = "ssm-studio-session"
 SESSION_FORMAT_VERSION = 1
 
-PLANE_NAMES = ("sagittal", "coronal", "axial")  # index = world axis along the slice normal
 STATE_DIR_ENV = "SSM_STUDIO_STATE_DIR"
 _RECOVERY_PREFIX = "recovery-"
 
