@@ -10,6 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from core import RESOURCES_DIR
+
 T1_NAME = "mni_icbm152_t1_tal_nlin_sym_09a"
 
 
@@ -18,7 +20,7 @@ def resources_dir() -> Path:
     env = os.environ.get("SSM_STUDIO_RESOURCES")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1] / "resources"
+    return RESOURCES_DIR
 
 
 def _first(candidates: list[Path]) -> Path | None:

@@ -199,7 +199,7 @@ def test_opening_the_builder_does_not_load_the_correspondence_engine():
 
     code = ("import sys; from PySide6.QtWidgets import QApplication; app = QApplication([]);"
             "from app.panels.builder import BuilderPanel; p = BuilderPanel();"
-            "print(p.n_references.value(), 'core.correspondence' in sys.modules,"
+            "print(p.n_references.value(), 'core.correspondence.batch' in sys.modules,"
             " 'scipy.optimize' in sys.modules)")
     import os
 

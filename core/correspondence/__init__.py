@@ -67,17 +67,37 @@ Modules: :mod:`~core.correspondence.cpd` (the rustcpd adapter),
 (the refinement's template fit).
 """
 
-from core.correspondence.assignment import auction_assign, labelling_candidates
-from core.correspondence.batch import (CorrespondenceResult, default_vertex_count,
-                                       establish_correspondence, pick_reference_candidates)
-from core.correspondence.cpd import (CPDResult, cpd_affine, cpd_log_posterior, cpd_nonrigid,
-                                     cpd_rigid)
-from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _rigid_pose,
-                                      correspond_pair, label_points, mesh_problem,
-                                      mirror_fit_ratio)
-from core.geometry.mesh import fair_mesh
+import importlib
 
-__all__ = ["CPDResult", "CorrespondenceResult", "DEFAULT_CPD_PARAMS", "auction_assign",
-           "correspond_pair", "cpd_affine", "cpd_log_posterior", "cpd_nonrigid", "cpd_rigid",
-           "default_vertex_count", "establish_correspondence", "fair_mesh", "label_points",
-           "labelling_candidates", "mesh_problem", "mirror_fit_ratio", "pick_reference_candidates"]
+# The package's face, loaded on first use (PEP 562): importing one light module of the package
+# (grooming, mesh_labels) must not load the CPD engine and scipy.optimize, which cost the
+# builder tab ~1.8 s to open.
+_EXPORTS = {
+    "auction_assign": "assignment", "labelling_candidates": "assignment",
+    "CorrespondenceResult": "batch", "default_vertex_count": "batch",
+    "establish_correspondence": "batch", "pick_reference_candidates": "batch",
+    "CPDResult": "cpd", "cpd_affine": "cpd", "cpd_log_posterior": "cpd", "cpd_nonrigid": "cpd",
+    "cpd_rigid": "cpd",
+    "DEFAULT_CPD_PARAMS": "pair", "_normalise": "pair", "_rigid_pose": "pair",
+    "correspond_pair": "pair", "label_points": "pair", "mesh_problem": "pair",
+    "mirror_fit_ratio": "pair",
+}
+_ELSEWHERE = {"fair_mesh": "core.geometry.mesh"}
+
+__all__ = sorted(name for name in (*_EXPORTS, *_ELSEWHERE) if not name.startswith("_"))
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        module = importlib.import_module(f"{__name__}.{_EXPORTS[name]}")
+    elif name in _ELSEWHERE:
+        module = importlib.import_module(_ELSEWHERE[name])
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(module, name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_EXPORTS, *_ELSEWHERE})

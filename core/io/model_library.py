@@ -28,9 +28,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from core import RESOURCES_DIR
 from core.models.shape_model import ShapeModel
 
-RESOURCES_MODELS = Path(__file__).resolve().parent.parent / "resources" / "models"
+RESOURCES_MODELS = RESOURCES_DIR / "models"
 MNI_TEMPLATE_SPACE = "MNI152NLin2009aSym"
 SIDES = ("left", "right", "midline", "")
 MODEL_SUFFIXES = (".npz", ".h5")

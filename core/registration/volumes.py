@@ -46,6 +46,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from core import RESOURCES_DIR
 from core.runtime.progress import Cancelled, ProgressCallback, report, sub_progress
 
 TRANSFORMS = ("rigid", "similarity", "affine")
@@ -433,7 +434,7 @@ def resample(data: np.ndarray, affine: np.ndarray, transform: np.ndarray,
 
 def default_template_path() -> Path:
     """The bundled MNI ICBM152 2009a T1 template (the demo models' template space)."""
-    return Path(__file__).resolve().parent.parent / "resources" / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
+    return RESOURCES_DIR / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 
 
 def threads_default() -> int:
