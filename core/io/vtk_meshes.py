@@ -15,7 +15,6 @@ Coordinate system: the ``SPACE=RAS``/``SPACE=LPS`` tag 3D Slicer writes (legacy 
 header, a ``SPACE`` string field array in .vtp/.vtu) is returned with the mesh; the writers
 put ``SPACE=<space>`` in the same places and write legacy VTK as version 4.2, as Slicer does.
 
-Also the polydata -> triangles conversion used by :meth:`TriMesh.from_polydata`.
 """
 
 from __future__ import annotations
@@ -32,10 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_path
-from core.io.errors import DataFileError, without_path
+from core.errors import DataFileError, without_path
 from core.io.limits import DEFLATE_MAX_RATIO, check_declared_size
 from core.io.registry import file_suffix
-from core.types.trimesh import TriMesh
+from core.types.trimesh import TriMesh, cell_arrays, triangles_of
 
 
 class _VTKClasses:
@@ -69,27 +68,6 @@ def import_classes() -> None:
     children, which would each import them again)."""
     for name in _VTKClasses._LIBRARY:
         getattr(vtk, name)
-
-
-def triangles_of(poly) -> np.ndarray:
-    """Triangles (F, 3) of a vtkPolyData: polygons and triangle strips, triangulated by VTK.
-
-    Vertex and line cells are ignored; polygons with more than 3 corners and strips go through
-    ``vtkTriangleFilter``. Point ids are unchanged.
-    """
-    if poly.GetNumberOfPolys() == 0 and poly.GetNumberOfStrips() == 0:
-        return np.zeros((0, 3), np.int64)
-    offsets, connectivity = _cell_arrays(poly.GetPolys())
-    if poly.GetNumberOfStrips() > 0 or np.any(np.diff(offsets) != 3):
-        triangulate = vtk.vtkTriangleFilter()
-        triangulate.PassVertsOff()
-        triangulate.PassLinesOff()
-        triangulate.SetInputData(poly)
-        triangulate.Update()
-        offsets, connectivity = _cell_arrays(triangulate.GetOutput().GetPolys())
-    sizes = np.diff(offsets)
-    starts = offsets[:-1][sizes == 3]
-    return connectivity[starts[:, None] + np.arange(3)]
 
 
 _VTK_LOCK = threading.Lock()
@@ -257,18 +235,10 @@ def _check_xml_sizes(path: Path) -> None:
                         max_ratio=ratio)
 
 
-def _cell_arrays(cells) -> tuple[np.ndarray, np.ndarray]:
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-
-    offsets = vtk_to_numpy(cells.GetOffsetsArray()).astype(np.int64)
-    connectivity = vtk_to_numpy(cells.GetConnectivityArray()).astype(np.int64)
-    return offsets, connectivity
-
-
 def _validate_cell_array(path: Path, cells, n_points: int, what: str, min_size: int = 1
                          ) -> np.ndarray:
     """Check one vtkCellArray before any filter sees it; returns the cell sizes."""
-    offsets, connectivity = _cell_arrays(cells)
+    offsets, connectivity = cell_arrays(cells)
     if len(offsets) == 0:
         return np.zeros(0, np.int64)
     sizes = np.diff(offsets)

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import DataFileError
+
 
 @dataclass
 class TriMesh:
@@ -48,15 +50,11 @@ class TriMesh:
     @classmethod
     def from_polydata(cls, poly, name: str = "") -> TriMesh:
         """Build from a triangulated ``pyvista.PolyData``."""
-        from core.io.vtk_meshes import triangles_of  # io imports this module: import late
-
         faces = triangles_of(poly)
         return cls(np.asarray(poly.points, dtype=np.float64), faces, name)
 
     def check(self, source: str | os.PathLike | None = None) -> TriMesh:
         """Raise :class:`DataFileError` (naming ``source``) if the mesh is unusable."""
-        from core.io.errors import DataFileError  # io imports this module: import late
-
         src = source if source is not None else (self.name or "<mesh>")
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
             raise DataFileError(src, f"vertices must be (N, 3), got {self.vertices.shape}")
@@ -70,3 +68,35 @@ class TriMesh:
         if self.faces.min() < 0 or self.faces.max() >= self.n_vertices:
             raise DataFileError(src, "faces index vertices that do not exist")
         return self
+
+
+def cell_arrays(cells) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets, connectivity) of a vtkCellArray as int64 arrays."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    offsets = vtk_to_numpy(cells.GetOffsetsArray()).astype(np.int64)
+    connectivity = vtk_to_numpy(cells.GetConnectivityArray()).astype(np.int64)
+    return offsets, connectivity
+
+
+def triangles_of(poly) -> np.ndarray:
+    """Triangles (F, 3) of a vtkPolyData: polygons and triangle strips, triangulated by VTK.
+
+    Vertex and line cells are ignored; polygons with more than 3 corners and strips go through
+    ``vtkTriangleFilter``. Point ids are unchanged.
+    """
+    if poly.GetNumberOfPolys() == 0 and poly.GetNumberOfStrips() == 0:
+        return np.zeros((0, 3), np.int64)
+    offsets, connectivity = cell_arrays(poly.GetPolys())
+    if poly.GetNumberOfStrips() > 0 or np.any(np.diff(offsets) != 3):
+        from vtkmodules.vtkFiltersCore import vtkTriangleFilter
+
+        triangulate = vtkTriangleFilter()
+        triangulate.PassVertsOff()
+        triangulate.PassLinesOff()
+        triangulate.SetInputData(poly)
+        triangulate.Update()
+        offsets, connectivity = cell_arrays(triangulate.GetOutput().GetPolys())
+    sizes = np.diff(offsets)
+    starts = offsets[:-1][sizes == 3]
+    return connectivity[starts[:, None] + np.arange(3)]
