@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import fuzz_corpus  # noqa: E402
 
 from core.cli import main as cli_main  # noqa: E402
-from core.io.errors import display_path  # noqa: E402
+from core.errors import display_path  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

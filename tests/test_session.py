@@ -231,7 +231,7 @@ def test_failed_save_keeps_previous_session(tmp_path, monkeypatch):
 
 def _crashing_run(state: Path, script: str) -> int:
     """Run ``script`` in a new Python process that ends without a clean exit; its pid."""
-    code = ("import os, numpy as np\nfrom core import session as s\n" + script +
+    code = ("import os, numpy as np\nfrom core.session import document as s\n" + script +
             "\nos._exit(3)\n")
     env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state))
     # -u: os._exit() skips flushing, and the pid printed on stdout must get through the pipe
@@ -394,7 +394,7 @@ def test_session_whose_coefficients_do_not_fit_the_model_is_refused_whole(tmp_pa
 
 def test_zombie_recovery_writer_is_recognised_as_ended(state_dir):
     """Before: os.kill(pid, 0) succeeds on a zombie, so the crashed run was never offered."""
-    code = ("import os, time\nfrom core import session as s\n"
+    code = ("import os, time\nfrom core.session import document as s\n"
             "s.write_recovery(s.Session(points=[[4.0, 5.0, 6.0]]))\nos._exit(3)\n")
     env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state_dir))
     child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env)
@@ -435,7 +435,7 @@ def test_reused_pid_does_not_hide_a_crashed_run(state_dir):
 
 def test_running_writer_holds_its_lock(state_dir):
     """A live instance (lock held) is not offered, even when its files look old."""
-    code = ("import sys, time\nfrom core import session as s\n"
+    code = ("import sys, time\nfrom core.session import document as s\n"
             "s.write_recovery(s.Session(points=[[1.0, 1.0, 1.0]]))\nprint('ready', flush=True)\n"
             "sys.stdin.readline()\n")
     env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state_dir))

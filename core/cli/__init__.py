@@ -116,7 +116,7 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def _one_line(exc: BaseException) -> str:
-    from core.io.errors import display_path
+    from core.errors import display_path
 
     return display_path(" ".join(str(exc).split()))
 

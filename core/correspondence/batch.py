@@ -205,7 +205,7 @@ def _read_inputs(meshes: list, names: list[str], progress: ProgressCallback | No
     """Vertex count of every input, the inputs that cannot be read (name -> problem), and
     what to groom each from. Input files are read by the workers, each in a child process (a
     reader crash costs that file only); with a scratch folder the client never holds them."""
-    from core.io.errors import DataFileWarning
+    from core.errors import DataFileWarning
 
     counts = {i: len(m.vertices) for i, m in enumerate(meshes) if isinstance(m, TriMesh)}
     sources = list(meshes)

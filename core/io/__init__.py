@@ -20,14 +20,14 @@ table of :mod:`core.io.registry` (suffix -> reader/writer), as nibabel and trime
   LPS -> RAS), :mod:`core.io.nrrd` (NRRD header checks, our NRRD and Slicer ``.seg.nrrd``
   writer), :mod:`core.io.dicom` (DICOM series with their geometry checked);
 - :mod:`core.io.atomic`: every save is atomic (a temporary file in the target folder, then
-  renamed); :mod:`core.io.errors`: every load error is a :class:`DataFileError` naming the
+  renamed); :mod:`core.errors`: every load error is a :class:`DataFileError` naming the
   file and the problem.
 
 Sessions are in :mod:`core.session.document`; the data types in :mod:`core.types` (re-exported here).
 """
 
 from core.io.atomic import atomic_path, atomic_write_json, atomic_write_text
-from core.io.errors import DataFileError
+from core.errors import DataFileError
 from core.io.meshes import MESH_SUFFIXES, expand_mesh_paths, load_mesh, load_meshes, save_mesh
 from core.io.models import MODEL_FORMAT, MODEL_FORMAT_VERSION, load_model, save_model
 from core.io.nifti import VOLUME_SUFFIXES

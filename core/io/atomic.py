@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.errors import DataFileError
+from core.errors import DataFileError
 from core.io.registry import file_suffix
 
 

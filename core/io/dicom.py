@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.errors import DataFileError
+from core.errors import DataFileError
 from core.io.itk_image import image_to_volume, quiet_native_stderr, sitk, sitk_error_text
 from core.io.registry import FileFormat, register
 from core.types.volume import Volume

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_path
-from core.io.errors import DataFileError, why
+from core.errors import DataFileError, why
 from core.types.trimesh import TriMesh
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from core.io.errors import DataFileError
+from core.errors import DataFileError
 
 # deflate cannot expand data more than ~1032:1 (RFC 1951 block limits); a little margin
 DEFLATE_MAX_RATIO = 1100

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import is_temporary_name
-from core.io.errors import DataFileError, DataFileWarning, require_file, warnings_as_notes
+from core.errors import DataFileError, DataFileWarning, require_file, warnings_as_notes
 from core.io.gifti import load_gifti, save_gifti
 from core.io.obj import load_obj
 from core.io.ply import load_ply

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_path, json_default
-from core.io.errors import DataFileError, require_file, why
+from core.errors import DataFileError, require_file, why
 from core.io.registry import FileFormat, lookup, register
 from core.models.shape_model import ShapeModel
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_path
-from core.io.errors import DataFileError
+from core.errors import DataFileError
 from core.io.itk_image import LPS_TO_RAS, check_gzip_stream, read_itk_image
 from core.io.registry import FileFormat, register
 

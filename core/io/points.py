@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_write_json, atomic_write_text
-from core.io.errors import DataFileError, DataFileWarning, display_path, require_file, \
+from core.errors import DataFileError, DataFileWarning, display_path, require_file, \
     warnings_as_notes, why
 from core.io.registry import FileFormat, file_suffix, lookup, register
 from core.types.pointset import PointSet

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io.atomic import atomic_path
-from core.io.errors import DataFileError, require_file
+from core.errors import DataFileError, require_file
 from core.io.registry import FileFormat, register
 from core.models.shape_model import ShapeModel
 

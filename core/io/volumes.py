@@ -18,7 +18,7 @@ import core.io.dicom  # noqa: F401  (registers .dcm)
 import core.io.itk_image  # noqa: F401  (registers .mha, .mhd)
 import core.io.nifti  # noqa: F401  (registers .nii and .nii.gz)
 import core.io.nrrd  # noqa: F401  (registers .nrrd, .seg.nrrd, .nhdr)
-from core.io.errors import DataFileError, require_file, warnings_as_notes
+from core.errors import DataFileError, require_file, warnings_as_notes
 from core.io.registry import file_suffix, lookup, suffixes
 from core.types.volume import Volume
 

@@ -82,7 +82,7 @@ from typing import Any
 import numpy as np
 
 from core.io import DataFileError, atomic_path
-from core.io.errors import require_file
+from core.errors import require_file
 
 SESSION_FORMAT = "ssm-studio-session"
 SESSION_FORMAT_VERSION = 1

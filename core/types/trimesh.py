@@ -55,7 +55,7 @@ class TriMesh:
 
     def check(self, source: str | os.PathLike | None = None) -> TriMesh:
         """Raise :class:`DataFileError` (naming ``source``) if the mesh is unusable."""
-        from core.io.errors import DataFileError  # io imports this module: import late
+        from core.errors import DataFileError  # io imports this module: import late
 
         src = source if source is not None else (self.name or "<mesh>")
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
