@@ -50,14 +50,28 @@ def resolve_dicom_choice(path: str | os.PathLike, ask: Callable | None,
         return path  # none (read_dicom explains) or one
     if ask is None:
         if notify is not None:
+            others = "; ".join(s.label() for s in series[1:])
             notify(f"{len(series)} series in the folder, opened the one with most files: "
-                   f"{series[0].label()}")
+                   f"{series[0].label()}; others: {others}; pick one with --series UID")
         chosen = series[0]
     else:
         chosen = ask(series)
         if chosen is None:
             return None
     return chosen.files[len(chosen.files) // 2]
+
+
+def default_series_error(folder: str | os.PathLike, chosen_file: str | os.PathLike,
+                         exc: DataFileError) -> DataFileError:
+    """``exc`` (reading the series taken by default from ``folder``, as ``chosen_file``),
+    naming that series, the folder's other readable series and ``--series``."""
+    from core.io.dicom import choose_series, with_other_series
+
+    try:
+        chosen = choose_series(chosen_file)
+    except (DataFileError, OSError, RuntimeError):
+        return exc
+    return with_other_series(exc, Path(folder), chosen)
 
 
 _DISPLAY_NAMES: dict[Path, str] = {}

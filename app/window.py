@@ -25,7 +25,7 @@ from pathlib import Path
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
-from app import demo
+from app import demo, formats
 from app.actions import (SHORTCUTS, create_actions, create_menus, create_toolbar,
                          show_segment_controls, update_actions, update_title)
 from app.controllers import ExportController, SessionController
@@ -47,6 +47,7 @@ from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
 from app.tools_install import install_segment_tools
 from app.workers import error_message
+from core.errors import DataFileError
 from core.io.model_library import list_library
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "OPEN_DIALOGS", "run_gui"]
@@ -161,18 +162,27 @@ class MainWindow(QMainWindow):
 
     # -- opening files --------------------------------------------------------------------------
     def load_image(self, path: str | os.PathLike, series: str | None = None,
-                   ask: bool | None = None) -> None:
+                   ask: bool | None = None, notify=None) -> None:
         """Load an image: NIfTI, NRRD, MetaImage or a DICOM series (raises DataFileError).
 
         A DICOM folder with several series asks which one (app.series_dialog) unless
-        ``series`` names it or ``ask`` is False (then: the one with most files, said so).
+        ``series`` names it or ``ask`` is False (then: the one with most files, said in the
+        status bar and to ``notify``; if it cannot be read, the error names the others).
         """
         notes: list[str] = []
+        folder = path
         if series is None:
             path = self.files.resolve_image(path, ask, notes)
             if path is None:
                 return  # the user cancelled the series choice
-        message = self.sessions.open_image(path, series=series)
+        for note in notes if notify is not None else ():
+            notify(note)
+        try:
+            message = self.sessions.open_image(path, series=series)
+        except DataFileError as exc:
+            if notes:  # the series was taken by default from a folder holding several
+                raise formats.default_series_error(folder, path, exc) from None
+            raise
         message = self.sessions.overlap_warning() or message
         self.show_message(message + (f" ({notes[0]})" if notes else ""))
 
@@ -447,7 +457,9 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
             window.open_session(session)
         else:
             if image:
-                window.load_image(image, series=series, ask=not screenshot)
+                window.load_image(image, series=series, ask=not screenshot,
+                                  notify=lambda note: print(f"ssm-studio: {note}",
+                                                            file=sys.stderr))
             else:
                 window.load_demo()
             if model:

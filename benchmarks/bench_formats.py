@@ -8,8 +8,12 @@
    reading with every slice's tags kept, the geometry checks (orientation, tilt, gaps,
    spacing, 4D), the LPS -> RAS affine and the [i, j, k] array. Target: < 2x SimpleITK.
    Then the same series beside a 20-slice localizer in one folder: choosing by UID (and by
-   most files) against SimpleITK's GetGDCMSeriesIDs + GetGDCMSeriesFileNames(uid) + Execute.
-2. The same volume as NIfTI (.nii.gz), NRRD (gzip) and MetaImage (.mha, compressed):
+   most files) against SimpleITK's GetGDCMSeriesIDs + GetGDCMSeriesFileNames(uid) + Execute;
+   and the series beside a DICOMDIR file (pydicom's test DICOMDIR), which must not slow it.
+2. The real one-file volumes of tests/data/real/dicom: the Philips enhanced file against
+   SimpleITK's ReadImage (which reads the frames in file order, unchecked), the Siemens mosaic
+   against nibabel's MosaicWrapper (pydicom parse + unpacking), both as arrays.
+3. The same volume as NIfTI (.nii.gz), NRRD (gzip) and MetaImage (.mha, compressed):
    ``load_volume`` against ``nibabel.load(...).get_fdata``-free ``dataobj`` reading and
    ``SimpleITK.ReadImage`` + array.
 
@@ -38,6 +42,22 @@ sys.path.insert(0, str(ROOT / "tests"))
 import formats_synth as synth  # noqa: E402
 
 from core.io import load_volume  # noqa: E402
+
+
+PHILIPS = ROOT / "tests" / "data" / "real" / "dicom" / "philips_enhanced_3d.dcm"
+MOSAIC = ROOT / "tests" / "data" / "real" / "dicom" / "siemens_mosaic_1volume.IMA"
+
+
+def _nibabel_mosaic(path: Path):
+    import warnings
+
+    import pydicom
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from nibabel.nicom.dicomwrappers import wrapper_from_data
+
+        return wrapper_from_data(pydicom.dcmread(path)).get_data()
 
 
 def _sitk_series(folder: Path, to_array: bool):
@@ -101,6 +121,14 @@ def main(argv: list[str] | None = None) -> int:
         synth.write_series(two, scout, uid=synth.UID_ROOT + ".2", description="scout",
                            name="S{:04d}.dcm")
         uid = synth.UID_ROOT + ".1"
+        with_dir = tmp / "with-dicomdir"  # the same series beside a disc's DICOMDIR index
+        with_dir.mkdir()
+        for f in (tmp / "series").iterdir():
+            (with_dir / f.name).symlink_to(f)
+        from pydicom.data import get_testdata_file
+
+        (with_dir / "DICOMDIR").write_bytes(Path(get_testdata_file("DICOMDIR", read=False))
+                                            .read_bytes())
         for name in ("v.nii.gz", "v.nrrd", "v.mha"):
             writer = sitk.ImageFileWriter()
             writer.SetFileName(str(tmp / name))
@@ -113,12 +141,25 @@ def main(argv: list[str] | None = None) -> int:
                 "SimpleITK ImageSeriesReader + array": lambda: _sitk_series(folder, True),
                 "SSM Studio load_volume (checked)": lambda: load_volume(folder),
             },
+            f"DICOM series beside a DICOMDIR ({size[2]} + 1 files)": {
+                "SimpleITK ImageSeriesReader + array": lambda: _sitk_series(with_dir, True),
+                "SSM Studio load_volume (DICOMDIR skipped)": lambda: load_volume(with_dir),
+            },
             f"DICOM folder with 2 series ({size[2]} + 20 files)": {
                 "SimpleITK GetGDCMSeriesIDs + FileNames(uid) + Execute":
                     lambda: _sitk_two(two, uid),
                 "SSM Studio load_volume(series=uid)": lambda: load_volume(two, series=uid),
                 "SSM Studio load_volume (most files, said)": lambda: load_volume(two,
                                                                                 notify=len),
+            },
+            "Philips enhanced MR, one file, 96x96x40 (real)": {
+                "SimpleITK ReadImage + array (GDCM: no frame checks)": lambda: _sitk_file(PHILIPS),
+                "SSM Studio load_volume (pydicom, frames sorted, checked)":
+                    lambda: load_volume(PHILIPS),
+            },
+            "Siemens mosaic, one file, 90x90x60 (real)": {
+                "nibabel MosaicWrapper.get_data": lambda: _nibabel_mosaic(MOSAIC),
+                "SSM Studio load_volume (pydicom + CSA, checked)": lambda: load_volume(MOSAIC),
             },
             "NIfTI .nii.gz": {
                 "nibabel (dataobj array)": lambda: _nibabel(tmp / "v.nii.gz"),
@@ -136,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         # correctness first: every reader of a group gives the same voxels
         truth = sitk.GetArrayFromImage(image).T
-        for path in (folder, two, tmp / "v.nii.gz", tmp / "v.nrrd", tmp / "v.mha"):
+        for path in (folder, with_dir, two, tmp / "v.nii.gz", tmp / "v.nrrd", tmp / "v.mha"):
             assert np.array_equal(load_volume(path).data, truth), path
         print(f"(series written by SimpleITK in {written:.2f} s; machine shared, times are "
               "upper bounds; median of "

@@ -142,3 +142,29 @@ def test_nrrd_image_h5_model_and_seg_nrrd_export(window, tmp_path):
                        np.array(structure.color) / 255.0, atol=1e-5)
     labels = load_volume(tmp_path / "out.seg.nrrd")
     assert np.allclose(labels.affine, mha.affine, atol=1e-9) and labels.data.sum() > 50
+
+
+def test_view_folder_says_which_series_and_names_the_others_when_it_fails(window, dicom_folder):
+    """`view FOLDER` (no dialog): the series taken is said with the others and --series; when
+    it cannot be read, the error names it, the readable others and --series."""
+    folder, _, _ = dicom_folder
+    notes = []
+    window.load_image(folder, ask=False, notify=notes.append)
+    assert window.state.volume.shape == (16, 14, 10)
+    assert len(notes) == 1 and synth.UID_ROOT + ".31" in notes[0]
+    assert f"others: {synth.UID_ROOT}.32" in notes[0] and "--series UID" in notes[0]
+    _no_patient(notes[0])
+    big = synth.oblique_image((16, 14, 10), (1.0, 1.1, 2.0))
+    d = np.asarray(big.GetDirection()).reshape(3, 3)
+    tilted = [np.array(big.TransformIndexToPhysicalPoint((0, 0, k))) + d[:, 1] * 0.5 * k
+              for k in range(10)]
+    synth.write_series(folder, big, uid=synth.UID_ROOT + ".31", description="T1 MPRAGE",
+                       positions=tilted)
+    notes.clear()
+    with pytest.raises(ValueError) as err:
+        window.load_image(folder, ask=False, notify=notes.append)
+    text = str(err.value)
+    assert "\n" not in text and "gantry tilt" in text
+    assert f"series {synth.UID_ROOT}.31" in text
+    assert f"other readable series: {synth.UID_ROOT}.32" in text and "--series UID" in text
+    assert window.state.volume.shape == (16, 14, 10)  # the image shown before is kept

@@ -12,10 +12,19 @@ be checked before it is trusted (ITK itself only warns, or stacks the slices wro
 - no two slices share a position (else: a 4D series, several volumes interleaved);
 - the steps are uniform (else: missing slices when a gap is a multiple of the spacing,
   otherwise non-uniform spacing);
-- one frame per file (multi-frame / enhanced objects are refused), an image SOP class
-  (not a structured report, RT structure set, presentation state, ...), and a transfer
-  syntax GDCM decodes (read from the file-meta group, which is always explicit VR little
-  endian: DICOM PS3.10 section 7.1).
+- one frame per file, an image SOP class (not a structured report, RT structure set,
+  presentation state, ...), and a transfer syntax GDCM decodes (read from the file-meta
+  group, which is always explicit VR little endian: DICOM PS3.10 section 7.1);
+- no impossible tag (:func:`check_image_tags`): PixelSpacing finite and positive (GDCM reads
+  NaN or 0 as 1 mm and mirrors a negative one), SliceThickness / SpacingBetweenSlices finite
+  and not negative, BitsAllocated 1/8/16/32/64 and at least BitsStored, the same pixel sizes
+  in every slice, and a Pixel Data element as long as the tags say
+  (:func:`check_pixel_data_size`, e.g. not BitsAllocated 32 over 16-bit data).
+
+A series that is one file holding a whole volume, an enhanced multi-frame image or a Siemens
+mosaic, is read by :mod:`core.io.dicom_frames` (its 4D variants refused, saying how many
+volumes). DICOMDIR files (a disc's index: PS3.10 8.6, SOP class 1.2.840.10008.1.3.10) are
+skipped by name or meta group, without parsing them.
 
 ITK's geometry (LPS origin, spacing, direction) becomes the RAS affine exactly as for the
 other ITK formats (:func:`.itk_image.affine_from_itk`). Patient tags (0010,xxxx) are never
@@ -121,7 +130,8 @@ class SeriesInfo:
         """A one-line description for messages and the series dialog."""
         what = " ".join(p for p in (self.modality, f"'{self.description}'" if self.description
                                     else "") if p)
-        return f"{self.uid} ({what + ', ' if what else ''}{self.n_files} files)"
+        return (f"{self.uid} ({what + ', ' if what else ''}{self.n_files} "
+                f"file{'s' if self.n_files != 1 else ''})")
 
 
 def is_dicom_file(path: str | os.PathLike) -> bool:
@@ -136,10 +146,18 @@ def is_dicom_file(path: str | os.PathLike) -> bool:
 
 def read_file_meta(path: Path) -> dict[str, str]:
     """The string elements of a Part 10 file's meta group (0002): transfer syntax, SOP class."""
-    with open(path, "rb") as fh:
-        head = fh.read(8192)
+    return _meta_if_dicom(path) or {}
+
+
+def _meta_if_dicom(path: Path) -> dict[str, str] | None:
+    """:func:`read_file_meta`, or None when ``path`` is not a Part 10 file (one read)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8192)
+    except OSError:
+        return None
     if len(head) < 132 or head[128:132] != b"DICM":
-        return {}
+        return None
     out: dict[str, str] = {}
     pos = 132
     while pos + 8 <= len(head):
@@ -158,6 +176,31 @@ def read_file_meta(path: Path) -> dict[str, str]:
                 head[start:start + length].rstrip(b"\0 ").decode("ascii", "replace")
         pos = start + length
     return out
+
+
+MEDIA_DIRECTORY = "1.2.840.10008.1.3.10"  # DICOMDIR's SOP class (PS3.10 7.3, PS3.3 F)
+
+
+def is_dicomdir(path: Path) -> bool:
+    """Whether ``path`` is a media directory (DICOMDIR): an index of the files, no image.
+
+    Told by its name (PS3.10 8.6: the file is named DICOMDIR) or by its meta group's
+    MediaStorageSOPClassUID, so only the first bytes of a file are read.
+    """
+    return path.name.upper() == "DICOMDIR" or \
+        read_file_meta(path).get("0002|0002", "") == MEDIA_DIRECTORY
+
+
+def folder_dicom_files(folder: Path) -> list[Path]:
+    """The DICOM files of ``folder`` that may hold images (DICOMDIR files left out)."""
+    found = []
+    for path in sorted(folder.iterdir()):
+        if path.name.upper() == "DICOMDIR" or not path.is_file():
+            continue
+        meta = _meta_if_dicom(path)
+        if meta is not None and meta.get("0002|0002", "") != MEDIA_DIRECTORY:
+            found.append(path)
+    return found
 
 
 def _non_image_kind(sop_class: str) -> str | None:
@@ -241,7 +284,7 @@ def _single_series(folder: Path) -> SeriesInfo | None:
     GDCM's unnamed-series scan returns the (sorted) files of the first series it finds; when
     that is every DICOM file of the folder there is no other series to choose from.
     """
-    dicom_files = [p for p in folder.iterdir() if p.is_file() and is_dicom_file(p)]
+    dicom_files = folder_dicom_files(folder)
     if not dicom_files:
         return None
     with quiet_native_stderr():
@@ -270,6 +313,9 @@ def _explain_empty(folder: Path) -> DataFileError:
     """Why a folder has no image series: no DICOM files at all, or only non-image objects."""
     files = [p for p in sorted(folder.iterdir()) if p.is_file()]
     dicom = [p for p in files if is_dicom_file(p)]
+    if dicom and all(is_dicomdir(p) for p in dicom):
+        return DataFileError(folder, "holds only a DICOMDIR (an index of a disc's files, no "
+                                     "image): open the folder of one series it lists")
     if not files:
         return DataFileError(folder, "empty folder: no DICOM files")
     if not dicom:
@@ -335,6 +381,115 @@ def _floats(text: str, count: int) -> np.ndarray | None:
     return values if values.shape == (count,) else None
 
 
+def _finite_floats(text: str) -> np.ndarray | None:
+    """The numbers of a DS/IS tag's text ('a\\b'), None when empty or not numbers (NaN kept)."""
+    try:
+        values = np.array([float(v) for v in text.replace(",", "\\").split("\\")])
+    except ValueError:
+        return None
+    return values if values.size else None
+
+
+# (key, name) of the tags checked by check_image_tags; keys as in ITK's metadata dictionary.
+PIXEL_SPACING = ("0028|0030", "PixelSpacing (0028,0030)")
+SLICE_LENGTHS = (("0018|0050", "SliceThickness (0018,0050)"),
+                 ("0018|0088", "SpacingBetweenSlices (0018,0088)"))
+PIXEL_SIZES = (("0028|0010", "Rows (0028,0010)"), ("0028|0011", "Columns (0028,0011)"),
+               ("0028|0100", "BitsAllocated (0028,0100)"),
+               ("0028|0101", "BitsStored (0028,0101)"))
+
+
+def check_image_tags(tag: Callable[[str], str], name: str, where: Path) -> None:
+    """Refuse impossible values of the tags that place voxels or size the pixel data.
+
+    ``tag(key)`` gives a tag's text ('' when absent). GDCM reads a NaN or zero PixelSpacing
+    as 1 mm and a negative one as a mirrored axis, and sizes the pixel data from
+    BitsAllocated whatever the data holds, so these are checked first (PS3.3 C.7.6.2.1.1:
+    spacing in mm, "physical distance", so positive; C.7.6.3: BitsStored <= BitsAllocated).
+    """
+    key, label = PIXEL_SPACING
+    text = tag(key)
+    if text:
+        values = _finite_floats(text)
+        if values is None or values.size != 2 or not np.all(np.isfinite(values)) \
+                or np.any(values <= 0):
+            raise DataFileError(where, f"{name}: {label} is '{text}', not two finite, positive "
+                                       "distances in mm (a pixel's height and width)")
+    for key, label in SLICE_LENGTHS:
+        text = tag(key)
+        values = _finite_floats(text) if text else np.zeros(1)
+        if values is None or values.size != 1 or not np.isfinite(values[0]) or values[0] < 0:
+            raise DataFileError(where, f"{name}: {label} is '{text}', not a finite, "
+                                       "non-negative distance in mm")
+    sizes = {}
+    for key, label in PIXEL_SIZES:
+        text = tag(key)
+        if text:
+            if not text.isdigit() or int(text) < 1:
+                raise DataFileError(where, f"{name}: {label} is '{text}', not a positive integer")
+            sizes[key] = int(text)
+    bits, stored = sizes.get("0028|0100"), sizes.get("0028|0101")
+    if bits is not None and bits not in (1, 8, 16, 32, 64):
+        raise DataFileError(where, f"{name}: BitsAllocated (0028,0100) is {bits}, not 1, 8, "
+                                   "16, 32 or 64")
+    if bits is not None and stored is not None and stored > bits:
+        raise DataFileError(where, f"{name}: BitsStored (0028,0101) is {stored}, more than "
+                                   f"BitsAllocated (0028,0100) {bits}")
+
+
+NATIVE_SYNTAXES = {"1.2.840.10008.1.2": "<", "1.2.840.10008.1.2.1": "<",
+                   "1.2.840.10008.1.2.2": ">"}
+
+
+def pixel_data_length(path: Path, syntax: str) -> int | None:
+    """The byte length of the Pixel Data element (7FE0,0010) of a native (uncompressed) file.
+
+    Found without a DICOM parser: the element that ends exactly at the end of the file (or
+    before trailing padding) is the pixel data; None when that cannot be told (encapsulated
+    data, another element last). Implicit VR: tag, 4-byte length; explicit VR: tag, 'OB'/'OW',
+    2 reserved bytes, 4-byte length (PS3.5 7.1.2).
+    """
+    order = NATIVE_SYNTAXES.get(syntax)
+    if order is None:
+        return None
+    data = path.read_bytes()
+    tag = struct.pack(order + "HH", 0x7FE0, 0x0010)
+    end = len(data)
+    implicit = syntax == "1.2.840.10008.1.2"
+    for _ in range(8):  # the tag's bytes may also occur inside the data: try the last few
+        at = data.rfind(tag, 0, end)
+        if at < 0:
+            return None
+        if implicit:
+            head, vr_ok = 8, True
+        else:
+            head, vr_ok = 12, data[at + 4:at + 6] in (b"OB", b"OW")
+        if vr_ok and at + head <= len(data):
+            length = struct.unpack_from(order + "I", data, at + head - 4)[0]
+            if length != 0xFFFFFFFF and 0 <= len(data) - (at + head + length) < 256:
+                return length
+        end = at
+    return None
+
+
+def check_pixel_data_size(path: Path, syntax: str, rows: int, cols: int, frames: int,
+                          samples: int, bits: int, where: Path, length: int | None = None) -> None:
+    """Refuse a native file whose Pixel Data length disagrees with the size the tags give
+    (e.g. BitsAllocated 32 over 16-bit data, which GDCM would read as garbage voxels).
+
+    ``length``: the element's length when known (pydicom), else found in the file."""
+    if length is None:
+        length = pixel_data_length(path, syntax)
+    if length is None:
+        return
+    expected = (rows * cols * frames * samples * bits + 7) // 8
+    if length not in (expected, expected + 1):  # + 1: padding to an even length
+        raise DataFileError(where, f"{path.name}: the Pixel Data (7FE0,0010) holds {length} "
+                                   f"bytes but Rows x Columns x frames x samples x "
+                                   f"BitsAllocated/8 = {rows} x {cols} x {frames} x {samples} x "
+                                   f"{bits}/8 = {expected} bytes: inconsistent pixel data size")
+
+
 def _diagnose_read_failure(series: SeriesInfo, where: Path, exc: BaseException) -> DataFileError:
     """Find the slice file that stops ITK from reading the series (error path only)."""
     sizes = {}
@@ -342,10 +497,13 @@ def _diagnose_read_failure(series: SeriesInfo, where: Path, exc: BaseException) 
         try:
             _check_file_kind(path, where)
             reader = _file_info(path)
+            check_image_tags(lambda key: _tag(reader, key), path.name, where)
             sizes[path] = (_tag(reader, "0028|0010"), _tag(reader, "0028|0011"))
             with quiet_native_stderr():
                 reader.Execute()
         except DataFileError as err:
+            if err.problem.startswith(f"{path.name}: "):  # an impossible tag, named
+                return err
             return DataFileError(where, f"slice file {path.name} is corrupt or truncated "
                                         f"({err.problem})")
         except RuntimeError as err:
@@ -366,8 +524,8 @@ def _with_unparsable_files(exc: DataFileError, files: list[Path], where: Path) -
     folder = where if where.is_dir() else where.parent
     listed = {f.resolve() for f in files}
     bad = []
-    for path in sorted(folder.iterdir()):
-        if path.is_file() and path.resolve() not in listed and is_dicom_file(path):
+    for path in folder_dicom_files(folder):
+        if path.resolve() not in listed:
             try:
                 _file_info(path)
             except DataFileError as err:
@@ -379,17 +537,19 @@ def _with_unparsable_files(exc: DataFileError, files: list[Path], where: Path) -
                                 f"{bad[0][1]}), so the series is incomplete: {exc.problem}")
 
 
-def _check_geometry(positions: np.ndarray, orientations: np.ndarray, files: list[Path],
-                    where: Path) -> np.ndarray | None:
+def _check_geometry(positions: np.ndarray, orientations: np.ndarray, names: list[str],
+                    where: Path, unit: str = "files", tilt: str = "") -> np.ndarray | None:
     """The checks of the module docstring on the slices' positions and orientations.
 
-    Returns None when the files are in slice order, else the order that sorts them.
+    ``names`` name the slices in messages (file names, or "frame 7" in one file; ``unit``
+    says which); ``tilt`` is the GantryDetectorTilt tag's text ('' when absent). Returns
+    None when the slices are in slice order, else the order that sorts them.
     """
-    n = len(files)
+    n = len(names)
     mixed = np.any(np.abs(orientations - orientations[0]) > 1e-4, axis=1)
     if mixed.any():
-        raise DataFileError(where, f"mixed slice orientations: {int(mixed.sum())} of {n} files "
-                                   f"(e.g. {files[int(np.argmax(mixed))].name}) have another "
+        raise DataFileError(where, f"mixed slice orientations: {int(mixed.sum())} of {n} {unit} "
+                                   f"(e.g. {names[int(np.argmax(mixed))]}) have another "
                                    "ImageOrientationPatient than the first")
     row, col = orientations[0, :3], orientations[0, 3:]
     normal = np.cross(row, col)
@@ -406,11 +566,18 @@ def _check_geometry(positions: np.ndarray, orientations: np.ndarray, files: list
     steps = np.diff(positions[order], axis=0)
     along = steps @ normal
     across = np.linalg.norm(steps - along[:, None] * normal, axis=1)
-    files = [files[i] for i in order]
+    names = [names[i] for i in order]
     tilted = across > 1e-3 + 1e-3 * np.abs(along)
     if tilted.any():
         k = int(np.argmax(across))
         angle = np.degrees(np.arctan2(across[k], abs(along[k])))
+        tilt_tag = _finite_floats(tilt)
+        if tilt_tag is not None and tilt_tag.size == 1 and abs(tilt_tag[0]) > 1e-3:
+            raise DataFileError(where, f"gantry tilt of {tilt_tag[0]:g} degrees "
+                                       "(GantryDetectorTilt): the slice positions step "
+                                       f"{angle:.2f} degrees off the slice normal, a sheared "
+                                       "grid; resample the series to an orthogonal grid first "
+                                       "(e.g. dcm2niix's tilt correction)")
         raise DataFileError(where, f"gantry tilt or sheared slice stack: the slice positions "
                                    f"step {angle:.2f} degrees off the slice normal; resample "
                                    "the series to an orthogonal grid first")
@@ -423,7 +590,7 @@ def _check_geometry(positions: np.ndarray, orientations: np.ndarray, files: list
             k = int(np.flatnonzero(off)[0])
             missing = int(np.sum(np.rint(ratios) - 1))
             raise DataFileError(where, f"{missing} slice(s) missing: a gap of {gaps[k]:.4g} mm "
-                                       f"after {files[k].name} where the slice spacing is "
+                                       f"after {names[k]} where the slice spacing is "
                                        f"{spacing:.4g} mm")
         raise DataFileError(where, f"non-uniform slice spacing: steps from {gaps.min():.4g} to "
                                    f"{gaps.max():.4g} mm (median {spacing:.4g} mm)")
@@ -434,27 +601,132 @@ def read_dicom(path: str | os.PathLike, series: str | None = None,
                notify: Callable[[str], None] | None = None) -> Volume:
     """Read a DICOM series (``path``: a folder, or one file of the series) as a RAS volume.
 
+    A series of one-slice files is read by ITK; one enhanced multi-frame file or one
+    Siemens mosaic by :mod:`core.io.dicom_frames`. When a folder's series with most files
+    was taken and cannot be read, the error names it, the folder's other readable series
+    and ``--series``.
+
     Raises
     ------
     DataFileError
         Naming the folder (or file) and the problem: no series, unknown ``series`` UID,
-        undecodable transfer syntax, non-image object, multi-frame or 4D data, mixed
-        orientations, gantry tilt, missing slices, non-uniform spacing, a corrupt slice.
+        undecodable transfer syntax, non-image object, 4D data, impossible geometry or
+        pixel tags, mixed orientations, gantry tilt, missing slices, non-uniform spacing,
+        a corrupt slice.
     """
     path = Path(path)
     info = choose_series(path, series, notify)
-    where = path
+    try:
+        return _read_series(info, path)
+    except DataFileError as exc:
+        if path.is_dir() and series is None:
+            raise with_other_series(exc, path, info) from None
+        raise
+
+
+def with_other_series(exc: DataFileError, folder: Path, chosen: SeriesInfo,
+                       most: int = 6) -> DataFileError:
+    """``exc`` about the series taken by default, with the folder's other readable series
+    (each tried, up to ``most``: this is the error path) and how to pick one."""
+    others = [s for s in list_series(folder) if s.uid != chosen.uid]
+    if not others:
+        return exc
+    readable = []
+    for other in others[:most]:
+        try:
+            _read_series(other, folder)
+        except DataFileError:
+            continue
+        readable.append(other)
+    if readable:
+        also = (f"; other readable series: {'; '.join(s.label() for s in readable)}; choose "
+                f"one with --series UID")
+    else:
+        also = (f"; none of the folder's {len(others)} other series"
+                f"{'' if len(others) <= most else f' (first {most} tried)'} can be read either")
+    return DataFileError(folder, f"series {chosen.label()} (taken as the one with most files) "
+                                 f"cannot be read: {exc.problem}{also}")
+
+
+def _itk_tag(reader, index: int) -> Callable[[str], str]:
+    """Tag text getter of slice ``index`` of an ImageSeriesReader that kept the metadata."""
+    keys = set(reader.GetMetaDataKeys(index))
+    return lambda key: reader.GetMetaData(index, key).strip() if key in keys else ""
+
+
+CHECKED_KEYS = tuple(key for key, _ in (PIXEL_SPACING, *SLICE_LENGTHS, *PIXEL_SIZES))
+
+
+def _read_one_file_volume(info: SeriesInfo, where: Path, mosaic: bool,
+                          frames: str) -> Volume:
+    """A series whose one file holds the volume: an enhanced multi-frame file or a mosaic."""
+    from core.io import dicom_frames
+
+    files = info.files
+    if len(files) > 1 and mosaic:
+        raise DataFileError(where, f"series {info.uid} is a 4D mosaic series: {len(files)} "
+                                   "Siemens mosaic files, one volume each (time points or "
+                                   "diffusion directions); split it into 3D volumes first "
+                                   "(e.g. dcm2niix)")
+    if len(files) > 1 and where.is_dir():
+        raise DataFileError(where, f"series {info.uid} has {len(files)} enhanced multi-frame "
+                                   f"files (e.g. {files[0].name}, {frames} frames): open one "
+                                   "of them")
+    one = where if where.is_file() else files[0]
+    if mosaic:
+        return dicom_frames.read_mosaic(one, where)
+    return dicom_frames.read_enhanced(one, where)
+
+
+def _slice_geometry(reader, files: list[Path], first, where: Path) -> tuple[np.ndarray,
+                                                                            np.ndarray]:
+    """Every slice's position and orientation (N, 3), (N, 6), its tags checked on the way."""
+    positions, orientations = [], []
+    first_texts = tuple(_tag(first, key) for key in CHECKED_KEYS)
+    for index, file in enumerate(files):
+        tag = _itk_tag(reader, index)
+        frames = tag(_FRAMES) or "1"
+        if frames.isdigit() and int(frames) > 1:
+            raise DataFileError(where, f"{file.name} is a multi-frame image ({frames} "
+                                       "frames) in a series of one-slice files")
+        texts = tuple(tag(key) for key in CHECKED_KEYS)
+        if texts != first_texts:  # the first file's were checked; most series repeat them
+            check_image_tags(tag, file.name, where)
+        for key, label in PIXEL_SIZES[:3]:
+            if tag(key) and tag(key) != _tag(first, key):
+                raise DataFileError(where, f"{file.name}: {label} is {tag(key)} where "
+                                           f"{files[0].name} has {_tag(first, key)}: "
+                                           "inconsistent pixel data sizes")
+        pos = _floats(tag(_POSITION), 3) if tag(_POSITION) else None
+        ori = _floats(tag(_ORIENTATION), 6) if tag(_ORIENTATION) else None
+        if pos is None or ori is None or not (np.all(np.isfinite(pos))
+                                              and np.all(np.isfinite(ori))):
+            raise DataFileError(where, f"{file.name} lacks a valid ImagePositionPatient or "
+                                       "ImageOrientationPatient: the slice geometry is unknown")
+        positions.append(pos)
+        orientations.append(ori)
+    return np.array(positions), np.array(orientations)
+
+
+def _read_series(info: SeriesInfo, where: Path) -> Volume:
+    """Read the series ``info`` (errors name ``where``, the path the user gave)."""
     files = info.files
     _check_file_kind(files[0], where)
     first = _file_info(files[0])
     frames = _tag(first, _FRAMES, "1")
-    if frames.isdigit() and int(frames) > 1:
-        raise DataFileError(where, f"{files[0].name} is a multi-frame image ({frames} frames, "
-                                   "enhanced or 4D DICOM): only one-slice-per-file series are "
-                                   "supported")
+    multi_frame = frames.isdigit() and int(frames) > 1
+    if multi_frame or "MOSAIC" in _tag(first, "0008|0008").upper().split("\\"):
+        return _read_one_file_volume(info, where, mosaic=not multi_frame, frames=frames)
+    check_image_tags(lambda key: _tag(first, key), files[0].name, where)
     if len(files) < 2:
         raise DataFileError(where, f"series {info.uid} has a single slice: a 3D image needs "
                                    "at least two")
+    syntax = read_file_meta(files[0]).get("0002|0010", "")
+    sizes = [int(_tag(first, key) or 0) for key in ("0028|0010", "0028|0011", "0028|0100")]
+    samples = _tag(first, "0028|0002", "1")
+    if all(sizes):
+        check_pixel_data_size(files[0], syntax, sizes[0], sizes[1], 1,
+                              int(samples) if samples.isdigit() else 1, sizes[2], where)
     reader = sitk().ImageSeriesReader()
     reader.SetFileNames([str(f) for f in files])
     reader.MetaDataDictionaryArrayUpdateOn()
@@ -464,25 +736,10 @@ def read_dicom(path: str | os.PathLike, series: str | None = None,
             image = reader.Execute()
     except RuntimeError as exc:
         raise _diagnose_read_failure(info, where, exc) from None
-    positions, orientations = [], []
-    for index, file in enumerate(files):
-        frames = reader.GetMetaData(index, _FRAMES) if reader.HasMetaDataKey(index, _FRAMES) \
-            else "1"
-        if frames.strip().isdigit() and int(frames) > 1:
-            raise DataFileError(where, f"{file.name} is a multi-frame image ({frames.strip()} "
-                                       "frames): only one-slice-per-file series are supported")
-        pos = _floats(reader.GetMetaData(index, _POSITION), 3) \
-            if reader.HasMetaDataKey(index, _POSITION) else None
-        ori = _floats(reader.GetMetaData(index, _ORIENTATION), 6) \
-            if reader.HasMetaDataKey(index, _ORIENTATION) else None
-        if pos is None or ori is None:
-            raise DataFileError(where, f"{file.name} lacks a valid ImagePositionPatient or "
-                                       "ImageOrientationPatient: the slice geometry is unknown")
-        positions.append(pos)
-        orientations.append(ori)
-    positions_arr, orientations_arr = np.array(positions), np.array(orientations)
+    positions_arr, orientations_arr = _slice_geometry(reader, files, first, where)
     try:
-        order = _check_geometry(positions_arr, orientations_arr, files, where)
+        order = _check_geometry(positions_arr, orientations_arr, [f.name for f in files], where,
+                                tilt=_tag(first, "0018|1120"))
     except DataFileError as exc:
         raise _with_unparsable_files(exc, files, where) from None
     if order is not None:  # GDCM could not sort (e.g. ties it broke by name): read in order
