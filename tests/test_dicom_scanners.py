@@ -32,9 +32,9 @@ HERE = Path(__file__).resolve().parent
 REAL = HERE / "data" / "real" / "dicom"
 PHILIPS = REAL / "philips_enhanced_3d.dcm"
 MOSAIC = REAL / "siemens_mosaic_1volume.IMA"
-SHARED = HERE.parents[1] / "shared" / "data" / "real" / "dicom"
-if not SHARED.is_dir():  # a worktree beside the main clone: the shared folder is two up
-    SHARED = Path("/work/shared/data/real/dicom")
+# ../shared beside the clone (as CI lays it out), or one level further up from a worktree
+SHARED = next((p for p in (HERE.parents[1] / "shared", HERE.parents[2] / "shared")
+               if p.is_dir()), HERE.parents[1] / "shared") / "data" / "real" / "dicom"
 SIEMENS_2D = SHARED / "siemens_flash2d_35slices"
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
 ENHANCED_MR = "1.2.840.10008.5.1.4.1.1.4.1"
