@@ -19,6 +19,7 @@ import numpy as np
 from app.state import FRAME_NAMES, STRUCTURE_COLORS, FitInfo, Points, Structure, WorkspaceState
 from core.geometry.planes import PLANE_NAMES
 from core.io import DataFileError, load_model, load_volume, save_mesh, save_points, save_volume
+from core.io.registry import split_member  # a FILE.h5#GROUP model path names FILE
 
 
 class SessionController:
@@ -181,11 +182,11 @@ class SessionController:
         from core.session import document as sessions
 
         session = sessions.load_session(path)
-        if session.model_path is not None and session.model_path.exists():
+        if session.model_path is not None and split_member(session.model_path)[0].exists():
             # refuse a session that does not fit its model before applying any of it
             sessions.check_session_model(session, load_model(session.model_path), path)
         for k, st in enumerate(session.structures):
-            if st.model_path is not None and st.model_path.exists() and st.coef is not None:
+            if st.model_path is not None and split_member(st.model_path)[0].exists() and st.coef is not None:
                 n_factors = load_model(st.model_path).n_factors
                 if st.coef.shape[0] != n_factors:
                     raise DataFileError(path, f"structure {k + 1} ({st.name or 'unnamed'}) holds "
@@ -216,7 +217,7 @@ class SessionController:
             raise
         if session is None:
             return None
-        if session.model_path is not None and session.model_path.exists():
+        if session.model_path is not None and split_member(session.model_path)[0].exists():
             try:  # a model rebuilt since: refuse the recovery whole, not half-way
                 sessions.check_session_model(session, load_model(session.model_path),
                                              sessions.recovery_path())

@@ -613,6 +613,27 @@ def _models(w: _Writer) -> None:
     w.cases.append(Case("model_zip_bomb", path, "model", "zip bomb: 24 MB of zeros"))
 
 
+def _statismo_models(w: _Writer) -> None:
+    """statismo .h5 files cut short (HDF5 finds EOF before its end-of-allocation) and with
+    their superblock damaged, from our writer's file and Scalismo's real ones."""
+    from core.io.statismo import write_statismo
+
+    ours = w.folder / "seed_model.h5"
+    write_statismo(ours, _small_model())
+    real = Path(__file__).resolve().parent / "data" / "real" / "statismo"
+    seeds = {"ours": ours.read_bytes(),
+             "scalismo_tetra": (real / "scalismo_TetraMeshModel2.h5").read_bytes()}
+    for label, raw in seeds.items():
+        for fraction in (0.02, 0.3, 0.7, 0.97, 0.999):
+            w.add(f"statismo_{label}_cut_{int(fraction * 1000)}", ".h5", "model",
+                  f"statismo file ({label}) cut at {fraction:.1%}", _cut(raw, fraction))
+        w.add(f"statismo_{label}_superblock", ".h5", "model", "superblock overwritten",
+              raw[:8] + _garbage(label, 40) + raw[48:])
+    w.add("statismo_scalismo_truncated_as_published", ".h5", "model",
+          "Scalismo's TetraMeshModel1.h5 (truncated as published)",
+          (real / "scalismo_TetraMeshModel1.h5").read_bytes())
+
+
 def _sessions(w: _Writer) -> None:
     base = {"format": "ssm-studio-session", "format_version": 1, "image": None,
             "model": None, "points": [[1, 2, 3]], "fit": {}}
@@ -668,6 +689,7 @@ def generate(folder: Path) -> list[Case]:
     _nifti(w, seeds)
     _points(w)
     _models(w)
+    _statismo_models(w)
     _sessions(w)
     names = [c.name for c in w.cases]
     assert len(names) == len(set(names)), "case names must be unique"

@@ -239,8 +239,6 @@ MODEL_CASES = {
         "model/pcaVariance", lambda v, n, m: v[:-1])), "basis columns"),
     "h5 points not 3 x N": (lambda t: _statismo(t / "m.h5", change=_set(
         "representer/points", lambda v, n, m: v.T)), "(3, N)"),
-    "h5 basis not orthonormal": (lambda t: _statismo(t / "m.h5", change=_set(
-        "model/pcaBasis", lambda v, n, m: v * 3.0)), "not orthonormal"),
     "h5 NaN in mean": (lambda t: _statismo(t / "m.h5", change=_set(
         "model/mean", lambda v, n, m: np.where(np.arange(v.size) == 5, np.nan, v))), "NaN"),
     "h5 cells out of range": (lambda t: _statismo(t / "m.h5", change=_set(

@@ -168,3 +168,34 @@ def test_view_folder_says_which_series_and_names_the_others_when_it_fails(window
     assert f"series {synth.UID_ROOT}.31" in text
     assert f"other readable series: {synth.UID_ROOT}.32" in text and "--series UID" in text
     assert window.state.volume.shape == (16, 14, 10)  # the image shown before is kept
+
+
+def test_gui_model_loading_refuses_what_the_cli_refuses(window, tmp_path):
+    """Dropped or opened, a model file goes through core.io.load_model: a dataset stored in
+    another file and a catalog without '#shape' are one-line errors; FILE#shape opens."""
+    import h5py
+
+    from core.io import save_model
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
+
+    shapes, faces = synthetic_shapes(6, subdivisions=1, seed=3)
+    save_model(tmp_path / "m.h5", pca_model(shapes, faces, n_factors=3))
+    with h5py.File(tmp_path / "m.h5", "a") as h5:
+        n = h5["model/mean"].shape[0]
+        del h5["model/mean"], h5["ssmstudio"]
+        h5.create_dataset("model/mean", shape=(n,), dtype="f4",
+                          external=[("/etc/passwd", 0, 4 * n)])
+    _drop(window, tmp_path / "m.h5")
+    message = window.statusBar().currentMessage()
+    assert window.state.model is None
+    assert str(tmp_path / "m.h5") in message and "another file" in message, message
+    save_model(tmp_path / "face.h5", pca_model(shapes, faces, n_factors=3))
+    with h5py.File(tmp_path / "face.h5", "a") as h5:
+        h5.move("model", "shape/model")
+        h5.move("representer", "shape/representer")
+        h5.create_dataset("catalog/MorphableModel.shape/modelPath", data=b"/shape")
+        h5.create_dataset("catalog/MorphableModel.shape/modelType", data=b"POLYGON_MESH_MODEL")
+    window.open_path(tmp_path / "face.h5")
+    assert window.state.model is None and "#shape" in window.statusBar().currentMessage()
+    window.load_model(f"{tmp_path / 'face.h5'}#shape")
+    assert window.state.model is not None and window.state.model.n_vertices == shapes.shape[1]

@@ -5,6 +5,8 @@ mapping is exact and documented in :mod:`core.io.statismo`: statismo's orthonorm
 basis and variances become our factors and ``coef_var``; our non-orthonormal factors are
 written by their covariance (same Gaussian). ``--space`` says whether the ``.h5`` holds LPS
 (statismo's and ITK's physical space, the default) or RAS world coordinates.
+``IN`` may be ``FILE.h5#GROUP``: one model of a file that holds several (a scalismo-faces
+morphable model's ``#shape``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import argparse
 from pathlib import Path
 
 from core.io import load_model, read_statismo, save_model, write_statismo
+from core.io.registry import split_member
 
 COMMAND = "convert-model"
 HELP = "convert a shape model between .npz (SSM Studio) and .h5 (statismo/Scalismo)"
@@ -21,7 +24,9 @@ MODEL_SUFFIXES = (".npz", ".h5", ".hdf5")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", type=Path, metavar="IN", help="model to read (.npz or .h5)")
+    parser.add_argument("input", type=Path, metavar="IN",
+                        help="model to read (.npz or .h5; FILE.h5#GROUP for one model of a "
+                             "file that holds several, e.g. face.h5#shape)")
     parser.add_argument("output", type=Path, metavar="OUT", help="model to write (.npz or .h5)")
     parser.add_argument("--space", choices=("lps", "ras"), default=None,
                         help="world coordinates of the .h5 side (default: what the file says, "
@@ -29,13 +34,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    for path in (args.input, args.output):
+    source = split_member(args.input)[0]
+    for path in (source, args.output):
         if path.suffix.lower() not in MODEL_SUFFIXES:
             raise ValueError(f"{path}: not a model file name (expected .npz, .h5 or .hdf5)")
-    if args.input.resolve() == args.output.resolve():
+    if source.resolve() == args.output.resolve():
         raise ValueError(f"{args.output}: output and input are the same file")
     space = args.space.upper() if args.space else None
-    if args.input.suffix.lower() == ".npz":
+    if source.suffix.lower() == ".npz":
         model = load_model(args.input)
     else:
         model = read_statismo(args.input, space=space)

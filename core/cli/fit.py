@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from core.io import TriMesh, atomic_write_json, load_model, load_points, save_mesh
+from core.io.registry import split_member
 from core.reconstruction import METHODS, POSES, FitResult, fit_points
 from core.reconstruction.plausibility import plausibility_warnings
 
@@ -30,7 +31,8 @@ HELP = "fit a shape model to contour points (GMM or ICP) and write the fitted su
 def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by ``fit`` and ``segment``."""
     parser.add_argument("--model", required=True,
-                        help="shape model (.npz, or a statismo/Scalismo .h5)")
+                        help="shape model (.npz, or a statismo/Scalismo .h5; FILE.h5#GROUP for "
+                             "one model of a file that holds several, e.g. face.h5#shape)")
     parser.add_argument("--model-space", choices=("lps", "ras"), default=None,
                         help=".h5 models: world coordinates of the file (default: what it "
                              "records, else LPS as statismo/ITK)")
@@ -98,7 +100,8 @@ def fit_from_args(args: argparse.Namespace, placement_of=None):
 
     ``placement_of(model)``, if given, returns the placement to use (``segment --auto-place``).
     """
-    if getattr(args, "model_space", None) and str(args.model).lower().endswith((".h5", ".hdf5")):
+    if getattr(args, "model_space", None) and \
+            split_member(args.model)[0].suffix.lower() in (".h5", ".hdf5"):
         from core.io import read_statismo
 
         model = read_statismo(args.model, space=args.model_space.upper())

@@ -67,3 +67,18 @@ def check_declared_size(path: str | os.PathLike, declared: int, what: str, *,
     if declared > memory:
         raise DataFileError(path, f"the header declares {what} ({human_bytes(declared)}), more "
                                   f"than the memory available ({human_bytes(memory)})")
+
+
+def bytes_on_disk(path: str | os.PathLike) -> int | None:
+    """The bytes the file occupies on disk (``st_blocks`` x 512), None where unknown.
+
+    A sparse file (a hole seeked over, never written) can claim gigabytes in ``st_size``
+    while holding a few kilobytes; its holes read as zeros. Filesystems with transparent
+    compression also report fewer blocks than ``st_size``, so compare with a compression
+    ratio (e.g. :data:`DEFLATE_MAX_RATIO`), never 1:1.
+    """
+    try:
+        blocks = getattr(os.stat(path), "st_blocks", None)
+    except OSError:
+        return None
+    return None if blocks is None else int(blocks) * 512

@@ -11,7 +11,7 @@ import numpy as np
 
 from core.io.atomic import atomic_path, json_default
 from core.errors import DataFileError, require_file, why
-from core.io.registry import FileFormat, lookup, register
+from core.io.registry import FileFormat, lookup, register, split_member
 from core.models.shape_model import ShapeModel
 
 MODEL_FORMAT = "ssm-studio-model"
@@ -69,11 +69,19 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
     DataFileError
         Not found, not an npz, missing header or arrays, unknown format or version,
         inconsistent shapes, non-finite values.
+
+    ``FILE#MEMBER`` names one model of a file that holds several (statismo catalogs,
+    :func:`core.io.registry.split_member`); an ``.npz`` holds one model.
     """
-    path = require_file(path)
-    fmt = lookup(path, "model")
+    file, member = split_member(path)
+    file = require_file(file)
+    fmt = lookup(file, "model")
     if fmt is not None and fmt.read is not None and fmt.read is not load_model:
-        return fmt.read(path)  # another format (statismo .h5, core.io.statismo)
+        return fmt.read(path if member is not None else file)  # e.g. statismo .h5
+    if member is not None:
+        raise DataFileError(file, f"'#{member}' names a model inside the file, but an .npz "
+                                  "file holds one model")
+    path = file
     arrays = _read_arrays(path)
     header = _read_header(path, arrays)
     _check_arrays(path, header, arrays)

@@ -57,6 +57,22 @@ def register(fmt: FileFormat) -> FileFormat:
     return fmt
 
 
+def split_member(path: str | os.PathLike) -> tuple[Path, str | None]:
+    """``FILE#MEMBER`` (a model inside a file that holds several, as scalismo-faces names
+    them with a URI fragment) as ``(Path(FILE), MEMBER)``; any other path as ``(path, None)``.
+
+    Only split when ``path`` itself is not an existing file and ``FILE`` is not empty, so
+    a file whose name holds '#' still opens.
+    """
+    text = os.fspath(path)
+    if isinstance(text, bytes):
+        text = os.fsdecode(text)
+    base, sep, member = text.rpartition("#")
+    if not sep or not base or os.path.lexists(text):
+        return Path(text), None
+    return Path(base), member
+
+
 def file_suffix(path: str | os.PathLike) -> str:
     """The lower-case suffix that names the format of ``path`` (``.nii.gz`` as one)."""
     name = Path(path).name.lower()

@@ -193,6 +193,14 @@ class ShapeModel:
         total = float(explained.sum())
         return explained / total if total > 0 else np.zeros_like(explained)
 
+    def world_factor_matrix(self) -> np.ndarray:
+        """(3N, M) matrix B of world displacements, ``factors`` through ``world_transform``
+        times ``sqrt(coef_var)``: the world shapes' covariance is ``B B^T`` whatever the
+        factors' normalisation, order or sign."""
+        lin = self.world_transform[:3, :3]
+        world = np.einsum("mnj,ij->mni", self.factors, lin).reshape(self.n_factors, -1).T
+        return world * np.sqrt(self.coef_var)
+
     def sample(self, n: int = 1, random_state: int | np.random.Generator | None = None
                ) -> np.ndarray:
         """``n`` random shapes (n, N, 3) in the model frame, coefficients ~ N(0, diag(coef_var))."""
@@ -203,3 +211,18 @@ class ShapeModel:
     def distance_to_mean(self, shapes: np.ndarray) -> np.ndarray:
         """Per-vertex distance (K, N) of shapes (K, N, 3) (or (N,) for one (N, 3)) to the mean."""
         return np.linalg.norm(np.asarray(shapes, dtype=np.float64) - self.mean, axis=-1)
+
+
+def covariance_gap(a: ShapeModel, b: ShapeModel) -> float:
+    """``||C_a - C_b||_F / ||C_a||_F`` for the two models' world-shape covariances
+    ``C = B B^T`` (:meth:`ShapeModel.world_factor_matrix`), computed from the small Gram
+    matrices (``||B1 B1^T - B2 B2^T||_F^2 = ||B1^T B1||^2 + ||B2^T B2||^2 - 2 ||B1^T B2||^2``),
+    never the 3N x 3N covariances: 0 when both describe the same Gaussian about their means
+    (e.g. a model and its statismo PCA form)."""
+    b1, b2 = a.world_factor_matrix(), b.world_factor_matrix()
+    if b1.shape[0] != b2.shape[0]:
+        raise ValueError(f"models of {a.n_vertices} and {b.n_vertices} vertices")
+    g11, g22, g12 = b1.T @ b1, b2.T @ b2, b1.T @ b2
+    norm = float(np.sum(g11 ** 2))
+    gap = norm + float(np.sum(g22 ** 2)) - 2 * float(np.sum(g12 ** 2))
+    return float(np.sqrt(max(gap, 0.0) / norm)) if norm > 0 else float(np.sqrt(max(gap, 0.0)))
