@@ -29,15 +29,17 @@ class DataFileWarning(UserWarning):
 
 
 def display_path(path: str | os.PathLike) -> str:
-    """``path`` as printable text: bytes of a non-UTF-8 file name shown as U+FFFD.
+    """``path`` as printable text: bytes of a non-UTF-8 file name shown as ``\\xNN``.
 
     Such names reach Python as lone surrogates (PEP 383), which cannot be encoded as UTF-8,
-    so a message holding them would fail to print or to be written into a JSON report.
+    so a message holding them would fail to print or to be written into a JSON report. Each
+    byte is written out (``caf\\xe9.stl``, as ``ls -b`` shows it), not replaced by U+FFFD,
+    so the user can still tell which file is meant.
     """
     text = os.fspath(path)
     if isinstance(text, bytes):
         text = os.fsdecode(text)
-    return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 @contextlib.contextmanager

@@ -1,6 +1,6 @@
 """Fit a shape model to contour points and write the fitted surface.
 
-Reads a model (.npz from ``ssm-studio build``, or a statismo/Scalismo .h5) and points in
+Reads a model (.npz from ``ssm-studio build-model``, or a statismo/Scalismo .h5) and points in
 world RAS mm (CSV with header ``x,y,z[,nx,ny,nz]`` or a 3D Slicer markups .mrk.json), runs the reconstruction engine
 (``core.reconstruction.fit_points``: anisotropic or isotropic GMM, or ICP, with the model's
 Gaussian prior and a similarity/rigid/no pose) and writes the fitted mesh (.vtk, .vtp, .stl,

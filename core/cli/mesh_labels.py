@@ -2,9 +2,10 @@
 
 For each LABELMAP (NIfTI, NRRD, Slicer .seg.nrrd, MetaImage, ...), the label given by number
 or by name (a Slicer segment name in a .seg.nrrd, else a FreeSurfer colour-table name such as
-Left-Caudate) becomes one closed surface: Surface Nets on the label's voxels, windowed-sinc
-smoothing that removes the staircase without shrinking, the image's voxel -> RAS affine, and
-a remesh to an even density of about --vertices vertices (``core.correspondence.mesh_labels``). Writes
+Left-Caudate; --segment NAME: a Slicer segment by name or ID, also from a layered .seg.nrrd
+whose segments overlap) becomes one closed surface: Surface Nets on the label's voxels,
+windowed-sinc smoothing that removes the staircase without shrinking, the image's voxel -> RAS
+affine, and a remesh to an even density of about --vertices vertices (``core.correspondence.mesh_labels``). Writes
 ``DIR/<file stem>_<label>.vtk`` per input and ``DIR/mesh_labels.json`` (per input: output,
 vertices, voxels, dropped pieces, or the error). A missing file, or a label that is missing or
 empty in a file, is reported with the file and the label; the other inputs are still done.
@@ -27,8 +28,12 @@ HELP = "one label of label maps -> closed surfaces in world mm (training meshes)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("label_maps", nargs="+", metavar="LABELMAP", help="label map files")
-    parser.add_argument("--label", required=True,
+    chosen = parser.add_mutually_exclusive_group(required=True)
+    chosen.add_argument("--label",
                         help="label number, or name (FreeSurfer colour table, Slicer segment)")
+    chosen.add_argument("--segment", metavar="NAME",
+                        help="a 3D Slicer segment by name or ID (.seg.nrrd inputs only; "
+                             "overlapping segments of layered files too)")
     parser.add_argument("--vertices", type=int, default=2000,
                         help="vertex count of each surface (default %(default)s; 0: keep the "
                              "Surface Nets resolution)")
@@ -38,13 +43,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.vertices < 0 or 0 < args.vertices < 20:
         raise ValueError(f"--vertices must be 0 or at least 20, got {args.vertices}")
+    wanted = args.label if args.segment is None else args.segment
+    if args.segment is not None:
+        not_seg = [p for p in args.label_maps if not str(p).lower().endswith(".seg.nrrd")]
+        if not_seg:
+            raise ValueError(f"{not_seg[0]}: --segment takes a segment of a 3D Slicer "
+                             ".seg.nrrd file; use --label for other label maps")
     args.out.mkdir(parents=True, exist_ok=True)
     entries, n_ok = [], 0
     for path in args.label_maps:
         start = time.perf_counter()
         info: dict = {}
         try:
-            mesh = label_map_surface(path, args.label, n_vertices=args.vertices or None, info=info)
+            mesh = label_map_surface(path, wanted, n_vertices=args.vertices or None, info=info)
         except (ValueError, OSError) as exc:  # DataFileError and LabelError are ValueErrors
             message = " ".join(str(exc).split())
             print(f"ssm-studio {COMMAND}: {message}", file=sys.stderr)
@@ -60,5 +71,6 @@ def run(args: argparse.Namespace) -> int:
         note = (f", {dropped} smaller piece(s) dropped ({100 * info['dropped_area_share']:.1f}% "
                 f"of the area)" if dropped else "")
         print(f"{out_path}: {mesh.n_vertices} vertices{note}")
-    atomic_write_json(args.out / "mesh_labels.json", {"label": args.label, "inputs": entries})
+    atomic_write_json(args.out / "mesh_labels.json",
+                      {"label": wanted, "segment": args.segment is not None, "inputs": entries})
     return 0 if n_ok == len(args.label_maps) else 1

@@ -81,39 +81,39 @@ def freesurfer_names(label_map: str | os.PathLike | None = None) -> dict[str, in
 
 
 def resolve_label(label_map: str | os.PathLike, label: str | int) -> tuple[int, str]:
-    """The label value and a display name for ``label`` (a number or a name) in a file."""
+    """The label value and a display name for ``label`` (a number or a name) in a file.
+
+    In a Slicer ``.seg.nrrd`` the label is a segment (:func:`slicer_segment`); its value is
+    the segment's LabelValue in its own layer.
+    """
     path = Path(label_map)
     text = str(label).strip()
+    if _is_seg(path):
+        segment = slicer_segment(path, text)
+        return segment.label_value, segment.name
     if text.lstrip("-").isdigit():
         value = int(text)
-        return value, FREESURFER_ASEG.get(value, f"label {value}") if not _is_seg(path) else \
-            _segment_name(path, value) or f"label {value}"
-    if _is_seg(path):
-        from core.io.nrrd import segmentation_fields
-
-        segments = segmentation_fields(path)
-        for seg in segments:
-            if seg.get("Name", "").strip().lower() == text.lower():
-                return int(seg.get("LabelValue", 0)), seg["Name"]
-        known = ", ".join(repr(s.get("Name", "")) for s in segments) or "none"
-        raise LabelError(f"{path}: no segment named {text!r} (segments: {known})")
+        return value, FREESURFER_ASEG.get(value, f"label {value}")
     names = freesurfer_names(path)
     if text.lower() in names:
         return names[text.lower()], text
     raise LabelError(f"{path}: {text!r} is neither a label number nor a FreeSurfer label name")
 
 
+def slicer_segment(path: str | os.PathLike, wanted: str | int):
+    """The segment of a ``.seg.nrrd`` that ``wanted`` names (Name, ID or label value; see
+    :func:`core.io.nrrd.find_segment`); :class:`LabelError` when none or several do."""
+    from core.io.nrrd import SegmentChoiceError, find_segment, nrrd_layer_count, slicer_segments
+
+    path = Path(path)
+    try:
+        return find_segment(path, slicer_segments(path), wanted, nrrd_layer_count(path))
+    except SegmentChoiceError as exc:
+        raise LabelError(str(exc)) from None
+
+
 def _is_seg(path: Path) -> bool:
     return path.name.lower().endswith(".seg.nrrd")
-
-
-def _segment_name(path: Path, value: int) -> str | None:
-    from core.io.nrrd import segmentation_fields
-
-    for seg in segmentation_fields(path):
-        if str(seg.get("LabelValue", "")).strip() == str(value):
-            return seg.get("Name")
-    return None
 
 
 def _vtk_image(mask: np.ndarray):
@@ -215,7 +215,15 @@ def label_map_surface(path: str | os.PathLike, label: str | int, *, n_vertices: 
     from core.io import load_volume
 
     value, name = resolve_label(path, label)
-    volume = load_volume(path)
+    if _is_seg(Path(path)):  # the segment's own layer (overlapping segments: 4-D files)
+        from core.io.nrrd import read_segmentation
+
+        segmentation = read_segmentation(path)
+        segment = segmentation.find(label)
+        mask = segmentation.mask(segment).astype(np.uint16) * np.uint16(segment.label_value)
+        volume = Volume(mask, segmentation.affine, Path(path))
+    else:
+        volume = load_volume(path)
     stem = Path(path).name.split(".")[0]
     safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
     return label_surface(volume, value, n_vertices=n_vertices, name=f"{stem}_{safe}",

@@ -96,11 +96,16 @@ def itk_geometry(affine: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return lps[:3, 3].copy(), spacing, lps[:3, :3] / spacing[None, :]
 
 
-def image_to_volume(image, path: Path) -> Volume:
-    """A 3D scalar SimpleITK image as a :class:`Volume` (array [i, j, k], RAS affine)."""
+def image_arrays(image, path: Path, layers: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(voxels [i, j, k], RAS affine) of a 3D scalar SimpleITK image.
+
+    ``layers``: a 3D image with L values per voxel (a layered 3D Slicer segmentation, read by
+    ITK as a vector image) is returned as (L, I, J, K).
+    """
     size = tuple(int(s) for s in image.GetSize())
-    if image.GetNumberOfComponentsPerPixel() != 1:
-        raise DataFileError(path, f"{image.GetNumberOfComponentsPerPixel()} values per voxel "
+    components = image.GetNumberOfComponentsPerPixel()
+    if components != 1 and not layers:
+        raise DataFileError(path, f"{components} values per voxel "
                                   "(an RGB or vector image), a scalar image is needed")
     dim = image.GetDimension()
     if dim == 4 and size[3] == 1:
@@ -115,13 +120,20 @@ def image_to_volume(image, path: Path) -> Volume:
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
         raise DataFileError(path, "the image geometry (origin, spacing, direction) is not a "
                                   "finite, invertible voxel-to-world mapping")
-    data = sitk().GetArrayFromImage(image).T  # one copy; [k, j, i] -> [i, j, k] view
+    array = sitk().GetArrayFromImage(image)  # [k, j, i] or [k, j, i, l]
+    data = array.T if array.ndim == 3 else array.transpose(3, 2, 1, 0)  # views, no copy
     if data.dtype.kind == "c":
         raise DataFileError(path, f"unsupported voxel type {data.dtype} (complex)")
     if data.dtype.kind == "b":
         data = data.astype(np.uint8)
     if data.dtype.kind == "f" and not np.all(np.isfinite(data)):
         data = np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0)
+    return data, affine
+
+
+def image_to_volume(image, path: Path) -> Volume:
+    """A 3D scalar SimpleITK image as a :class:`Volume` (array [i, j, k], RAS affine)."""
+    data, affine = image_arrays(image, path)
     return Volume(data=data, affine=affine, path=path)
 
 
@@ -147,33 +159,67 @@ def sitk_error_text(exc: BaseException, path: Path | None = None) -> str:
     return " ".join(text.split())[:240]
 
 
-def read_itk_image(path: str | os.PathLike) -> Volume:
+def read_itk_image(path: str | os.PathLike, *, allow_outside: bool = False) -> Volume:
     """Read a 3D NRRD/NHDR or MetaImage (MHA/MHD) file as a RAS :class:`Volume`.
+
+    ``allow_outside``: a detached header (.nhdr, .mhd) may name a data file outside its own
+    folder (an absolute or ``..`` path). Off by default: a header found among the user's
+    files must not make SSM Studio read, say, ``/etc/passwd`` as voxels; the caller turns it
+    on only when the user named that data file.
 
     Raises
     ------
     DataFileError
         Truncated or corrupt files, a header whose sizes do not match the data, missing
-        detached data files, non-3D, vector or complex images, singular geometry.
+        detached data files or ones outside the header's folder, non-3D, vector or complex
+        images, singular geometry.
     """
     from core.io.nrrd import check_nrrd_header
 
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in (".nrrd", ".nhdr"):
-        check_nrrd_header(path)
+        check_nrrd_header(path, allow_outside=allow_outside)
     elif suffix in (".mha", ".mhd"):
-        check_metaimage_header(path)
+        check_metaimage_header(path, allow_outside=allow_outside)
     else:
         raise DataFileError(path, f"not an NRRD or MetaImage file name ('{suffix}')")
-    reader = sitk().ImageFileReader()
-    reader.SetFileName(str(path))
-    try:
-        image = reader.Execute()
-    except RuntimeError as exc:
-        raise DataFileError(path, f"cannot read the image data ({sitk_error_text(exc, path)})") \
-            from None
-    return image_to_volume(image, path)
+    return image_to_volume(read_sitk_image(path), path)
+
+
+def read_sitk_image(path: Path):
+    """SimpleITK's image of a file whose header was checked; ITK's errors as one line.
+
+    NRRD data in bzip2 encoding, which SimpleITK's NRRD library is built without, are
+    decompressed here (stdlib ``bz2``) into a raw NRRD that ITK then reads.
+    """
+    from core.io.nrrd import raw_nrrd_copy
+
+    with raw_nrrd_copy(path) as readable:
+        reader = sitk().ImageFileReader()
+        reader.SetFileName(str(readable))
+        try:
+            return reader.Execute()
+        except RuntimeError as exc:
+            raise DataFileError(path, f"cannot read the image data "
+                                      f"({sitk_error_text(exc, readable)})") from None
+
+
+def data_file_outside(header: Path, name: str) -> bool:
+    """Whether a detached header's data file name leaves the header's folder: an absolute
+    path, or one whose ``..`` parts climb above it (judged on the name, not on links)."""
+    if os.path.isabs(name) or re.match(r"^[A-Za-z]:", name) or name.startswith("\\"):
+        return True
+    normal = os.path.normpath(name.replace("\\", "/"))
+    return normal == ".." or normal.startswith("../") or normal.startswith("..\\")
+
+
+def refuse_outside(header: Path, name: str, allow_outside: bool) -> None:
+    """The one-line refusal of a data file outside the header's folder (see read_itk_image)."""
+    if not allow_outside and data_file_outside(header, name):
+        raise DataFileError(header, f"the header names the data file '{name[:200]}', outside "
+                                    "the header's folder: refused (a header may only read "
+                                    "data beside it; move the data file next to the header)")
 
 
 def write_metaimage(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray) -> None:
@@ -208,7 +254,7 @@ def _read_text_header(path: Path, limit: int = 65536) -> tuple[bytes, int]:
         return fh.read(min(size, limit)), size
 
 
-def check_metaimage_header(path: Path) -> dict[str, str]:
+def check_metaimage_header(path: Path, *, allow_outside: bool = False) -> dict[str, str]:
     """Parse and check a MetaImage header; returns its fields (upper-case keys).
 
     Checks what ITK would otherwise report with a multi-line exception or read wrongly:
@@ -252,8 +298,13 @@ def check_metaimage_header(path: Path) -> dict[str, str]:
         available = file_size - offset
         where = "after the header"
     elif data_file.upper().startswith("LIST") or "%" in data_file:
+        names = data_file.split()[:1] if "%" in data_file else \
+            [ln.strip() for ln in head[offset:].decode("latin-1").splitlines() if ln.strip()]
+        for name in names:
+            refuse_outside(path, name, allow_outside)
         return fields  # a list of slice files: ITK checks those
     else:
+        refuse_outside(path, data_file, allow_outside)
         data_path = path.parent / data_file
         if not data_path.is_file():
             raise DataFileError(path, f"the data file '{data_file}' named by the header is missing")
@@ -266,9 +317,12 @@ def check_metaimage_header(path: Path) -> dict[str, str]:
         if announced is not None and announced.isdigit() and int(announced) > available:
             raise DataFileError(path, f"truncated: the header announces {announced} bytes of "
                                       f"compressed data, the file holds {available} {where}")
-        if data_file.upper() == "LOCAL" and not (announced is not None and announced.isdigit()
-                                                and int(announced) == available):
-            _check_zlib_stream(path, offset, expected)  # no size to compare: inflate it
+        # inflated whole (not kept): a corrupt stream of the announced size is read by ITK
+        # as zeros with only a console message ("Uncompress failed")
+        if data_file.upper() == "LOCAL":
+            _check_zlib_stream(path, path, offset, expected)
+        else:
+            _check_zlib_stream(path, data_path, 0, expected)
         return fields
     if header_skip >= 0 and available - max(header_skip, 0) < expected:
         raise DataFileError(path, f"truncated or header lying about the size: DimSize "
@@ -280,21 +334,28 @@ def check_metaimage_header(path: Path) -> dict[str, str]:
     return fields
 
 
-def _check_zlib_stream(path: Path, offset: int, expected: int) -> None:
-    """Inflate an embedded zlib stream (without keeping it) and compare its size."""
+def _check_zlib_stream(path: Path, where: Path, offset: int, expected: int) -> None:
+    """Inflate the zlib stream of ``where`` from ``offset`` (without keeping it) and compare
+    its size with what the header ``path`` describes; the zlib checksum is verified too."""
     inflater = zlib.decompressobj()
     total = 0
     try:
-        with open(path, "rb") as fh:
+        with open(where, "rb") as fh:
             fh.seek(offset)
             while chunk := fh.read(1 << 20):
                 total += len(inflater.decompress(chunk))
+                if inflater.eof:
+                    break
         total += len(inflater.flush())
     except zlib.error as exc:
-        raise DataFileError(path, f"corrupt compressed voxel data ({exc})") from None
+        raise DataFileError(path, f"corrupt compressed voxel data ({exc}): the image would be "
+                                  "wrong, it is not read") from None
     if not inflater.eof or total < expected:
         raise DataFileError(path, f"truncated compressed voxel data: {total} of {expected} "
                                   "bytes")
+    if total > expected:
+        raise DataFileError(path, f"the compressed data hold {total} bytes but the header "
+                                  f"describes {expected} (wrong DimSize or ElementType?)")
 
 
 def check_gzip_stream(path: Path, offset: int, expected: int) -> None:

@@ -82,3 +82,31 @@ def bytes_on_disk(path: str | os.PathLike) -> int | None:
     except OSError:
         return None
     return None if blocks is None else int(blocks) * 512
+
+
+# Coordinates beyond 1 km of the origin are not positions in a scan (scanner coordinates
+# stay within a few hundred mm); larger values overflow the fits' squared distances (1e300
+# -> inf -> NaN far from the file that held them), so readers refuse them by name.
+MAX_COORDINATE_MM = 1e6
+
+
+def coordinate_problem(values, what: str) -> str | None:
+    """Why ``values`` (any shape, mm) are not usable coordinates, or None: NaN/inf, or
+    beyond :data:`MAX_COORDINATE_MM` of the origin."""
+    import numpy as np
+
+    values = np.asarray(values, dtype=np.float64)
+    if values.size == 0:
+        return None
+    finite = np.isfinite(values)
+    if not finite.all():
+        rows = int((~finite.reshape(len(values), -1).all(axis=1)).sum()) if values.ndim > 1 \
+            else int((~finite).sum())
+        return f"{rows} {what} have NaN or infinite coordinates"
+    largest = float(np.abs(values).max())
+    if largest > MAX_COORDINATE_MM:
+        rows = int((np.abs(values).reshape(len(values), -1) > MAX_COORDINATE_MM)
+                   .any(axis=1).sum()) if values.ndim > 1 else 1
+        return (f"{rows} of {len(values)} {what} lie up to {largest:.3g} mm from the origin, "
+                f"beyond {MAX_COORDINATE_MM:.0e} mm (1 km): not coordinates in mm of a scan")
+    return None

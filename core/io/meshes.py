@@ -32,6 +32,7 @@ import numpy as np
 from core.io.atomic import is_temporary_name
 from core.errors import DataFileError, DataFileWarning, require_file, warnings_as_notes
 from core.io.gifti import load_gifti, save_gifti
+from core.io.limits import coordinate_problem
 from core.io.obj import load_obj
 from core.io.ply import load_ply
 from core.io.registry import FileFormat, lookup, register
@@ -301,7 +302,28 @@ def load_mesh(path: str | os.PathLike) -> TriMesh:
                                   "more data than can be held)") from None
     if space == "LPS":
         mesh = TriMesh(mesh.vertices * _LPS_FLIP, mesh.faces, mesh.name)
-    return mesh.check(path)
+    mesh.check(path)
+    _check_geometry(path, mesh)
+    return mesh
+
+
+def _check_geometry(path: Path, mesh: TriMesh) -> None:
+    """Refuse coordinates no scan has (beyond 1 km: they overflow every later squared
+    distance) and a mesh without extent (all vertices at one point, or every triangle of
+    zero area): no shape can be measured, aligned or modelled from it."""
+    problem = coordinate_problem(mesh.vertices, "vertices")
+    if problem:
+        raise DataFileError(path, problem)
+    used = mesh.vertices[np.unique(mesh.faces)]
+    if np.ptp(used, axis=0).max() == 0:
+        raise DataFileError(path, f"degenerate mesh: all {len(used)} vertices of its triangles "
+                                  f"lie at one point ({', '.join(f'{c:g}' for c in used[0])})")
+    corners = mesh.vertices[mesh.faces]
+    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                   corners[:, 2] - corners[:, 0]), axis=1)
+    if not np.any(area > 0):
+        raise DataFileError(path, f"degenerate mesh: all {len(mesh.faces)} triangles have zero "
+                                  "area (the vertices lie on a line)")
 
 
 def save_mesh(path: str | os.PathLike, mesh: TriMesh, point_data: dict | None = None, *,

@@ -11,9 +11,12 @@ that a damaged deflate stream is caught by the gzip CRC instead of yielding wron
 
 from __future__ import annotations
 
+import contextlib
 import gzip
+import logging
 import os
 import zlib
+from collections.abc import Iterator
 from math import prod
 from pathlib import Path
 
@@ -68,7 +71,26 @@ def _check_data_size(path: Path, image_class, head: bytes) -> int:
     else:
         check_declared_size(path, n_bytes, what, stored=max(size - offset, 0),
                             truncated="image data are truncated or corrupt")
+    _check_voxel_size(path, header)
     return offset + n_bytes
+
+
+def _check_voxel_size(path: Path, header) -> None:
+    """Refuse a zero or non-finite voxel size (pixdim[1..3]) when the geometry comes from it.
+
+    The qform (and the fallback without any orientation) takes the voxel sizes from pixdim;
+    nibabel replaces a 0 by 1 mm after a console warning, placing the image at a scale that
+    no file records. An sform holds its own scale, so there pixdim does not matter (nibabel
+    then warns for nothing: its warning is silenced in :func:`load_nifti`).
+    """
+    pixdim = np.asarray(header["pixdim"][1:4], dtype=np.float64)
+    if int(header["sform_code"]) > 0 or (np.all(np.isfinite(pixdim)) and np.all(pixdim != 0)):
+        return
+    source = "the qform" if int(header["qform_code"]) > 0 else "no sform or qform (fallback)"
+    shown = " ".join(f"{v:g}" for v in pixdim)
+    raise DataFileError(path, f"voxel size pixdim[1..3] = {shown} and the geometry comes from "
+                              f"{source}, which scales by it: the voxel size is unknown "
+                              "(refused rather than assumed 1 mm)")
 
 
 def _gunzip_checked(path: Path, keep: int) -> bytes:
@@ -125,6 +147,20 @@ def _nifti_class(path: Path):
                               "NIfTI-2)")
 
 
+@contextlib.contextmanager
+def _nibabel_header_checks_quiet() -> Iterator[None]:
+    """nibabel's header checks log fixes ("pixdim[1,2,3] should be non-zero; setting 0 dims
+    to 1") straight to stderr through its ``nibabel.global`` logger; the ones that matter
+    are refused by our own checks first, so its console reports are held back here."""
+    logger = logging.getLogger("nibabel.global")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def load_nifti(path: str | os.PathLike) -> Volume:
     """Read a 3D NIfTI-1 or NIfTI-2 image (.nii or .nii.gz).
 
@@ -148,10 +184,11 @@ def load_nifti(path: str | os.PathLike) -> Volume:
     image_class = _nifti_class(path)
     needed = _check_data_size(path, image_class, _read_head(path, _NIFTI2_HEADER_SIZE))
     try:
-        if path.name.lower().endswith(".gz"):
-            img = image_class.from_bytes(_gunzip_checked(path, needed))
-        else:
-            img = image_class.from_filename(str(path))
+        with _nibabel_header_checks_quiet():  # what they report is checked above
+            if path.name.lower().endswith(".gz"):
+                img = image_class.from_bytes(_gunzip_checked(path, needed))
+            else:
+                img = image_class.from_filename(str(path))
     except DataFileError:
         raise
     except (EOFError, zlib.error, gzip.BadGzipFile) as exc:

@@ -3,7 +3,14 @@
 Reading the voxels is SimpleITK's job (:mod:`.itk_image`); this module parses the text
 header first (NRRD format specification, teem.sourceforge.net/nrrd/format.html) so that a
 truncated file, a header whose ``sizes``/``type`` disagree with the data, a missing detached
-data file or an unknown encoding is a one-line error naming the file.
+data file, one outside the header's folder (an absolute or ``..`` path: refused unless the
+caller allows it) or an unknown encoding is a one-line error naming the file. ``bzip2`` data,
+which SimpleITK's NRRD library cannot decode, are decompressed here (stdlib :mod:`bz2`).
+
+3D Slicer segmentations are read by :func:`read_segmentation`: one layer (a 3-D label map)
+or several (4-D, ``kinds: list domain domain domain``: segments that overlap are kept in
+different layers), each segment with its checked ``SegmentN_LabelValue`` / ``_Layer`` /
+``_Name`` / ``_ID`` (:class:`SlicerSegment`, chosen by :func:`find_segment`).
 
 The writer stores the affine exactly: ``space: left-posterior-superior``, ``space
 directions`` = the LPS columns of the voxel -> world matrix (shear included), ``space
@@ -20,18 +27,24 @@ with each structure's name and colour.
 
 from __future__ import annotations
 
-import bz2  # noqa: F401  (listed encodings; bz2 data are checked by ITK itself)
+import bz2
+import contextlib
 import gzip
 import os
-from dataclasses import dataclass
+import tempfile
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from core.io.atomic import atomic_path
-from core.errors import DataFileError
-from core.io.itk_image import LPS_TO_RAS, check_gzip_stream, read_itk_image
+from core.errors import DataFileError, DataFileWarning, display_path
+from core.io.itk_image import LPS_TO_RAS, check_gzip_stream, read_itk_image, \
+    refuse_outside
 from core.io.registry import FileFormat, register
+from core.types.volume import Volume
 
 NRRD_TYPES: dict[str, tuple[str, ...]] = {
     "i1": ("signed char", "int8", "int8_t"),
@@ -61,6 +74,7 @@ class NrrdHeader:
     fields: dict[str, str]
     custom: dict[str, str]
     data_offset: int  # byte where attached data start (0 for a detached header)
+    listed: list[str] = field(default_factory=list)  # data files after "data file: LIST"
 
 
 def read_nrrd_header(path: Path, limit: int = 1 << 20) -> NrrdHeader:
@@ -71,6 +85,7 @@ def read_nrrd_header(path: Path, limit: int = 1 << 20) -> NrrdHeader:
         raise DataFileError(path, "not an NRRD file (no NRRD000x magic line)")
     fields: dict[str, str] = {}
     custom: dict[str, str] = {}
+    listed: list[str] = []
     offset = 0
     ended = False
     for number, raw in enumerate(head.splitlines(keepends=True)):
@@ -79,6 +94,10 @@ def read_nrrd_header(path: Path, limit: int = 1 << 20) -> NrrdHeader:
             break  # an unterminated last line: the header is cut
         line = raw.decode("latin-1").rstrip("\r\n")
         if number == 0:
+            continue
+        if fields.get("data file", fields.get("datafile", "")).upper().startswith("LIST"):
+            if line.strip():
+                listed.append(line.strip())  # the spec: every line after LIST names a file
             continue
         if line == "":
             ended = True
@@ -97,11 +116,17 @@ def read_nrrd_header(path: Path, limit: int = 1 << 20) -> NrrdHeader:
     detached = "data file" in fields or "datafile" in fields
     if not ended and not detached:
         raise DataFileError(path, "truncated NRRD header (no blank line before the data)")
-    return NrrdHeader(fields, custom, 0 if detached else offset)
+    return NrrdHeader(fields, custom, 0 if detached else offset, listed)
 
 
-def check_nrrd_header(path: Path) -> NrrdHeader:
-    """Check the header against the data before SimpleITK reads the file."""
+def check_nrrd_header(path: Path, *, allow_outside: bool = False,
+                      allow_layers: bool = False) -> NrrdHeader:
+    """Check the header against the data before SimpleITK reads the file.
+
+    ``allow_outside``: see :func:`core.io.itk_image.read_itk_image`. ``allow_layers``: a 4-D
+    3D Slicer segmentation with overlapping layers (``kinds: list domain domain domain``) is
+    accepted (:func:`read_segmentation` reads it; as a plain image it is refused).
+    """
     header = read_nrrd_header(path)
     f = header.fields
     try:
@@ -118,13 +143,15 @@ def check_nrrd_header(path: Path) -> NrrdHeader:
     if any(s < 1 for s in sizes):
         raise DataFileError(path, f"NRRD header: sizes {sizes} include an empty axis")
     kinds = f.get("kinds", "").split()
-    if dimension == 4 and len(kinds) == 4 and kinds[0] == "list" and \
-            any(k.startswith("Segment") for k in header.custom):
+    layered = dimension == 4 and len(kinds) == 4 and kinds[0] == "list" and \
+        any(k.startswith("Segment") for k in header.custom)
+    if layered and not allow_layers:
         raise DataFileError(path, f"a Segmentation with overlapping segments ({sizes[0]} "
-                                  "layers): export it from Slicer as one labelmap layer")
+                                  "layers): open it as a .seg.nrrd file, or export it from "
+                                  "Slicer as one labelmap layer")
     spatial = [s for s, k in zip(sizes, kinds or ["domain"] * dimension)
                if k in ("domain", "space", "time")]
-    if dimension != 3 and not (dimension == 4 and 1 in (sizes[0], sizes[3])):
+    if dimension != 3 and not layered and not (dimension == 4 and 1 in (sizes[0], sizes[3])):
         raise DataFileError(path, f"a 3D image is needed, this one is {dimension}D with sizes "
                                   f"{'x'.join(map(str, sizes))}"
                                   + (f" ({len(spatial)} spatial axes)" if kinds else ""))
@@ -143,7 +170,10 @@ def check_nrrd_header(path: Path) -> NrrdHeader:
     data_name = f.get("data file", f.get("datafile"))
     if data_name is not None:
         if data_name.upper().startswith("LIST") or "%" in data_name or " " in data_name:
+            for name in _listed_data_files(path, header, data_name):
+                refuse_outside(path, name, allow_outside)
             return header  # multi-file data: ITK checks each
+        refuse_outside(path, data_name, allow_outside)
         data_path = path.parent / data_name
         if not data_path.is_file():
             raise DataFileError(path, f"the data file '{data_name}' named by the header is "
@@ -163,7 +193,100 @@ def check_nrrd_header(path: Path) -> NrrdHeader:
                                       f"{available} bytes follow it (wrong sizes or type?)")
     elif encoding == "gzip" and skip == 0:
         check_gzip_stream(where, offset, expected)
+    elif encoding == "bzip2":
+        _bzip2_voxels(path, header, expected)  # decompressed once here to check the size
     return header
+
+
+def _listed_data_files(path: Path, header: NrrdHeader, data_name: str) -> list[str]:
+    """The file names of multi-file NRRD data: the lines after ``data file: LIST``, or the
+    format pattern of ``data file: <pattern> <min> <max> <step>`` (its folder is what counts)."""
+    if data_name.upper().startswith("LIST"):
+        return header.listed
+    return data_name.split()[:1]
+
+
+def _data_source(path: Path, header: NrrdHeader) -> tuple[Path, int]:
+    """Where the voxel data of a checked header start: (file, byte offset)."""
+    data_name = header.fields.get("data file", header.fields.get("datafile"))
+    if data_name is not None:
+        return path.parent / data_name, 0
+    return path, header.data_offset
+
+
+def _bzip2_voxels(path: Path, header: NrrdHeader, expected: int) -> bytes:
+    """The decompressed voxel bytes of ``encoding: bzip2`` data (NRRD spec: ``line skip``
+    lines of the data file are skipped before the stream, ``byte skip`` bytes after
+    decompressing), checked against the size the header describes."""
+    where, offset = _data_source(path, header)
+    f = header.fields
+    try:
+        line_skip = int(f.get("line skip", f.get("lineskip", "0")) or 0)
+        byte_skip = int(f.get("byte skip", f.get("byteskip", "0")) or 0)
+    except ValueError:
+        raise DataFileError(path, "NRRD header: 'line skip' or 'byte skip' is not an "
+                                  "integer") from None
+    with open(where, "rb") as fh:
+        fh.seek(offset)
+        for _ in range(max(line_skip, 0)):
+            fh.readline()
+        stream = fh.read()
+    from core.io.limits import check_declared_size
+
+    check_declared_size(path, expected, "the voxels", stored=len(stream), max_ratio=float("inf"))
+    try:
+        data = bz2.decompress(stream)
+    except (OSError, ValueError, EOFError) as exc:
+        raise DataFileError(path, f"truncated or corrupt bzip2 voxel data ({exc})") from None
+    data = data[len(data) - expected:] if byte_skip == -1 else data[max(byte_skip, 0):]
+    if len(data) != expected:
+        raise DataFileError(path, f"the bzip2 data hold {len(data)} bytes but the header "
+                                  f"describes {expected} (header lying about the size?)")
+    return data
+
+
+@contextlib.contextmanager
+def raw_nrrd_copy(path: Path) -> Iterator[Path]:
+    """``path`` itself, or for a bzip2-encoded NRRD (which SimpleITK's NRRD library cannot
+    decode: "Sorry, bzip2 encoding not available") a temporary raw NRRD with the same header
+    lines and the decompressed voxels attached."""
+    if path.suffix.lower() not in (".nrrd", ".nhdr"):
+        yield path
+        return
+    header = read_nrrd_header(path)
+    if _ENCODINGS.get(header.fields.get("encoding", "").lower()) != "bzip2":
+        yield path
+        return
+    f = header.fields
+    sizes = [int(v) for v in f["sizes"].split()]
+    itemsize = int(_TYPE_OF_NAME[" ".join(f["type"].split())][1])
+    voxels = _bzip2_voxels(path, header, int(np.prod(sizes, dtype=np.int64)) * itemsize)
+    with open(path, "rb") as fh:
+        head = fh.read(header.data_offset or (1 << 20))
+    kept = []
+    for raw in head.decode("latin-1").splitlines():
+        if raw == "":
+            break
+        key = raw.split(":", 1)[0].strip().lower()
+        if key == "encoding":
+            raw = "encoding: raw"
+        elif key in ("data file", "datafile", "line skip", "lineskip", "byte skip", "byteskip"):
+            continue
+        kept.append(raw)
+    with tempfile.TemporaryDirectory(prefix="ssm-studio-") as folder:
+        copy = Path(folder) / "image.nrrd"
+        copy.write_bytes(("\n".join(kept) + "\n\n").encode("latin-1") + voxels)
+        yield copy
+
+
+def _numbered_segment_fields(header: NrrdHeader) -> dict[int, dict[str, str]]:
+    """``SegmentN_Field:=value`` custom fields grouped by N (field names without the prefix)."""
+    segments: dict[int, dict[str, str]] = {}
+    for key, value in header.custom.items():
+        if key.startswith("Segment") and "_" in key and key[7:key.index("_")].isdigit():
+            index = int(key[7:key.index("_")])
+            segments.setdefault(index, {})[key[key.index("_") + 1:]] = value
+    return segments
 
 
 def segmentation_fields(path: str | os.PathLike) -> list[dict[str, str]]:
@@ -172,13 +295,168 @@ def segmentation_fields(path: str | os.PathLike) -> list[dict[str, str]]:
     Keys are the field names without the ``SegmentN_`` prefix (``ID``, ``Name``, ``Color``,
     ``LabelValue``, ``Layer``, ``Extent``, ``Tags``, ...).
     """
-    header = read_nrrd_header(Path(path))
-    segments: dict[int, dict[str, str]] = {}
-    for key, value in header.custom.items():
-        if key.startswith("Segment") and "_" in key and key[7:key.index("_")].isdigit():
-            index = int(key[7:key.index("_")])
-            segments.setdefault(index, {})[key[key.index("_") + 1:]] = value
+    segments = _numbered_segment_fields(read_nrrd_header(Path(path)))
     return [segments[i] for i in sorted(segments)]
+
+
+@dataclass(frozen=True)
+class SlicerSegment:
+    """One segment of a 3D Slicer ``.seg.nrrd``, as its ``SegmentN_*`` fields describe it.
+
+    Its voxels are those of layer ``layer`` equal to ``label_value`` (Slicer's developer
+    guide, "Segmentation labelmap file format": segments that overlap are kept in different
+    layers, the 4-D file's first axis, ``kinds: list domain domain domain``).
+    """
+
+    index: int            # N of the SegmentN_ fields
+    name: str
+    label_value: int
+    layer: int
+    id: str
+    color: tuple[float, float, float] | None
+
+    def describe(self) -> str:
+        return f"'{self.name}' (Segment{self.index}: layer {self.layer}, value {self.label_value})"
+
+
+def _segment_integer(path: Path, index: int, fields: dict[str, str], key: str,
+                     default: int | None) -> int:
+    text = fields.get(key)
+    if text is None or not text.strip():
+        if default is None:
+            raise DataFileError(path, f"Segment{index}_{key} is missing (each segment needs one)")
+        return default
+    try:
+        return int(text.strip())
+    except ValueError:
+        raise DataFileError(path, f"Segment{index}_{key} is '{text.strip()[:40]}', not an "
+                                  "integer") from None
+
+
+def nrrd_layer_count(path: str | os.PathLike) -> int:
+    """How many layers a segmentation has: the first size of a 4-D ``list`` axis, else 1."""
+    f = read_nrrd_header(Path(path)).fields
+    kinds, sizes = f.get("kinds", "").split(), f.get("sizes", "").split()
+    if len(kinds) == 4 and kinds[0] == "list" and len(sizes) == 4 and sizes[0].isdigit():
+        return int(sizes[0])
+    return 1
+
+
+def slicer_segments(path: str | os.PathLike, n_layers: int | None = None) -> list[SlicerSegment]:
+    """The segments a ``.seg.nrrd`` header describes, each field checked (N order).
+
+    ``LabelValue`` must be an integer 1-65535 and ``Layer`` an integer >= 0 (below
+    ``n_layers`` when given); a missing Layer is 0 (one-layer files of older Slicer versions).
+    """
+    path = Path(path)
+    segments = []
+    for index, fields in sorted(_numbered_segment_fields(read_nrrd_header(path)).items()):
+        value = _segment_integer(path, index, fields, "LabelValue", None)
+        if not 0 < value < 65536:
+            raise DataFileError(path, f"Segment{index}_LabelValue is {value}, a label value is "
+                                      "1-65535")
+        layer = _segment_integer(path, index, fields, "Layer", 0)
+        if layer < 0 or (n_layers is not None and layer >= n_layers):
+            raise DataFileError(path, f"Segment{index}_Layer is {layer}, the file has "
+                                      f"{n_layers} layer(s) (0-{(n_layers or 1) - 1})")
+        try:
+            color = tuple(float(c) for c in fields.get("Color", "").split())
+        except ValueError:
+            color = ()
+        segments.append(SlicerSegment(index, fields.get("Name", "").strip() or f"Segment {index}",
+                                      value, layer, fields.get("ID", "").strip(),
+                                      color if len(color) == 3 else None))
+    return segments
+
+
+class SegmentChoiceError(DataFileError):
+    """No segment, or several, answer to the name or number asked for."""
+
+
+def find_segment(path: str | os.PathLike, segments: list[SlicerSegment], wanted: str | int,
+                 n_layers: int = 1) -> SlicerSegment:
+    """The segment ``wanted`` names: its Name or ID (case-insensitive), or its label value.
+
+    A label value shared by segments of different layers is ambiguous (refused, naming
+    them); in a one-layer file a value no segment describes is still a label (named
+    ``label V``). Raises :class:`SegmentChoiceError` listing the segments otherwise.
+    """
+    text = str(wanted).strip()
+    for key in (lambda s: s.name, lambda s: s.id):
+        hits = [s for s in segments if key(s).strip().lower() == text.lower()]
+        if len(hits) == 1:
+            return hits[0]
+        if len(hits) > 1:
+            raise SegmentChoiceError(path, f"{len(hits)} segments are named {text!r}: "
+                                           + ", ".join(s.describe() for s in hits))
+    if text.lstrip("-").isdigit():
+        hits = [s for s in segments if s.label_value == int(text)]
+        if len(hits) == 1:
+            return hits[0]
+        if len(hits) > 1:
+            raise SegmentChoiceError(path, f"label value {text} is ambiguous, it is "
+                                           + " and ".join(s.describe() for s in hits)
+                                           + ": choose a segment by name")
+        if n_layers == 1:
+            return SlicerSegment(-1, f"label {text}", int(text), 0, "", None)
+    known = ", ".join(repr(s.name) for s in segments) or "none"
+    raise SegmentChoiceError(path, f"no segment named {text!r} (segments: {known})")
+
+
+@dataclass
+class SlicerSegmentation:
+    """A ``.seg.nrrd`` read whole: its layers (L, I, J, K), RAS affine and segments."""
+
+    layers: np.ndarray
+    affine: np.ndarray
+    segments: list[SlicerSegment]
+    path: Path
+
+    def find(self, wanted: str | int) -> SlicerSegment:
+        """:func:`find_segment` among this file's segments."""
+        return find_segment(self.path, self.segments, wanted, len(self.layers))
+
+    def mask(self, segment: SlicerSegment) -> np.ndarray:
+        """The segment's voxels (I, J, K) as a bool array."""
+        return self.layers[segment.layer] == segment.label_value
+
+
+def read_segmentation(path: str | os.PathLike) -> SlicerSegmentation:
+    """Read a 3D Slicer ``.seg.nrrd``: one layer (3-D label map) or several (4-D, overlapping
+    segments), with every segment's fields checked (:func:`slicer_segments`)."""
+    path = Path(path)
+    data, affine = _read_segmentation_image(path)
+    layers = data[None] if data.ndim == 3 else data
+    if layers.dtype.kind not in "iu":
+        raise DataFileError(path, f"a segmentation needs integer voxels, got {layers.dtype}")
+    return SlicerSegmentation(layers, affine, slicer_segments(path, len(layers)), path)
+
+
+def _read_segmentation_image(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (I, J, K) or layers (L, I, J, K), RAS affine) of a ``.seg.nrrd``."""
+    from core.io.itk_image import image_arrays, read_sitk_image
+
+    check_nrrd_header(path, allow_layers=True)
+    return image_arrays(read_sitk_image(path), path, layers=True)
+
+
+def read_segmentation_volume(path: str | os.PathLike) -> Volume:
+    """``load_volume`` of a ``.seg.nrrd``: the label map itself when it has one layer; a file
+    with several layers (overlapping segments) becomes one label map in which segment N has
+    the value N + 1, and a note says so (where segments overlap, the later one is shown).
+    A segment is taken whole, overlaps included, by :func:`read_segmentation`."""
+    seg = read_segmentation(path)
+    if len(seg.layers) == 1:
+        return Volume(data=seg.layers[0], affine=seg.affine, path=seg.path)
+    merged = np.zeros(seg.layers.shape[1:], np.uint16 if len(seg.segments) > 254 else np.uint8)
+    for s in seg.segments:
+        merged[seg.mask(s)] = s.index + 1
+    warnings.warn(DataFileWarning(
+        f"{display_path(path)}: {len(seg.segments)} segments in {len(seg.layers)} overlapping "
+        f"layers, shown as one label map of segment numbers (Segment N -> value N + 1, the "
+        "later segment where they overlap); mesh-labels --segment NAME takes a segment whole"),
+        stacklevel=2)
+    return Volume(data=merged, affine=seg.affine, path=seg.path)
 
 
 @dataclass
@@ -291,7 +569,7 @@ def _write_labels_default(path: Path, data: np.ndarray, affine: np.ndarray) -> N
 def _register() -> None:
     register(FileFormat(".nrrd", "volume", "NRRD image", read=read_itk_image, write=write_nrrd))
     register(FileFormat(".seg.nrrd", "volume", "3D Slicer segmentation (NRRD)",
-                        read=read_itk_image, write=_write_labels_default))
+                        read=read_segmentation_volume, write=_write_labels_default))
     register(FileFormat(".nhdr", "volume", "NRRD header + detached data", read=read_itk_image))
 
 

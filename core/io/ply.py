@@ -5,6 +5,7 @@ VTK's PLY reader crashes on truncated files; this one checks every size against 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,14 +31,17 @@ class _PlyElement:
     properties: list[tuple[str, str, str | None]]  # (name, value type, list count type or None)
 
 
+# the header ends at a line that is "end_header" itself (a comment may mention the word)
+_END_HEADER = re.compile(rb"(?:^|\n)end_header[ \t]*(\r?\n|$)")
+
+
 def _parse_ply_header(path: Path, raw: bytes) -> tuple[str, list[_PlyElement], int]:
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
+    match = _END_HEADER.search(raw)
+    if not raw.startswith(b"ply") or match is None:
         what = "no 'end_header' line" if raw.startswith(b"ply") else "does not start with 'ply'"
         raise DataFileError(path, f"not a PLY file or truncated header ({what})")
-    body_start = raw.find(b"\n", end) + 1
-    if body_start == 0:
-        body_start = len(raw)
+    end = match.start() + (1 if raw[match.start():match.start() + 1] == b"\n" else 0)
+    body_start = match.end()
     try:
         lines = raw[:end].decode("ascii").splitlines()
     except UnicodeDecodeError:

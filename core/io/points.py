@@ -20,6 +20,7 @@ import numpy as np
 from core.io.atomic import atomic_write_json, atomic_write_text
 from core.errors import DataFileError, DataFileWarning, display_path, require_file, \
     warnings_as_notes, why
+from core.io.limits import coordinate_problem
 from core.io.registry import FileFormat, file_suffix, lookup, register
 from core.types.pointset import PointSet
 
@@ -43,8 +44,9 @@ def load_points(path: str | os.PathLike) -> PointSet:
         pts = fmt.read(path)
     if len(pts) == 0:
         raise DataFileError(path, "no points in file")
-    if not np.all(np.isfinite(pts.points)):
-        raise DataFileError(path, "points contain NaN or infinite coordinates")
+    problem = coordinate_problem(pts.points, "points")
+    if problem:
+        raise DataFileError(path, problem)
     if pts.normals is not None and not np.all(np.isfinite(pts.normals)):
         raise DataFileError(path, "normals contain NaN or infinite values")
     return pts

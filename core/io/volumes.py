@@ -1,7 +1,9 @@
 """Volumes: the suffix dispatch for every image format.
 
 NIfTI in :mod:`core.io.nifti`; NRRD/NHDR and MetaImage (MHA/MHD) in :mod:`core.io.itk_image`
-and :mod:`core.io.nrrd` (with 3D Slicer's ``.seg.nrrd``); DICOM series in
+and :mod:`core.io.nrrd` (with 3D Slicer's ``.seg.nrrd``: one with overlapping layers opens as
+one map of segment numbers, with a note; :func:`core.io.nrrd.read_segmentation` gives each
+segment whole); DICOM series in
 :mod:`core.io.dicom` (a folder, a ``.dcm`` file, or any file with the DICOM marker).
 """
 

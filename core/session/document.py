@@ -84,10 +84,18 @@ import numpy as np
 from core.io import DataFileError, atomic_path
 from core.errors import require_file
 from core.geometry.planes import PLANE_NAMES  # a point's plane is stored by its index
+from core.io.limits import coordinate_problem
 
 SESSION_FORMAT = "ssm-studio-session"
 SESSION_FORMAT_VERSION = 1
 
+# More structures than any brain atlas a plan uses (CIT168: 16 per side); a session with
+# 10,000 took 57 s and 1.7 GB to plan before it was limited.
+MAX_STRUCTURES = 256
+# A pose is a similarity (core.reconstruction.POSES; the GUI's handles, core.registration.handles): its
+# 3x3 part s R with s in this range, the singular values equal to this relative tolerance.
+POSE_SCALE_RANGE = (1e-3, 1e3)
+POSE_SIMILARITY_TOLERANCE = 1e-2
 STATE_DIR_ENV = "SSM_STUDIO_STATE_DIR"
 _RECOVERY_PREFIX = "recovery-"
 
@@ -226,10 +234,9 @@ class Session:
         if self.coef is not None and self.coef.ndim != 1:
             return f"coef must be a vector (M,), got shape {self.coef.shape}"
         if self.pose is not None:
-            if self.pose.shape != (4, 4):
-                return f"pose must be 4x4, got shape {self.pose.shape}"
-            if not np.all(np.isfinite(self.pose)) or abs(np.linalg.det(self.pose[:3, :3])) < 1e-12:
-                return "pose must be a finite, invertible 4x4 matrix"
+            problem = pose_problem(self.pose, "pose")
+            if problem:
+                return problem
         if self.window is not None and len(self.window) != 2:
             return f"window must be [width, level], got {len(self.window)} values"
         if self.crosshair is not None and self.crosshair.shape != (3,):
@@ -238,6 +245,20 @@ class Session:
             value = getattr(self, name)
             if value is not None and not np.all(np.isfinite(value)):
                 return f"{name} contain NaN or infinite values"
+        for name in ("points", "crosshair"):
+            value = getattr(self, name)
+            problem = None if value is None else coordinate_problem(value.reshape(-1, 3), name)
+            if problem:
+                return problem
+        for name, path in (("image", self.image_path), ("model", self.model_path)):
+            if path is not None and "\x00" in str(path):
+                return f"the {name} path holds a null byte: not a file path"
+        if len(self.structures) > MAX_STRUCTURES:
+            return (f"{len(self.structures)} structures, more than the {MAX_STRUCTURES} a "
+                    "session may hold")
+        problem = planning_problem(self.info.get("planning"), max(len(self.structures), 1))
+        if problem:
+            return problem
         if self.window is not None and not all(np.isfinite(self.window)):
             return "window contains NaN or infinite values"
         if self.point_slices is not None and \
@@ -322,10 +343,96 @@ class SessionStructure:
             raise ValueError(f"structure point_slices must have {p} entries, got {len(self.point_slices)}")
         for name in ("pose", "placement"):
             value = getattr(self, name)
-            if value is not None and (value.shape != (4, 4) or not np.all(np.isfinite(value))):
-                raise ValueError(f"structure {name} must be a finite 4x4 matrix")
+            problem = None if value is None else pose_problem(value, f"structure {name}")
+            if problem:
+                raise ValueError(problem)
+        if self.model_path is not None and "\x00" in str(self.model_path):
+            raise ValueError("the structure model path holds a null byte: not a file path")
+        problem = coordinate_problem(self.points, "structure points")
+        if problem:
+            raise ValueError(problem)
         if not np.all(np.isfinite(self.points)):
             raise ValueError("structure points contain NaN or infinite values")
+
+
+def pose_problem(pose: np.ndarray, name: str) -> str | None:
+    """Why ``pose`` is not a usable model -> world transform, or None.
+
+    A 4x4 similarity: finite, last row (0, 0, 0, 1), translation within
+    :data:`core.io.limits.MAX_COORDINATE_MM`, 3x3 part s R with s in
+    :data:`POSE_SCALE_RANGE` (singular values equal within :data:`POSE_SIMILARITY_TOLERANCE`).
+    A pose holding 1e200 made the GUI fail deep in its geometry (an IndexError).
+    """
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4):
+        return f"{name} must be 4x4, got shape {pose.shape}"
+    if not np.all(np.isfinite(pose)):
+        return f"{name} must be a finite, invertible 4x4 matrix (it holds NaN or inf)"
+    from core.io.limits import MAX_COORDINATE_MM
+
+    shift = float(np.abs(pose[:3, 3]).max())
+    if shift > MAX_COORDINATE_MM:
+        return (f"{name} moves the model {shift:.3g} mm, beyond {MAX_COORDINATE_MM:.0e} mm: "
+                "not a pose in a scan")
+    if np.abs(pose[:3, :3]).max() > 1e12:
+        return f"{name} scales by up to {np.abs(pose[:3, :3]).max():.3g}: not a pose"
+    singular = np.linalg.svd(pose[:3, :3], compute_uv=False)
+    low, high = POSE_SCALE_RANGE
+    if singular[-1] < low or singular[0] > high:
+        return (f"{name} must be an invertible 4x4 matrix with a scale of {low:g}-{high:g} "
+                f"(its 3x3 part scales by {singular[-1]:.3g}-{singular[0]:.3g})")
+    if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        return f"{name} must end with the row 0 0 0 1, got {_short(pose[3].tolist())}"
+    if singular[0] / singular[-1] - 1 > POSE_SIMILARITY_TOLERANCE:
+        return (f"{name} is not a similarity (rotation, uniform scale, translation): its 3x3 "
+                f"part scales by {singular[-1]:.4g}-{singular[0]:.4g} along different axes")
+    return None
+
+
+def _planning_vector(value: Any, what: str) -> str | None:
+    if value is None:
+        return None
+    try:
+        vector = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return f"info.planning {what} must be [x, y, z] (numbers), got {_short(value)}"
+    if vector.shape != (3,):
+        return f"info.planning {what} must be [x, y, z], got {_short(value)}"
+    return coordinate_problem(vector[None], f"info.planning {what} point(s)")
+
+
+def planning_problem(planning: Any, n_structures: int) -> str | None:
+    """Why a session's ``info.planning`` block (the workspace's AC, PC, midline point and per
+    structure a target and an entry point) cannot be used, or None (None or {}: no plan)."""
+    if planning is None:
+        return None
+    if not isinstance(planning, dict):
+        return f"info.planning must be a JSON object, got {_short(planning)}"
+    for key in ("ac", "pc", "midline"):
+        problem = _planning_vector(planning.get(key), key)
+        if problem:
+            return problem
+    items = planning.get("structures", [])
+    if items is None:
+        return None
+    if not isinstance(items, list):
+        return f"info.planning structures must be a list, got {_short(items)}"
+    if len(items) > MAX_STRUCTURES:
+        return f"info.planning lists {len(items)} structures, more than {MAX_STRUCTURES}"
+    for k, item in enumerate(items):
+        if not isinstance(item, dict):
+            return f"info.planning structures[{k}] must be an object, got {_short(item)}"
+        index = item.get("structure")
+        if not isinstance(index, int) or isinstance(index, bool):
+            return f"info.planning structures[{k}].structure must be an index, got {_short(index)}"
+        if not 0 <= index < n_structures:
+            return (f"info.planning structures[{k}] refers to structure {index + 1}, the "
+                    f"session has {n_structures}")
+        for key in ("target", "entry"):
+            problem = _planning_vector(item.get(key), f"structures[{k}].{key}")
+            if problem:
+                return problem
+    return None
 
 
 def _structure_document(st: SessionStructure, base: Path | None, array, packed: bool) -> dict[str, Any]:
@@ -363,6 +470,9 @@ def _structures_from(value: Any, base: Path | None, source: Path) -> list[Sessio
         return []
     if not isinstance(value, list):
         raise ValueError("structures must be a list of objects")
+    if len(value) > MAX_STRUCTURES:  # before any is read: each loads a model to plan
+        raise ValueError(f"{len(value)} structures, more than the {MAX_STRUCTURES} a session "
+                         "may hold")
     out = []
     for k, doc in enumerate(value):
         if not isinstance(doc, dict):
@@ -451,6 +561,8 @@ def _resolve(stored: Any, base: Path | None, source: Path, key: str) -> Path | N
         return None
     if not isinstance(stored, str):
         raise DataFileError(source, f"'{key}' must be a file path (string), got {stored!r}")
+    if "\x00" in stored:
+        raise DataFileError(source, f"'{key}' holds a null byte: not a file path")
     path = Path(stored)
     if not path.is_absolute() and base is not None:
         path = base / path
@@ -566,6 +678,8 @@ def _from_document(doc: Any, source: Path, base: Path | None) -> Session:
             structures=_structures_from(doc.get("structures"), base, source),
             active_structure=_active_index(doc.get("active_structure", 0)),
         )
+    except DataFileError:
+        raise  # names the file already
     except (ValueError, TypeError, OverflowError) as exc:
         raise DataFileError(source, f"invalid session: {exc}") from None
 
