@@ -22,6 +22,9 @@ from core.io import DataFileError, load_model, load_volume, save_mesh, save_poin
 from core.io.registry import split_member  # a FILE.h5#GROUP model path names FILE
 
 
+RECOVERED_PATH_KEY = "session_path"     # in a recovery file's info: the session's own file
+
+
 class SessionController:
     """What is open: the image, the structures' models, the session file and its recovery."""
 
@@ -52,11 +55,12 @@ class SessionController:
 
     def open_model(self, path: str | os.PathLike, coef=None, pose=None,
                    structure: Structure | None = None) -> str:
-        """Load a shape model into ``structure`` (the active one) at its stored placement."""
+        """Load a shape model into ``structure`` (the active one) at its stored placement: one
+        undo step; the structure takes the model's name, side and colour unless the user set
+        them."""
         model = load_model(path)
         structure = structure or self.state.active
-        structure.set_model(model, path, coef=coef, pose=pose)
-        structure.clear_history()
+        structure.replace_model(model, path, coef=coef, pose=pose)
         self.center_on_model()
         warning = self.overlap_warning(structure)
         if warning:
@@ -85,19 +89,15 @@ class SessionController:
 
     def add_structure(self, path: str | os.PathLike) -> tuple[Structure, str]:
         """A new active structure with the model file ``path`` (name, side and colour from its
-        header, as ``core.io.model_library`` reads it), at the model's stored placement."""
-        from core.io.model_library import structure_info
-
+        header, :meth:`app.state.Structure.set_model`), at the model's stored placement; its
+        first undo step removes it again."""
         model = load_model(path)
-        info = structure_info(model, path)
-        color = tuple(int(round(255 * c)) for c in info.color)
-        structure = Structure(name=info.name, side=info.side)
-        structure.color = self.state.unused_color(color)
-        structure.demo = info.demo
+        structure = Structure()
         self.state.add_structure(structure)
         structure.set_model(model, path)
+        structure.mark_added()
         self.center_on_model()
-        kind = "demo model" if info.demo else f"{model.method} model"
+        kind = "demo model" if structure.demo else f"{model.method} model"
         return structure, f"Added {structure.label}: {kind}, {model.n_factors} factors"
 
     # -- sessions ----------------------------------------------------------------------
@@ -234,10 +234,15 @@ class SessionController:
 
         sessions.clear_recovery()
 
-    def write_recovery(self, fit_settings: dict) -> None:
+    def write_recovery(self, fit_settings: dict, session_path: Path | None = None) -> None:
+        """Autosave for crash recovery, with the file the session was opened from or saved
+        to (``info["session_path"]``: restored with the work)."""
         from core.session import document as sessions
 
-        sessions.write_recovery(self.to_session(fit_settings))
+        session = self.to_session(fit_settings)
+        if session_path is not None:
+            session.info[RECOVERED_PATH_KEY] = str(Path(session_path).resolve())
+        sessions.write_recovery(session)
 
 
 def edits_path(labels_path: str | os.PathLike) -> Path:
@@ -392,7 +397,7 @@ class ExportController:
         note = f", {tilted} oblique" if tilted else ""
         kept = ", normals kept" if pset.normals is not None else ""
         return (f"Imported {len(pset)} point(s) on {planes} plane(s){note} from "
-                f"{Path(path).name}{kept}")
+                f"{Path(path).name} into {self.state.active.label}{kept}")
 
 
 def _point_slices(points: Points) -> list[tuple[str, float]]:

@@ -167,8 +167,8 @@ def start_tour(window, record: str | Path | None = None, interval_ms: int = 120,
         Path(tempfile.mkdtemp(prefix="ssm-studio-demo-"))
     tour = DemoTour(window, tour_steps(window, truth, out, spacing=spacing), interval_ms, record)
     window.demo_tour = tour
-    if quit_at_end:
-        tour.finished.connect(lambda completed: window.close())
+    if quit_at_end:     # a recording has nobody to answer "save before closing?"
+        tour.finished.connect(lambda completed: window.close_unattended())
     tour.start()
     return tour
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from PySide6.QtWidgets import QFileDialog, QMessageBox
 
 from app import formats
+from app.controllers import RECOVERED_PATH_KEY
 from app.workers import error_message
 
 EXPORTS = {"labels": ("label map", formats.LABEL_FILTER, "segmentation.nii.gz"),
@@ -146,8 +147,8 @@ class SessionActions:
         w = self.w
         if not w.recovery_enabled:
             return
-        try:
-            w.sessions.write_recovery(w.fit_panel.settings)
+        try:     # with the session's file, so that Ctrl+S after a recovery saves there
+            w.sessions.write_recovery(w.fit_panel.settings, w.session_path)
         except (ValueError, OSError) as exc:
             w.statusBar().showMessage(f"Autosave failed: {error_message(exc)}", 8000)
 
@@ -169,6 +170,8 @@ class SessionActions:
             return False
         if not w._guarded(lambda: w.apply_session(session)):
             return False
+        saved_as = (session.info or {}).get(RECOVERED_PATH_KEY)
+        w.session_path = Path(saved_as) if saved_as else None
         w.unsaved = True                      # recovered work is not saved anywhere yet
         w._update_title()
         w.show_message("Recovered the unsaved session")

@@ -11,10 +11,13 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from PySide6.QtWidgets import QFileDialog
+import re
+
+from PySide6.QtWidgets import QFileDialog, QInputDialog, QMessageBox
 
 from app import formats
-from core.io.points import is_markups_file
+from core.io.points import is_markups_file, markups_name
+from core.io.model_library import structure_from_name
 
 OPEN_DIALOGS = {"image": ("Open image", formats.IMAGE_FILTER),
                 "second": ("Open a second image (T2, FLAIR, CT…)", formats.IMAGE_FILTER),
@@ -51,17 +54,26 @@ class FileActions:
             chooser = lambda found: ask_series(self.w, found)  # noqa: E731
         return formats.resolve_dicom_choice(path, chooser, notes.append)
 
-    def open_path(self, path: str | os.PathLike) -> None:
-        """Open any supported file by its type (drag and drop, recent files); errors shown."""
+    def open_path(self, path: str | os.PathLike, dropped: bool = False) -> None:
+        """Open any supported file by its type (drag and drop, recent files); errors shown.
+
+        A dropped model adds a structure (or, if the user says so, replaces the active
+        structure's model); points go to the structure the file names, else the one the user
+        picks (see :meth:`points_structure`)."""
         w, name = self.w, str(path).lower()
         try:
             if formats.is_image_path(path):
                 w.load_image(path)
             elif formats.is_model_path(path):
-                w.load_model(path)
+                if dropped:
+                    self.open_dropped_model(path)
+                else:
+                    w.load_model(path)
             elif name.endswith((".mrk.json", ".csv", ".tsv", ".fcsv")) or \
                     (name.endswith(".json") and is_markups_file(path)):
-                w.import_points(path)
+                structure = self.points_structure(path)
+                if structure is not None:
+                    w.import_points(path, structure)
             elif name.endswith(".json"):
                 w.open_session(path)
             else:
@@ -94,5 +106,65 @@ class FileActions:
         """Open every local file dropped on the window."""
         for url in event.mimeData().urls():
             if url.isLocalFile():
-                self.open_path(url.toLocalFile())
+                self.open_path(url.toLocalFile(), dropped=True)
         event.acceptProposedAction()
+
+    # -- where a dropped model or imported points go --------------------------------------
+    def open_dropped_model(self, path: str | os.PathLike) -> None:
+        """An empty workspace takes the model; otherwise it becomes a new structure, unless
+        the user chooses to replace the active structure's model (one undo step either way)."""
+        w = self.w
+        active = w.state.active
+        if active.model is None and len(active.points) == 0:
+            w.load_model(path)
+            return
+        choice = "add"
+        if not w._quiet_errors():
+            box = QMessageBox(QMessageBox.Icon.Question, "Dropped a model",
+                              f"What should {Path(path).name} do?", parent=w)
+            add = box.addButton("Add as a new structure", QMessageBox.ButtonRole.AcceptRole)
+            replace = box.addButton(f"Replace the model of {active.label}",
+                                    QMessageBox.ButtonRole.DestructiveRole)
+            box.addButton(QMessageBox.StandardButton.Cancel)
+            box.setDefaultButton(add)
+            box.exec()
+            choice = {id(add): "add", id(replace): "replace"}.get(id(box.clickedButton()))
+        if choice == "add":
+            w.add_structure(path)
+        elif choice == "replace":
+            w.load_model(path)
+
+    def points_structure(self, path: str | os.PathLike):
+        """The structure points from ``path`` go to: the one the file names (a Slicer markups
+        node's name, else the file's name), else the user's choice (the active one without
+        dialogs); None if the user cancelled."""
+        w = self.w
+        structures = w.state.structures
+        named = markups_name(path) if str(path).lower().endswith(".json") else None
+        stem = Path(path).name.split(".")[0]
+        for text in (named, stem):
+            found = [s for s in structures if text and _names_match(text, s)]
+            if len(found) == 1:
+                return found[0]
+        if len(structures) == 1 or w._quiet_errors():
+            return w.state.active
+        labels = [s.label for s in structures]
+        current = structures.index(w.state.active)
+        label, ok = QInputDialog.getItem(w, "Import points",
+                                         f"Which structure are the points of {Path(path).name}?",
+                                         labels, current, False)
+        return structures[labels.index(label)] if ok else None
+
+
+def _words(text: str) -> set[str]:
+    return set(re.findall(r"[a-z0-9]+", text.lower()))
+
+
+def _names_match(text: str, structure) -> bool:
+    """Whether a file's structure name ('left_caudate', 'caudate nucleus (left)') means
+    ``structure``: the words of one name hold the other's, and the sides agree."""
+    info = structure_from_name(text)
+    mine, theirs = _words(structure.name), _words(info.name)
+    if not mine or not theirs or not (mine <= theirs or theirs <= mine):
+        return False
+    return not (info.side and structure.side) or info.side == structure.side

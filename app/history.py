@@ -25,7 +25,11 @@ class UndoHistory:
 
     def checkpoint(self) -> None:
         """Record the current state as one undo step."""
-        self._undo.append(self._snapshot())
+        self.push(self._snapshot())
+
+    def push(self, snapshot: Any) -> None:
+        """Record ``snapshot`` (not the current state) as the newest undo step."""
+        self._undo.append(snapshot)
         del self._undo[:-self.limit]
         self._redo.clear()
         self._changed()

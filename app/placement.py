@@ -6,6 +6,12 @@ responsive and a cancelled run changes nothing. Its result maps the patient imag
 onto the template's; every structure whose model lives in that template space is then placed
 through it (``core.registration.placement.placement_through``), as one undoable step per structure, and the
 active one is refitted if it has points. *Place here* stays for manual placement.
+
+The placement can then be nudged by hand (:meth:`AutoPlacement.nudge`: shift and turn the
+registration, ``core.registration.placement.nudged``, every placed structure together), each nudge one
+step of its own undo (:meth:`AutoPlacement.undo_nudge`) and of each structure's; the read-out
+(:meth:`AutoPlacement.readout`) gives the nudge so far and the contour points' mean distance
+to the surfaces.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ class AutoPlacement(QObject):
 
     finished = Signal(str)
     failed = Signal(str)
+    nudged = Signal()
 
     def __init__(self, state: WorkspaceState, parent: QWidget | None = None):
         super().__init__(parent)
@@ -35,6 +42,10 @@ class AutoPlacement(QObject):
         self.task.failed.connect(lambda m: self.failed.emit(f"Automatic placement failed: {m}"))
         self.task.cancelled.connect(
             lambda: self.failed.emit("Automatic placement cancelled: nothing moved"))
+        self.result = None                   # the last core.registration.volumes.RegistrationResult
+        self.transform: np.ndarray | None = None   # image -> template, with the nudges
+        self._nudges: list[np.ndarray] = []        # the transforms before each nudge
+        self._placed_ids: list[int] = []           # the structures placed through it
 
     @property
     def is_running(self) -> bool:
@@ -68,19 +79,86 @@ class AutoPlacement(QObject):
     def wait(self, msecs: int = 60000) -> bool:
         return self.task.wait(msecs)
 
-    def _on_done(self, result) -> None:
+    def _place_through(self, transform: np.ndarray, structures, keep_shape: bool) -> list[str]:
+        """Place ``structures`` through ``transform`` (one undo step each)."""
         from core.registration.placement import placement_through
 
         placed = []
-        for s in self.state.structures:
-            if s.model is None or s.locked:
-                continue
+        for s in structures:
             s.checkpoint()
-            pose = placement_through(s.model, result.transform)
+            pose = placement_through(s.model, transform)
             s.placement = pose.copy()
             s.last_fit = None
-            s.set_surface(np.zeros(s.model.n_factors), pose)
+            s.set_surface(s.coef if keep_shape else np.zeros(s.model.n_factors), pose)
             placed.append(s.label)
+        return placed
+
+    def placed_structures(self) -> list:
+        """The structures of the last automatic placement still in the workspace."""
+        return [s for s in self.state.structures
+                if s.id in self._placed_ids and s.model is not None and not s.locked]
+
+    def nudge(self, rotation_deg=(0.0, 0.0, 0.0), shift_mm=(0.0, 0.0, 0.0)) -> bool:
+        """Turn the registration by ``rotation_deg`` about the world x, y, z axes (through
+        the placed structures' centre) and shift it by ``shift_mm``; False without a
+        placement to nudge."""
+        from core.registration.placement import nudged
+
+        structures = self.placed_structures()
+        if self.transform is None or not structures:
+            return False
+        centre = np.vstack([s.surface_vertices() for s in structures]).mean(axis=0)
+        self._nudges.append(self.transform.copy())
+        self.transform = nudged(self.transform, np.radians(np.asarray(rotation_deg, float)),
+                                np.asarray(shift_mm, float), centre)
+        self._place_through(self.transform, structures, keep_shape=True)
+        self.nudged.emit()
+        return True
+
+    def undo_nudge(self) -> bool:
+        """Back to the placement before the last nudge."""
+        structures = self.placed_structures()
+        if not self._nudges or not structures:
+            return False
+        self.transform = self._nudges.pop()
+        self._place_through(self.transform, structures, keep_shape=True)
+        self.nudged.emit()
+        return True
+
+    def can_undo_nudge(self) -> bool:
+        return bool(self._nudges)
+
+    def readout(self) -> str:
+        """The nudge so far (shift and turn of the structures against the registration) and
+        the contour points' mean distance to the surfaces."""
+        from core.geometry.toolkit import rotation_vector
+
+        if self.transform is None or self.result is None:
+            return "No automatic placement yet: Place models automatically first."
+        move = self.result.transform @ np.linalg.inv(self.transform)     # N, world
+        angle = float(np.degrees(np.linalg.norm(rotation_vector(move[:3, :3]))))
+        structures = self.placed_structures()
+        centre = np.vstack([s.surface_vertices() for s in structures]).mean(axis=0) \
+            if structures else np.zeros(3)
+        shift = float(np.linalg.norm(move[:3, :3] @ centre + move[:3, 3] - centre))
+        text = (f"Nudged {shift:.1f} mm and {angle:.1f}° from the registration "
+                f"({len(self._nudges)} step(s))")
+        with_points = [s for s in structures if len(s.points)]
+        if with_points:
+            n = sum(len(s.points) for s in with_points)
+            mean = sum(s.residual_mm() * len(s.points) for s in with_points) / n
+            text += f"; {n} contour point(s) {mean:.2f} mm from the surfaces on average"
+        else:
+            text += "; draw contour points to see their distance to the surfaces"
+        return text
+
+    def _on_done(self, result) -> None:
+        structures = [s for s in self.state.structures if s.model is not None and not s.locked]
+        self.result = result
+        self.transform = np.asarray(result.transform, dtype=np.float64).copy()
+        self._nudges.clear()
+        self._placed_ids = [s.id for s in structures]
+        placed = self._place_through(self.transform, structures, keep_shape=False)
         self.finished.emit(f"Placed {len(placed)} structure(s) by registration to the template "
                            f"({result.transform_class}, {result.seconds:.1f} s, metric "
                            f"{result.metric:.3f}): {', '.join(placed)}")

@@ -114,7 +114,21 @@ class PlanController(QObject):
 
     def attach_volume_view(self, volume_view) -> None:
         self.volume_overlay = VolumePlanOverlay(self.planning, volume_view)
+        volume_view.frame_points = self.trajectory_points
+        # a new target or entry: the camera frames the whole trajectory again
+        self.planning.events.edited.connect(
+            lambda what: what in ("target", "entry", "planning") and volume_view.reframe())
         self._repaint()
+
+    def trajectory_points(self) -> np.ndarray | None:
+        """The targets and entries of the shown structures' trajectories (the 3D view frames
+        them)."""
+        points = []
+        for s in self.workspace.structures:
+            traj = self.planning.trajectory_of(s) if s.visible else None
+            if traj is not None:
+                points += [traj.entry, traj.target]
+        return np.array(points, dtype=np.float64) if points else None
 
     def _repaint(self) -> None:
         for view in self.window.workspace.views.values():

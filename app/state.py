@@ -144,12 +144,26 @@ class Points:
 
 
 @dataclass(frozen=True)
+class ModelRecord:
+    """Which model a structure holds, with what it took from the model's header."""
+
+    model: ShapeModel | None
+    path: Path | None
+    name: str
+    side: str
+    color: tuple[int, int, int]
+    demo: bool
+
+
+@dataclass(frozen=True)
 class Snapshot:
     points: Points
     coef: np.ndarray | None
     pose: np.ndarray | None
     placement: np.ndarray | None = None
     edits: object = None              # core.geometry.labelmap.ManualEdits (brush / eraser), or None
+    model: ModelRecord | None = None  # None: the snapshot does not change the model
+    absent: bool = False              # before the structure was added: undo removes it
 
 
 @dataclass
@@ -262,10 +276,15 @@ class Structure:
         self.last_fit = None
         self.model_version += 1
         self._surface_version += 1
-        if not self.name:                      # the header's structure description, or the file name
-            info = structure_info(model, self.model_path)
-            self.name, self.side = info.name, self.side or (info.side if info.side in SIDES else "")
-            self.demo = info.demo
+        # one rule however the model came (Load model, the library, a drop, a session without
+        # colours): name, side and colour from the model's header (core.io.model_library), made
+        # distinct from the other structures' by the workspace; what the user set is kept
+        info = structure_info(model, self.model_path)
+        self.demo = info.demo
+        if not self.customised:
+            self.name = info.name
+            self.side = info.side if info.side in SIDES else ""
+            self.color = tuple(int(round(255 * c)) for c in info.color)
         self._notify(self, "model")
         self._notify(self, "surface")
         self._notify(self, "fit_info")
@@ -438,7 +457,22 @@ class Structure:
                         None if self.coef is None else self.coef.copy(),
                         None if self.pose is None else self.pose.copy(),
                         None if self.placement is None else self.placement.copy(),
-                        self.edits)
+                        self.edits,
+                        ModelRecord(self.model, self.model_path, self.name, self.side,
+                                    self.color, self.demo))
+
+    def replace_model(self, model: ShapeModel, path: str | Path | None = None,
+                      coef: np.ndarray | None = None, pose: np.ndarray | None = None) -> None:
+        """Load another model into this structure as one undo step (name, side and colour
+        follow the new model unless the user set them; the points stay)."""
+        self.checkpoint()
+        self.set_model(model, path, coef=coef, pose=pose)
+        self._notify(self, "properties")
+        self._notify(self, "edited")
+
+    def mark_added(self) -> None:
+        """Make the structure's first undo step "not there": undo removes it again."""
+        self.history.push(Snapshot(Points(), None, None, absent=True))
 
     def checkpoint(self) -> None:
         """Record the current state as one undo step (call before an undoable edit)."""
@@ -460,8 +494,13 @@ class Structure:
         self.history.clear()
 
     def _restore(self, snap: Snapshot) -> None:
+        if snap.absent:                        # undoing the structure's addition
+            self._notify(self, "discard")
+            return
         points_differ = snap.points is not self.points
         self.points = snap.points
+        if snap.model is not None and snap.model.model is not self.model:
+            self._restore_model(snap)
         if self.model is not None and snap.coef is not None and len(snap.coef) == self.model.n_factors:
             if snap.placement is not None:
                 self.placement = snap.placement.copy()
@@ -473,6 +512,22 @@ class Structure:
             self._notify(self, "points")
         self._notify(self, "history")
         self._notify(self, "edited")
+
+
+    def _restore_model(self, snap: Snapshot) -> None:
+        record = snap.model
+        self.model, self.model_path = record.model, record.path
+        self.name, self.side, self.color, self.demo = (record.name, record.side, record.color,
+                                                       record.demo)
+        self.coef = None if snap.coef is None else snap.coef.copy()
+        self.pose = None if snap.pose is None else snap.pose.copy()
+        self.placement = None if snap.placement is None else snap.placement.copy()
+        self.last_fit = None
+        self.model_version += 1
+        self._surface_version += 1
+        self.fit_info = FitInfo(residual_mm=self.residual_mm(), kind="restored")
+        for what in ("model", "surface", "fit_info", "properties"):
+            self._notify(self, what)
 
 
 # Per-structure changes re-emitted as the workspace's events of the active structure.
@@ -498,6 +553,9 @@ class WorkspaceState:
         self.sampler: SliceSampler | None = None
         self.image_path: Path | None = None
         self.crosshair = np.zeros(3)
+        # where the user last clicked or moved the crosshair to, not snapped to a voxel centre
+        # (in a slice view: exact in its plane, at the slice's depth)
+        self.picked = np.zeros(3)
         self.window = 1.0
         self.level = 0.5
         self.data_range = (0.0, 1.0)
@@ -539,9 +597,11 @@ class WorkspaceState:
         for name in _ACTIVE_EVENTS:
             getattr(self.events, name)()
 
-    def unused_color(self, preferred: tuple[int, int, int] | None = None) -> tuple[int, int, int]:
-        """``preferred`` if no structure has it, else the first palette colour not in use."""
-        used = {s.color for s in self.structures}
+    def unused_color(self, preferred: tuple[int, int, int] | None = None,
+                     exclude: Structure | None = None) -> tuple[int, int, int]:
+        """``preferred`` if no structure (but ``exclude``) has it, else the first palette
+        colour not in use."""
+        used = {s.color for s in self.structures if s is not exclude}
         if preferred is not None and tuple(preferred) not in used:
             return tuple(int(c) for c in preferred)
         return next((c for c in STRUCTURE_COLORS if c not in used),
@@ -583,6 +643,11 @@ class WorkspaceState:
         return next((s for s in self.structures if s.id == structure_id), None)
 
     def _on_structure(self, structure: Structure, what: str) -> None:
+        if what == "discard":                  # undo of the structure's addition
+            self.remove_structure(structure)
+            return
+        if what == "model" and not structure.customised:   # distinct from the others
+            structure.color = self.unused_color(structure.color, exclude=structure)
         if what == "edited":
             self.events.edited("structure" if structure is not self._active else "points")
             return
@@ -688,6 +753,7 @@ class WorkspaceState:
         self.window, self.level = auto_window(volume.data)
         bounds = volume.world_bounds()
         self.crosshair = self._snap(bounds.mean(axis=0))
+        self.picked = self.crosshair.copy()
         self.events.image()
         self.events.window()
         self.events.crosshair()
@@ -729,10 +795,16 @@ class WorkspaceState:
         return xyz
 
     def set_crosshair(self, xyz: np.ndarray) -> None:
-        """Move the crosshair (world mm); snapped to voxel centres for axis-aligned images."""
-        xyz = self._snap(xyz)
+        """Move the crosshair (world mm); snapped to voxel centres for axis-aligned images.
+        The point itself, unsnapped, is kept as :attr:`picked` (plan points go there)."""
+        xyz = np.asarray(xyz, dtype=np.float64)
         if self.volume is not None:
             lo, hi = self.volume.world_bounds()
+            self.picked = np.clip(xyz, lo, hi)
+        else:
+            self.picked = xyz.copy()
+        xyz = self._snap(xyz)
+        if self.volume is not None:
             xyz = np.clip(xyz, lo, hi)
         if np.allclose(xyz, self.crosshair):
             return
@@ -743,7 +815,9 @@ class WorkspaceState:
         """Move the crosshair ``steps`` slices along the view's normal."""
         frame = FRAMES[frame_name]
         step = self.sampler.step(frame) if self.sampler else 1.0
-        self.set_crosshair(self.crosshair + steps * step * np.asarray(frame.n))
+        self.set_crosshair(self.picked + steps * step * np.asarray(frame.n))
+        axis = int(np.argmax(np.abs(frame.n)))       # on the slice now shown
+        self.picked[axis] = self.crosshair[axis]
 
     def describe(self, point: np.ndarray) -> str:
         """Status-bar text for a world point: RAS mm, voxel index, intensity."""

@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
@@ -35,7 +36,7 @@ from app.file_actions import OPEN_DIALOGS, FileActions
 from app.placement import AutoPlacement
 from app.panels.factors import FactorsPanel
 from app.panels.fit import FitPanel
-from app.panels.side import SidePanel
+from app.panels.side import DrawingBar, SidePanel
 from app.panels.status import CursorReadout, FitReadout
 from app.panels.structures import StructuresPanel
 from app.panels.tools import WINDOW_PRESETS, ToolsPanel
@@ -81,6 +82,7 @@ class MainWindow(QMainWindow):
         self.session_path: Path | None = None
         self.active_view = "axial"
         self._closing = False
+        self._unattended = False           # closing without questions (a recording's end)
         self.recovery_enabled = recovery
         self.unsaved = False
 
@@ -100,9 +102,12 @@ class MainWindow(QMainWindow):
         self.structures_panel.error.connect(self.show_error)
         create_menus(self)
         self.toolbar = create_toolbar(self)
+        self.drawing_bar = DrawingBar(self.tools_panel.count, self.fit_panel.result,
+                                      self.act_undo, self.act_redo)
         self.side_dock = SidePanel([("Structures", self.structures_panel, 0),
                                     ("Tools", self.tools_panel, 0), ("Fit", self.fit_panel, 0),
-                                    ("Deformation factors", self.factors_panel, 1)], self)
+                                    ("Deformation factors", self.factors_panel, 1)], self,
+                                   footer=self.drawing_bar)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.side_dock)
         self.resizeDocks([self.side_dock], [340], Qt.Orientation.Horizontal)
         self.act_side_panel.toggled.connect(lambda on: self._show_segment_controls(
@@ -185,6 +190,39 @@ class MainWindow(QMainWindow):
             raise
         message = self.sessions.overlap_warning() or message
         self.show_message(message + (f" ({notes[0]})" if notes else ""))
+        self.offer_auto_placement(message)
+
+    def structures_at_template(self) -> list:
+        """Structures whose model sits where its file puts it in its template space (not
+        placed on this image: no Place here, no automatic placement, no fit moved it)."""
+        from core.io.model_library import structure_info
+
+        return [s for s in self.state.structures
+                if s.model is not None and not s.locked and structure_info(s.model).template_space
+                and np.allclose(s.pose, s.model.world_transform, atol=1e-6)]
+
+    def offer_auto_placement(self, message: str = "") -> bool:
+        """A new image while models sit at template coordinates: offer *Place models
+        automatically* (the placement itself has Cancel); True if it was started. Declined
+        (or without dialogs), the hint follows the image's ``message`` in the status bar."""
+        from core.registration.volumes import default_template_path
+
+        waiting = self.structures_at_template()
+        image = self.state.image_path
+        if not waiting or image is None or self.auto_place.is_running:
+            return False
+        if Path(os.path.abspath(image)) == Path(os.path.abspath(default_template_path())):
+            return False                 # the template itself: the models are in place
+        names = ", ".join(s.label for s in waiting)
+        question = (f"{names} still sit{'s' if len(waiting) == 1 else ''} at the template's "
+                    f"coordinates, not on this image. Place the models automatically now "
+                    f"(registration to the template; Cancel stops it)?")
+        if not self.ask(question):
+            self.show_message(f"{message + '. ' if message else ''}{names}: at template "
+                              f"coordinates; Edit > Place models automatically (Ctrl+P) puts "
+                              f"them on this image", 12000)
+            return False
+        return self.place_automatically()
 
     def load_model(self, path: str | os.PathLike, coef=None, pose=None) -> None:
         """Load a shape model into the active structure at its stored placement."""
@@ -213,7 +251,10 @@ class MainWindow(QMainWindow):
     def remove_structure(self, structure) -> None:
         self.structures_panel.remove_structure(structure, ask=not self._quiet_errors())
 
-    def import_points(self, path: str | os.PathLike) -> None:
+    def import_points(self, path: str | os.PathLike, structure=None) -> None:
+        """Points from a file into ``structure`` (default: the active one, made active)."""
+        if structure is not None:
+            self.state.set_active(structure)
         self.show_message(self.exports.import_points(path))
 
     def open_path(self, path: str | os.PathLike) -> None:
@@ -332,7 +373,7 @@ class MainWindow(QMainWindow):
         return self.auto_place.start(template, show_dialog=not self._quiet_errors(), **options)
 
     def _on_auto_placed(self, message: str) -> None:
-        self.show_message(message, 10000)
+        self.show_message(message + "; nudge it with Edit > Adjust automatic placement…", 10000)
         if len(self.state.points):
             self.schedule_refit()
 
@@ -418,11 +459,17 @@ class MainWindow(QMainWindow):
         if not image.save(str(path)):
             raise OSError(f"{path}: could not write the screenshot")
 
+    def close_unattended(self) -> None:
+        """Close without asking anything (the end of ``ssm-studio demo --record``): the
+        work is a demo's, and no one is there to answer."""
+        self._unattended = True
+        self.close()
+
     def closeEvent(self, event) -> None:  # noqa: N802
         if self._closing:
             event.accept()
             return
-        if not self.session_actions.confirm_close():
+        if not self._unattended and not self.session_actions.confirm_close():
             event.ignore()
             return
         self._closing = True
@@ -494,7 +541,7 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
             window.unsaved = False
             if start_tour(window, record=record, quit_at_end=record is not None) is None \
                     and record is not None:
-                window.close()
+                window.close_unattended()
 
         QTimer.singleShot(800, play)
     else:

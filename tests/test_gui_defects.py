@@ -13,37 +13,6 @@ from PySide6.QtTest import QTest  # noqa: E402
 from PySide6.QtWidgets import QFileDialog  # noqa: E402
 
 from app import demo  # noqa: E402
-from app.window import MainWindow  # noqa: E402
-
-
-def _need_demo():
-    if demo.demo_image() is None or demo.demo_model() is None:
-        pytest.skip("demo image or model missing from resources/")
-
-
-@pytest.fixture
-def make_window(qtbot, tmp_path, monkeypatch):
-    monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
-    monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
-    made = []
-
-    def make(load_demo=True, size=(1300, 900)):
-        win = MainWindow(with_3d=False, recovery=False)
-        qtbot.addWidget(win)
-        win.resize(*size)
-        if load_demo:
-            _need_demo()
-            win.load_demo()
-        win.show()
-        qtbot.waitExposed(win)
-        made.append(win)
-        return win
-
-    yield make
-    for win in made:
-        win.refit.cancel()
-        win.refit.wait()
-        win.close()
 
 
 def click(view, world):

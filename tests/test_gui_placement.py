@@ -14,26 +14,6 @@ from app.window import MainWindow  # noqa: E402
 
 
 @pytest.fixture
-def moved_case(tmp_path):
-    """A 4 mm copy of the demo template, and the same image moved by a known shift."""
-    from core.io import load_volume, save_volume
-
-    if demo.demo_image() is None or demo.demo_model() is None:
-        pytest.skip("demo image or model missing from resources/")
-    image = load_volume(demo.demo_image())
-    coarse = image.affine @ np.diag([4.0, 4.0, 4.0, 1.0])
-    data = image.data[::4, ::4, ::4].astype(np.float32)
-    template = tmp_path / "template.nii.gz"
-    save_volume(template, data, coarse)
-    shift = np.array([9.0, -6.0, 4.0])
-    moved = coarse.copy()
-    moved[:3, 3] += shift
-    patient = tmp_path / "patient.nii.gz"
-    save_volume(patient, data, moved)
-    return template, patient, shift
-
-
-@pytest.fixture
 def window(qtbot, tmp_path, monkeypatch):
     monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
     monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")

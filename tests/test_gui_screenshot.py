@@ -12,8 +12,9 @@ from PySide6.QtCore import QPoint  # noqa: E402
 from PySide6.QtGui import QImage  # noqa: E402
 
 from app import demo  # noqa: E402
-from app.views.slice_view import CONTOUR_COLOR  # noqa: E402
 from app.window import MainWindow, run_gui  # noqa: E402
+from core.io import load_model  # noqa: E402
+from core.io.model_library import structure_info  # noqa: E402
 
 
 def _need_demo():
@@ -28,9 +29,21 @@ def _rgb(image: QImage) -> np.ndarray:
     return buf[:, : 3 * w].reshape(h, w, 3).copy()
 
 
+def _demo_color() -> np.ndarray:
+    """The demo structure's colour: its model header's (issue 29: one colour rule)."""
+    return np.round(255 * np.array(structure_info(load_model(demo.demo_model())).color))
+
+
 def _contour_pixels(rgb: np.ndarray) -> int:
-    target = np.array([CONTOUR_COLOR.red(), CONTOUR_COLOR.green(), CONTOUR_COLOR.blue()])
+    target = _demo_color()
     return int(np.sum(np.all(np.abs(rgb.astype(int) - target) <= [12, 25, 30], axis=-1)))
+
+
+def _tinted(rgb: np.ndarray, color: np.ndarray, amount: float = 20.0) -> np.ndarray:
+    """Pixels whose colour leans towards ``color`` by more than ``amount`` (grey: 0)."""
+    tint = rgb.astype(float) - rgb.astype(float).mean(axis=-1, keepdims=True)
+    ref = color - color.mean()
+    return tint @ (ref / np.linalg.norm(ref)) > amount
 
 
 def _demo_window_with_3d(qtbot, tmp_path, monkeypatch, size=(1400, 900)) -> MainWindow:
@@ -64,11 +77,10 @@ def test_window_screenshot_shows_contours_in_each_slice_view(qtbot, tmp_path, mo
         crop = crops[name]
         assert crop.std() > 30, name
         assert _contour_pixels(crop) > 40, name
-    # the 3D view rendered the slice planes (grey texture) and the orange-tinted surface
+    # the 3D view rendered the slice planes (grey texture) and the structure-tinted surface
     crop3d = crops["3d"].astype(int)
     assert crop3d.std() > 15
-    orange = (crop3d[..., 0] > crop3d[..., 2] + 60) & (crop3d[..., 1] > crop3d[..., 2] + 20)
-    assert orange.sum() > 100
+    assert _tinted(crop3d, _demo_color()).sum() > 100
     # touching a factor slider colours the 3D surface by that factor's displacement
     view3d = window.workspace.volume_view
     model = window.state.model

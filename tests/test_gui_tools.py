@@ -75,11 +75,11 @@ def test_label_overlay_is_the_exported_map_and_its_volume_is_shown(window, qtbot
     qtbot.waitUntil(lambda: f"{shown:,.0f} mm³" in window.volume_label.text(), timeout=2000)
     # fill colours the pixels inside; opacity 0 leaves the image as it was
     window.label_panel.outline.setChecked(False)
-    x, y = view.world_to_screen(_inside_point(window, view))
+    x, y = view.world_to_screen(_inside_point(window, view)) + 3   # off the crosshair's lines
     filled = view.grab().toImage().pixelColor(int(x), int(y))
     window.label_panel.opacity.setValue(0)
     plain = view.grab().toImage().pixelColor(int(x), int(y))
-    assert filled.red() - filled.blue() > plain.red() - plain.blue() + 20  # orange tint
+    assert _towards(filled, s.color) > _towards(plain, s.color) + 12  # the structure's tint
     window.label_panel.opacity.setValue(60)
     assert window.labels.opacity == pytest.approx(0.6)
     # outline and fill switch independently
@@ -384,6 +384,14 @@ def test_every_shortcut_is_unique_and_listed_in_help_and_readme(window):
         assert f"| {key} |" in readme, key
 
 
+def _towards(pixel, color) -> float:
+    """How far ``pixel`` leans from grey towards the hue of ``color`` (RGB units; grey: 0):
+    a fill in the structure's colour raises it."""
+    rgb = np.array([pixel.red(), pixel.green(), pixel.blue()], dtype=float)
+    hue = np.asarray(color, dtype=float) - np.mean(color)
+    return float((rgb - rgb.mean()) @ hue / np.linalg.norm(hue))
+
+
 def test_label_fill_follows_the_surface_on_every_repaint(window, qtbot):
     """The slice images of the fill are cached per view: moving the surface (a refit) must
     repaint the new fill, not the cached old one."""
@@ -391,13 +399,13 @@ def test_label_fill_follows_the_surface_on_every_repaint(window, qtbot):
     s = window.state.active
     window.label_panel.outline.setChecked(False)
     inside = _inside_point(window, view)
-    x, y = view.world_to_screen(inside)
+    x, y = view.world_to_screen(inside) + 3           # off the crosshair's lines
     tinted = view.grab().toImage().pixelColor(int(x), int(y))
     pose = s.pose.copy()
     pose[:3, 3] += (40.0, 0.0, 0.0)           # the whole structure 40 mm to the side
     s.set_surface(s.coef, pose, s.surface_vertices() + (40.0, 0.0, 0.0))
     moved = view.grab().toImage().pixelColor(int(x), int(y))
-    assert tinted.red() - tinted.blue() > moved.red() - moved.blue() + 20   # no fill left here
+    assert _towards(tinted, s.color) > _towards(moved, s.color) + 12   # no fill left here
     x2, y2 = view.world_to_screen(inside + (40.0, 0.0, 0.0))
     again = view.grab().toImage().pixelColor(int(x2), int(y2))
-    assert again.red() - again.blue() > moved.red() - moved.blue() + 20    # it moved along
+    assert _towards(again, s.color) > _towards(moved, s.color) + 12    # it moved along

@@ -68,10 +68,9 @@ class FitPanel(QWidget):
         row.addStretch(1)
         row.addWidget(self.refit_button)
         layout.addLayout(row)
-        self.result = QLabel()
+        self.result = QLabel()          # shown in the side panel's drawing bar (app.panels.side)
         self.result.setObjectName("fit-result")
         self.result.setWordWrap(True)
-        layout.addWidget(self.result)
         layout.addStretch(1)
         for widget in (self.method, self.pose):
             widget.currentIndexChanged.connect(self.settings_changed)

@@ -3,15 +3,21 @@ probe's-eye view, how sure the fit is, and the plan export.
 
 Widgets and wiring only: the state is :class:`app.planning.PlanningState`; geometry comes from
 ``core.planning.frames``, the posterior from ``core.reconstruction.uncertainty``, the files from
-``core.planning.report``. Points are set at the crosshair (move it in any slice view, then press
-the button), as in frame-based planning software.
+``core.planning.report``. Points are set where the user last clicked in a slice view (the
+crosshair's unsnapped point, :attr:`app.state.WorkspaceState.picked`: sub-voxel in the view's
+plane), or typed as "x, y, z" (world RAS mm) in their fields, as in frame-based planning
+software.
 """
 
 from __future__ import annotations
 
+import re
+
+import numpy as np
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QCheckBox, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
-                               QPushButton, QSizePolicy, QSlider, QVBoxLayout, QWidget)
+                               QLineEdit, QPushButton, QSlider, QToolButton, QVBoxLayout,
+                               QWidget)
 
 from app.planning import LANDMARK_LABELS, LANDMARKS, PlanningState
 from app.views.plan_overlays import ProbeView
@@ -20,6 +26,43 @@ from core.planning.frames import format_acpc
 
 def _xyz(p) -> str:
     return "not set" if p is None else f"({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f})"
+
+
+def _field_text(p) -> str:
+    return "" if p is None else f"{p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}"
+
+
+def parse_xyz(text: str) -> np.ndarray | None:
+    """World coordinates typed as "x, y, z" (commas, spaces or semicolons; brackets allowed);
+    None for an empty field; ValueError for anything else."""
+    parts = [p for p in re.split(r"[\s,;()\[\]]+", text.strip()) if p]
+    if not parts:
+        return None
+    try:
+        xyz = np.array([float(p) for p in parts], dtype=np.float64)
+    except ValueError:
+        raise ValueError(f"'{text.strip()}' is not three numbers x, y, z (mm)") from None
+    if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
+        raise ValueError(f"'{text.strip()}' is not three numbers x, y, z (mm)")
+    return xyz
+
+
+def _coordinate_field(name: str, tip: str) -> QLineEdit:
+    field = QLineEdit()
+    field.setObjectName(name)
+    field.setPlaceholderText("x, y, z mm")
+    field.setToolTip(tip + ": type world coordinates (RAS mm) and press Enter")
+    # wide enough for "-100.00, -100.00, -100.00": the coordinates are never cut
+    field.setMinimumWidth(field.fontMetrics().horizontalAdvance("-100.00, -100.00, -100.00") + 12)
+    return field
+
+
+def _small_button(text: str, tip: str, slot) -> QToolButton:
+    button = QToolButton()
+    button.setText(text)
+    button.setToolTip(tip)
+    button.clicked.connect(slot)
+    return button
 
 
 class PlanningPanel(QWidget):
@@ -56,23 +99,20 @@ class PlanningPanel(QWidget):
     def _landmark_box(self) -> QGroupBox:
         box = QGroupBox("AC-PC landmarks")
         grid = QGridLayout(box)
-        self.landmark_labels: dict[str, QLabel] = {}
+        grid.setColumnStretch(1, 1)
+        self.landmark_labels: dict[str, QLineEdit] = {}
         for row, name in enumerate(LANDMARKS):
-            grid.addWidget(QLabel(LANDMARK_LABELS[name]), row, 0)
-            label = QLabel()
-            label.setObjectName(f"landmark-{name}")
-            # narrow docks: the coordinates give way before the buttons do
-            label.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
-            grid.addWidget(label, row, 1)
-            self.landmark_labels[name] = label
-            set_button = QPushButton("Set")
-            set_button.setToolTip(f"Put {LANDMARK_LABELS[name]} at the crosshair")
-            set_button.clicked.connect(lambda _=False, n=name: self.set_landmark(n))
-            go = QPushButton("Go")
-            go.setToolTip(f"Move the crosshair to {LANDMARK_LABELS[name]}")
-            go.clicked.connect(lambda _=False, n=name: self.go_to(self.planning.landmarks[n]))
-            grid.addWidget(set_button, row, 2)
-            grid.addWidget(go, row, 3)
+            label = LANDMARK_LABELS[name]
+            grid.addWidget(QLabel(label), row, 0)
+            field = _coordinate_field(f"landmark-{name}", label)
+            field.editingFinished.connect(lambda n=name, f=field: self._typed_landmark(n, f))
+            grid.addWidget(field, row, 1)
+            self.landmark_labels[name] = field
+            grid.addWidget(_small_button("Set", f"Put {label} where you last clicked",
+                                         lambda _=False, n=name: self.set_landmark(n)), row, 2)
+            grid.addWidget(_small_button("Go", f"Move the crosshair to {label}",
+                                         lambda _=False, n=name: self.go_to(
+                                             self.planning.landmarks[n])), row, 3)
         self.frame_label = QLabel()
         self.frame_label.setWordWrap(True)
         grid.addWidget(self.frame_label, len(LANDMARKS), 0, 1, 4)
@@ -93,19 +133,35 @@ class PlanningPanel(QWidget):
         self.target_label = QLabel()
         self.target_label.setWordWrap(True)
         grid.addWidget(self.target_label, 0, 0, 1, 2)
-        buttons = [("Target at crosshair", self.set_target_here),
-                   ("Model target", lambda: self.planning.set_target(self.workspace.active, None)),
-                   ("Entry at crosshair", self.set_entry_here),
-                   ("Clear entry", lambda: self.planning.set_entry(self.workspace.active, None))]
-        for i, (text, slot) in enumerate(buttons):
+        fields = QGridLayout()
+        fields.setColumnStretch(1, 1)
+        self.target_field = _coordinate_field("target-field", "Target")
+        self.target_field.editingFinished.connect(
+            lambda: self._typed_point(self.planning.set_target, self.target_field))
+        self.entry_field = _coordinate_field("entry-field", "Entry")
+        self.entry_field.editingFinished.connect(
+            lambda: self._typed_point(self.planning.set_entry, self.entry_field))
+        for row, (text, field) in enumerate((("Target", self.target_field),
+                                             ("Entry", self.entry_field))):
+            fields.addWidget(QLabel(text), row, 0)
+            fields.addWidget(field, row, 1)
+        grid.addLayout(fields, 1, 0, 1, 2)
+        buttons = [("Target here", "Put the target where you last clicked", self.set_target_here),
+                   ("Model target", "Back to the target the model defines",
+                    lambda: self.planning.set_target(self.workspace.active, None)),
+                   ("Entry here", "Put the entry where you last clicked", self.set_entry_here),
+                   ("Clear entry", "No trajectory",
+                    lambda: self.planning.set_entry(self.workspace.active, None))]
+        for i, (text, tip, slot) in enumerate(buttons):
             button = QPushButton(text)
+            button.setToolTip(tip)
             button.clicked.connect(slot)
-            grid.addWidget(button, 1 + i // 2, i % 2)
+            grid.addWidget(button, 2 + i // 2, i % 2)
         self.trajectory_label = QLabel()
         self.trajectory_label.setObjectName("trajectory-readout")
         self.trajectory_label.setWordWrap(True)
         self.trajectory_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
-        grid.addWidget(self.trajectory_label, 3, 0, 1, 2)
+        grid.addWidget(self.trajectory_label, 4, 0, 1, 2)
         return box
 
     def _probe_box(self) -> QGroupBox:
@@ -139,17 +195,42 @@ class PlanningPanel(QWidget):
         return box
 
     # -- actions -------------------------------------------------------------------------------
-    def set_landmark(self, name: str) -> None:
-        self.planning.set_landmark(name, self.workspace.crosshair)
+    def set_landmark(self, name: str, xyz=None) -> None:
+        """AC, PC or the midline point at ``xyz`` (default: where the user last clicked)."""
+        self.planning.set_landmark(name, self.workspace.picked if xyz is None else xyz)
         problem = self.planning.frame_problem()
         if problem and all(self.planning.landmarks[n] is not None for n in LANDMARKS):
             self.message.emit(f"AC-PC frame refused: {problem}")
 
     def set_target_here(self) -> None:
-        self.planning.set_target(self.workspace.active, self.workspace.crosshair)
+        self.planning.set_target(self.workspace.active, self.workspace.picked)
 
     def set_entry_here(self) -> None:
-        self.planning.set_entry(self.workspace.active, self.workspace.crosshair)
+        self.planning.set_entry(self.workspace.active, self.workspace.picked)
+
+    def _typed_landmark(self, name: str, field: QLineEdit) -> None:
+        self._typed(field, self.planning.landmarks[name],
+                    lambda xyz: self.set_landmark(name, xyz) if xyz is not None
+                    else self.planning.set_landmark(name, None))
+
+    def _typed_point(self, setter, field: QLineEdit) -> None:
+        active = self.workspace.active
+        current = (self.planning.targets.get(active.id) if setter == self.planning.set_target
+                   else self.planning.entry_of(active))
+        self._typed(field, current, lambda xyz: setter(active, xyz))
+
+    def _typed(self, field: QLineEdit, current, apply) -> None:
+        """Apply typed coordinates if they changed; a bad entry is said and put back."""
+        try:
+            xyz = parse_xyz(field.text())
+        except ValueError as exc:
+            self.message.emit(str(exc))
+            self.refresh()
+            return
+        same = (xyz is None and current is None) or (
+            xyz is not None and current is not None and np.allclose(xyz, current, atol=5e-3))
+        if not same:
+            apply(xyz)
 
     def go_to(self, xyz) -> None:
         if xyz is not None:
@@ -167,8 +248,9 @@ class PlanningPanel(QWidget):
     def refresh(self) -> None:
         planning, active = self.planning, self.workspace.active
         frame = planning.frame()
-        for name, label in self.landmark_labels.items():
-            label.setText(_xyz(planning.landmarks[name]))
+        for name, field in self.landmark_labels.items():
+            if not field.hasFocus():
+                field.setText(_field_text(planning.landmarks[name]))
         problem = planning.frame_problem()
         self.frame_label.setText(f"AC-PC distance {frame.ac_pc_distance:.1f} mm" if frame
                                  else (problem or "")[:1].upper() + (problem or "")[1:])
@@ -178,6 +260,12 @@ class PlanningPanel(QWidget):
         if target is not None and frame is not None:
             text += "\n" + format_acpc(frame.to_acpc(target))
         self.target_label.setText(text)
+        for field, value in ((self.target_field, None if planning.target_is_default(active)
+                              else target), (self.entry_field, planning.entry_of(active))):
+            if not field.hasFocus():
+                field.setText(_field_text(value))
+        self.target_field.setPlaceholderText(_field_text(target) if target is not None
+                                             else "x, y, z mm")
         traj = planning.trajectory_of(active)
         self.trajectory_label.setText(self._trajectory_text(traj, frame))
         length2 = 0 if traj is None else int(round(2 * (traj.length + 10.0)))

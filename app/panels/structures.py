@@ -54,11 +54,12 @@ class StructuresPanel(QWidget):
         for column in (VISIBLE, COLOR, SIDE, LOCK):
             header.setSectionResizeMode(column, QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(NAME, QHeaderView.ResizeMode.Stretch)
-        header.setSectionResizeMode(MODEL, QHeaderView.ResizeMode.Interactive)
-        header.resizeSection(MODEL, 90)
+        # the model file is in the name's tooltip: in a 300-pixel dock a Model column left
+        # the names "cau..." (issue 29)
+        self.table.setColumnHidden(MODEL, True)
         self.table.setWordWrap(False)
         self.table.setTextElideMode(Qt.TextElideMode.ElideRight)
-        self.table.setMaximumHeight(150)
+        self.table.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAsNeeded)
         layout.addWidget(self.table)
         row = QHBoxLayout()
         self.add_button = QToolButton()
@@ -93,7 +94,16 @@ class StructuresPanel(QWidget):
                 self._fill_row(row, s)
         finally:
             self._syncing = False
+        self._fit_height()
         self._select_active()
+
+    def _fit_height(self) -> None:
+        """As tall as its rows (two to six): no empty rows taking the drawing bar's room."""
+        rows = min(max(self.table.rowCount(), 2), 6)
+        row_height = self.table.verticalHeader().defaultSectionSize()
+        height = (self.table.horizontalHeader().sizeHint().height() + rows * row_height
+                  + 2 * self.table.frameWidth() + 2)
+        self.table.setFixedHeight(height)
 
     def _fill_row(self, row: int, s: Structure) -> None:
         flags = Qt.ItemFlag
@@ -108,11 +118,11 @@ class StructuresPanel(QWidget):
         swatch.setData(Qt.ItemDataRole.DecorationRole, QColor(*s.color))   # shown when selected too
         swatch.setToolTip("Double-click to change the colour")
         self.table.setItem(row, COLOR, swatch)
+        model = "—" if s.model_path is None else s.model_path.name + (" (demo)" if s.demo else "")
         name = QTableWidgetItem(s.name or "(unnamed)")
         name.setFlags(flags.ItemIsEnabled | flags.ItemIsSelectable | flags.ItemIsEditable)
-        name.setToolTip("Double-click to rename")
+        name.setToolTip(f"{s.label}: model {model}. Double-click to rename")
         self.table.setItem(row, NAME, name)
-        model = "—" if s.model_path is None else s.model_path.name + (" (demo)" if s.demo else "")
         item = QTableWidgetItem(model)
         item.setFlags(flags.ItemIsEnabled | flags.ItemIsSelectable)
         item.setToolTip(str(s.model_path) if s.model_path else "No model: add one from a file")

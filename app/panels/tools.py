@@ -43,8 +43,7 @@ class ToolsPanel(QWidget):
         grid = QGridLayout()
         buttons = [("Place here", window.act_place), ("Place automatically", window.act_auto_place),
                    ("Reset pose", window.act_reset_pose), ("Reset views", window.act_reset_views),
-                   ("Clear slice", window.act_clear_slice), ("Clear all", window.act_clear_points),
-                   ("Undo", window.act_undo), ("Redo", window.act_redo)]
+                   ("Clear slice", window.act_clear_slice), ("Clear all", window.act_clear_points)]
         for i, (text, action) in enumerate(buttons):
             button = QPushButton(text)
             button.setToolTip(action.toolTip() or action.text())
@@ -53,8 +52,7 @@ class ToolsPanel(QWidget):
             button.setEnabled(action.isEnabled())
             grid.addWidget(button, i // 2, i % 2)
         layout.addLayout(grid)
-        self.count = QLabel()
-        layout.addWidget(self.count)
+        self.count = QLabel()           # shown in the side panel's drawing bar (app.panels.side)
         self.state = window.state
         self.state.events.points.connect(self._count)
         self._count()

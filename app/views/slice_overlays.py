@@ -105,10 +105,15 @@ _SPRITES: dict[tuple, QImage] = {}     # outlined label texts, rendered once
 _SPRITE_PAD = 3
 
 
+BACKDROP_COLOR = QColor(0, 0, 0, 170)    # behind the slice title and W/L: bright slices
+BACKDROPPED = ("title", "window")        # the read-outs (the letters are big and bold)
+
+
 def _sprite(text: str, color: QColor, font: QFont, width: float, height: float,
-            ratio: float) -> QImage:
-    """The outlined text as a transparent image (five text draws once, then one blit)."""
-    key = (text, color.rgba(), font.key(), round(width, 2), round(height, 2), ratio)
+            ratio: float, backdrop: bool = False) -> QImage:
+    """The outlined text as a transparent image (five text draws once, then one blit); with
+    ``backdrop``, on a dark translucent box that keeps it readable over white."""
+    key = (text, color.rgba(), font.key(), round(width, 2), round(height, 2), ratio, backdrop)
     image = _SPRITES.get(key)
     if image is None:
         if len(_SPRITES) > 512:
@@ -120,6 +125,11 @@ def _sprite(text: str, color: QColor, font: QFont, width: float, height: float,
         image.setDevicePixelRatio(ratio)
         image.fill(0)
         p = QPainter(image)
+        if backdrop:
+            p.setRenderHint(QPainter.RenderHint.Antialiasing)
+            p.setPen(Qt.PenStyle.NoPen)
+            p.setBrush(BACKDROP_COLOR)
+            p.drawRoundedRect(QRectF(0, 0, w, h), 3, 3)
         p.setFont(font)
         outlined_text(p, QRectF(pad, pad, width, height), Qt.AlignmentFlag.AlignCenter, text,
                       color)
@@ -130,9 +140,10 @@ def _sprite(text: str, color: QColor, font: QFont, width: float, height: float,
 
 def paint_labels(view, painter: QPainter) -> None:
     ratio = float(view.devicePixelRatioF())
-    for rect, text, color, font in view.label_layout().values():
+    for name, (rect, text, color, font) in view.label_layout().items():
         rect = rect.adjusted(-2, 0, 2, 0)
-        image = _sprite(text, color, font, rect.width(), rect.height(), ratio)
+        image = _sprite(text, color, font, rect.width(), rect.height(), ratio,
+                        name in BACKDROPPED)
         painter.drawImage(QPointF(rect.left() - _SPRITE_PAD, rect.top() - _SPRITE_PAD), image)
     if view.hasFocus():
         w, h = view.width(), view.height()

@@ -33,6 +33,7 @@ INACTIVE_OPACITY = 0.3                # the other structures are dimmed
 VIEW_DIRECTION = np.array([-0.55, 0.75, 0.45]) / math.sqrt(0.55**2 + 0.75**2 + 0.45**2)
 FACTOR_SCALARS = "factor displacement (mm per SD)"
 MAX_DEFER_S = 0.5
+MIN_CAMERA_DISTANCE = 90.0    # mm: a small structure is seen with its surroundings
 RENDER_DELAY_MS = 10          # lets the slice views paint first (they are the user's focus)
 COALESCE_MS = 60              # an edit and the refit it starts: one render
 MIN_RENDER_INTERVAL_S = 0.05
@@ -75,6 +76,7 @@ class VolumeView(QWidget):
         self._new_models: set[int] = set()     # structures whose mesh must be rebuilt
         self._notes: dict[str, str] = {}       # corner notes shown (orientation, plausibility)
         self._camera_set = False
+        self.frame_points = lambda: None   # more points the camera frames (the plan's)
         # named extra meshes (trajectory, targets, ellipsoids): name -> (mesh or None, style)
         self._overlays: dict[str, tuple[pv.PolyData | None, dict]] = {}
         self._overlay_actors: dict[str, tuple] = {}   # name -> (actor, its mesh, style)
@@ -385,13 +387,38 @@ class VolumeView(QWidget):
             self._points_mesh, color=POINT_COLOR, point_size=9,
             render_points_as_spheres=True, name="points", reset_camera=False, render=False)
 
+    def reframe(self) -> None:
+        """Frame the scene again (e.g. a trajectory was planned)."""
+        self._mark("camera")
+
+    def framed_points(self) -> np.ndarray | None:
+        """What the camera frames: every shown structure and :attr:`frame_points` (the plan's
+        targets and entries), or None when there is none of these."""
+        parts = [s.surface_vertices() for s in self.state.structures
+                 if s.visible and s.model is not None]
+        extra = self.frame_points()
+        if extra is not None and len(extra):
+            parts.append(np.asarray(extra, dtype=np.float64).reshape(-1, 3))
+        return np.vstack(parts) if parts else None
+
     def reset_camera(self) -> None:
-        """Look at the active structure (or the image) from anterior-left-superior."""
-        vertices = self.state.surface_vertices()
-        if vertices is not None:
-            center = vertices.mean(axis=0)
-            distance = max(math.dist(vertices.max(axis=0), vertices.min(axis=0)) * 2.8, 90.0)
-        elif self.state.volume is not None:
+        """Look at the structures and the planned trajectories (or the image) from
+        anterior-left-superior, all of them in the frame (VTK's ResetCamera on their bounds:
+        the bounding sphere fits the view angle), never closer than MIN_CAMERA_DISTANCE."""
+        points = self.framed_points()
+        if points is not None:
+            lo, hi = points.min(axis=0), points.max(axis=0)
+            center = (lo + hi) / 2
+            self.plotter.camera_position = [tuple(center + 100.0 * VIEW_DIRECTION),
+                                            tuple(center), (0, 0, 1)]
+            self.plotter.renderer.ResetCamera(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+            camera = self.plotter.camera
+            if camera.distance < MIN_CAMERA_DISTANCE:
+                camera.position = tuple(center + MIN_CAMERA_DISTANCE * VIEW_DIRECTION)
+            self.plotter.reset_camera_clipping_range()
+            self._camera_set = True
+            return
+        if self.state.volume is not None:
             lo, hi = self.state.volume.world_bounds()
             center, distance = (lo + hi) / 2, math.dist(hi, lo) * 1.6
         else:

@@ -106,6 +106,11 @@ def default_color(name: str) -> tuple[float, float, float]:
     return FALLBACK_COLOR
 
 
+def structure_from_name(text: str) -> StructureInfo:
+    """The structure a free-text name means ('left_caudate', 'caudate nucleus (left)')."""
+    return _from_name(text.replace("(", " ").replace(")", " "))
+
+
 def _from_name(text: str) -> StructureInfo:
     """Structure guessed from a file or structure name ('left_caudate', 'Right-Thalamus')."""
     words = text.replace("_", " ").replace("-", " ").split()

@@ -206,6 +206,22 @@ def is_markups_file(path: str | os.PathLike) -> bool:
     return b'"markups"' in head or b"markups-schema" in head
 
 
+def markups_name(path: str | os.PathLike) -> str | None:
+    """The name a 3D Slicer markups file gives its (first) node, or None without one
+    (markups schema v1.0.3: ``markups[i].name``; older files have none)."""
+    try:
+        doc = _read_json(Path(path))
+    except (DataFileError, OSError):
+        return None
+    markups = doc.get("markups") if isinstance(doc, dict) else None
+    if isinstance(markups, list):
+        for markup in markups:
+            name = markup.get("name") if isinstance(markup, dict) else None
+            if isinstance(name, str) and name.strip():
+                return name.strip()
+    return None
+
+
 def _load_points_markups(path: Path) -> PointSet:
     doc = _read_json(path)
     markups = doc.get("markups") if isinstance(doc, dict) else None

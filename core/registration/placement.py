@@ -44,3 +44,19 @@ def placement_through(model: ShapeModel, image_to_template: np.ndarray) -> np.nd
     if t.shape != (4, 4) or not np.all(np.isfinite(t)) or abs(np.linalg.det(t[:3, :3])) < 1e-9:
         raise ValueError("the image-to-template transform must be a finite, invertible 4x4 matrix")
     return np.linalg.inv(t) @ model.world_transform
+
+
+def nudged(image_to_template: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+           centre: np.ndarray) -> np.ndarray:
+    """The registration moved by hand: structures placed through the result turn by the
+    rotation vector ``rotation`` (axis * angle, radians) about ``centre`` and then shift by
+    ``translation`` (image world, mm). With N that rigid map, inv(T') = N @ inv(T), so
+    ``placement_through(model, T') = N @ placement_through(model, T)``; returns T'."""
+    from core.geometry.toolkit import rodrigues
+
+    rot = rodrigues(np.asarray(rotation, dtype=np.float64))
+    centre = np.asarray(centre, dtype=np.float64)
+    move = np.eye(4)
+    move[:3, :3] = rot
+    move[:3, 3] = centre - rot @ centre + np.asarray(translation, dtype=np.float64)
+    return np.asarray(image_to_template, dtype=np.float64) @ np.linalg.inv(move)
