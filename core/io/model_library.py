@@ -5,12 +5,19 @@ under ``info["structure"]``::
 
     {"name": "caudate nucleus", "side": "left", "color": [0.20, 0.63, 0.17],
      "template_space": "MNI152NLin2009aSym", "demo": true,
-     "target": [x, y, z]}            # optional default target, model frame mm
+     "target": [x, y, z],            # optional default target, model frame mm
+     "target_name": "dorsolateral (motor) STN",   # optional: what the target is
+     "source_space": "MNI152NLin2009cAsym"}       # optional: the atlas's own space
 
 ``side`` is ``"left"``, ``"right"`` or ``"midline"`` (or empty when unknown); ``color`` is RGB
 in 0..1 (as 3D Slicer's segment colours); ``template_space`` names the image space the model's
 ``world_transform`` places it in (the models' template image for automatic placement);
-``demo`` marks models built from synthetic populations, which are shown as such. Files
+``demo`` marks models built from synthetic populations, which are shown as such. ``target``
+is a point of the model frame: it is anchored to the mean shape's vertices
+(``core.planning.frames.anchored_point_weights``) and carried to the fitted shape, so the target
+moves with the fit; ``source_space`` names the space of the atlas a model was derived from
+when it differs from ``template_space`` (the CIT168 models: derived in MNI152NLin2009cAsym,
+placed on the 2009a template by a measured translation, ``info.atlas``). Files
 written before this description existed still open: their structure is derived from the file
 name.
 
@@ -43,6 +50,10 @@ DEFAULT_COLORS = {
     "pallidum": (0.05, 0.19, 1.0),
     "thalamus": (0.0, 0.46, 0.05),
     "subthalamic": (0.93, 0.68, 0.05),
+    "pallidus internus": (0.05, 0.19, 1.0),
+    "pallidus externus": (0.37, 0.55, 1.0),
+    "red nucleus": (0.86, 0.08, 0.24),
+    "nigra": (0.36, 0.24, 0.55),
 }
 FALLBACK_COLOR = (0.95, 0.65, 0.10)
 
@@ -57,6 +68,8 @@ class StructureInfo:
     template_space: str = ""
     demo: bool = False
     target: tuple[float, float, float] | None = None
+    target_name: str = ""
+    source_space: str = ""
 
     def __post_init__(self) -> None:
         if self.side not in SIDES:
@@ -85,6 +98,9 @@ class StructureInfo:
             out.pop("target")
         else:
             out["target"] = list(self.target)
+        for key in ("target_name", "source_space"):  # absent when empty: older headers as they were
+            if not out[key]:
+                out.pop(key)
         return out
 
     @classmethod
@@ -94,7 +110,9 @@ class StructureInfo:
         return cls(name=doc["name"], side=str(doc.get("side", "")),
                    color=tuple(doc.get("color", default_color(doc["name"]))),
                    template_space=str(doc.get("template_space", "")),
-                   demo=bool(doc.get("demo", False)), target=doc.get("target"))
+                   demo=bool(doc.get("demo", False)), target=doc.get("target"),
+                   target_name=str(doc.get("target_name", "")),
+                   source_space=str(doc.get("source_space", "")))
 
 
 def default_color(name: str) -> tuple[float, float, float]:

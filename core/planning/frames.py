@@ -30,20 +30,35 @@ Crossings of a trajectory with a closed triangle surface are found exactly (vect
 Moeller-Trumbore ray/triangle intersection); whether each crossing enters or leaves follows
 from the sign of the triangle normal against the direction (outward, consistently oriented
 normals, as every surface SSM Studio builds has).
+
+Warnings (:func:`trajectory_warnings`), what a neurosurgeon checks before accepting a plan:
+the target outside its own structure (with its distance to the surface), the path from the
+entry to the target crossing another structure or the ventricles (where it enters and
+leaves), or passing closer than a margin to one (the closest approach along the path, from
+the exact signed distance of points every ``step_mm`` along it, :func:`path_distances`).
+The ventricles are the demo template's (``resources/ventricles_mni09a.vtk``, derived from its
+tissue maps by ``resources/make_demo.py``), placed on the image as the library models are.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from core.geometry.toolkit import closest_points_on_surface, signed_surface_distance
 from core.geometry.mesh import volume as mesh_volume
 
 #: AC and PC closer than this (mm) are refused: in adults they are ~23-28 mm apart.
 MIN_AC_PC_MM = 5.0
 #: The midline point must lie at least this far (mm) from the AC-PC line.
 MIN_MIDLINE_OFFSET_MM = 5.0
+#: A path passing closer than this (mm) to a structure it does not cross is warned about.
+PATH_MARGIN_MM = 2.0
+#: The demo template's ventricles (make_demo.py), template world RAS mm.
+VENTRICLES_FILE = Path(__file__).resolve().parent.parent / "resources" / "ventricles_mni09a.vtk"
+VENTRICLES_NAME = "ventricles"
 
 
 class PlanningError(ValueError):
@@ -296,3 +311,84 @@ def anchored_point_weights(vertices: np.ndarray, point, k: int = 8) -> tuple[np.
 def anchored_point(vertices: np.ndarray, indices: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """The point anchored by :func:`anchored_point_weights` on (possibly deformed) vertices."""
     return np.asarray(weights) @ np.asarray(vertices, dtype=np.float64)[np.asarray(indices)]
+
+
+def path_distances(trajectory: Trajectory, structures, step_mm: float = 0.5) -> list[dict]:
+    """Per structure (objects with ``name``, ``vertices``, ``faces``), from the entry to the
+    target: the closest approach of the path (signed: negative when the path is inside), the
+    depth where it happens, and the (enter, leave) depths where the path is inside."""
+    n = max(2, int(np.ceil(trajectory.length / float(step_mm))) + 1)
+    depths = np.linspace(0.0, trajectory.length, n)
+    samples = trajectory.entry + depths[:, None] * trajectory.direction
+    rows = []
+    for s in structures:
+        # the sign from the path's exact inside intervals (cheaper than winding numbers)
+        inside = trajectory.segments_inside(s.vertices, s.faces)
+        _, d = closest_points_on_surface(samples, s.vertices, s.faces)
+        within = np.zeros(len(depths), bool)
+        for a, b in inside:
+            within |= (depths >= a) & (depths <= b)
+        d = np.where(within, -d, d)
+        k = int(np.argmin(d))
+        rows.append({"structure": s.name, "min_distance_mm": float(d[k]),
+                     "at_depth_mm": float(depths[k]), "inside": [list(iv) for iv in inside]})
+    return rows
+
+
+def trajectory_warnings(trajectory: Trajectory, target_structure, structures, *,
+                        margin_mm: float = PATH_MARGIN_MM, step_mm: float = 0.5) -> list[dict]:
+    """Warnings of one trajectory (module docstring), each ``{"kind", "structure", ...,
+    "message"}``: ``target_outside`` (the target outside ``target_structure``, its distance),
+    ``crosses`` / ``crosses_ventricle`` (the path from entry to target goes through another
+    structure / the ventricles: enter and leave depths from the entry), ``passes_near`` (closer
+    than ``margin_mm`` without crossing). ``target_structure`` is the trajectory's own structure
+    (or None); ``structures`` every surface to check (the ventricles named
+    :data:`VENTRICLES_NAME`)."""
+    out: list[dict] = []
+    if target_structure is not None:
+        d = float(signed_surface_distance(trajectory.target, target_structure.vertices,
+                                          target_structure.faces)[0])
+        if d > 0:
+            out.append({"kind": "target_outside", "structure": target_structure.name,
+                        "distance_mm": d,
+                        "message": f"the target lies {d:.1f} mm outside {target_structure.name}"})
+    others = [s for s in structures if target_structure is None or s.name != target_structure.name]
+    for row in path_distances(trajectory, others, step_mm):
+        name = row["structure"]
+        ventricle = VENTRICLES_NAME in name.lower()
+        inside = [iv for iv in row["inside"] if iv[1] - iv[0] > 1e-6]
+        if inside:
+            a, b = inside[0]
+            where = ", ".join(f"{x:.1f}-{y:.1f} mm" for x, y in inside)
+            out.append({"kind": "crosses_ventricle" if ventricle else "crosses", "structure": name,
+                        "enter_mm": a, "leave_mm": b, "intervals_mm": inside,
+                        "message": f"the trajectory crosses {'the ' if ventricle else ''}{name} "
+                                   f"at {where} from the entry"})
+        elif row["min_distance_mm"] < margin_mm:
+            out.append({"kind": "passes_near", "structure": name,
+                        "distance_mm": row["min_distance_mm"], "at_depth_mm": row["at_depth_mm"],
+                        "message": f"the trajectory passes {row['min_distance_mm']:.1f} mm from "
+                                   f"{name} (at {row['at_depth_mm']:.1f} mm from the entry)"})
+    return out
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A named closed surface (world RAS mm): what the warnings and read-outs take."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+def template_ventricles(template_to_image: np.ndarray | None = None) -> Surface:
+    """The demo template's ventricles, mapped by ``template_to_image`` (4x4, template world ->
+    image world; None: left in template space)."""
+    from core.io import load_mesh
+
+    mesh = load_mesh(VENTRICLES_FILE)
+    v = mesh.vertices
+    if template_to_image is not None:
+        t = np.asarray(template_to_image, dtype=np.float64)
+        v = v @ t[:3, :3].T + t[:3, 3]
+    return Surface(VENTRICLES_NAME, v, mesh.faces)

@@ -12,7 +12,12 @@ it into what planning and navigation tools read:
   description file next to it (names and colours; ITK-SNAP's documented text format);
 - the plan as 3D Slicer markups: a point list (AC, PC, midline, targets, entries; LPS as
   Slicer writes) and one line markup per trajectory, in a single ``.mrk.json`` file as Slicer's
-  markups schema allows.
+  markups schema allows;
+- per trajectory, with a lead type (``core.planning.lead``), the contacts' positions and structures, and
+  the plan's warnings (``core.planning.frames.trajectory_warnings``: target outside its structure, the
+  path crossing or grazing another structure or the ventricles);
+- when the image came from a DICOM series, every structure as DICOM SEG and RTSTRUCT
+  referencing that series (``core.io.dicom_export``).
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ import numpy as np
 from core.io import TriMesh, atomic_write_json, atomic_write_text, save_mesh
 from core.io.model_library import structure_info
 from core.planning.frames import (ACPCFrame, Trajectory, anchored_point, anchored_point_weights,
-                           structure_row, volume_centroid)
+                           path_distances, structure_row, trajectory_warnings, volume_centroid)
 from core.geometry.segmentation import voxelize
 
 REPORT_FORMAT = "ssm-studio-plan"
@@ -137,6 +142,24 @@ def plan_from_session(session) -> tuple[list[PlannedStructure], ACPCFrame | None
     return structures, frame
 
 
+def template_to_image(session) -> np.ndarray | None:
+    """Template world -> image world (4x4) of a session whose library models were placed
+    automatically or by hand: ``placement @ inv(model.world_transform)`` of the first
+    structure with a placement and a model in the demo template's space (None without one)."""
+    from core.io import load_model
+    from core.io.model_library import MNI_TEMPLATE_SPACE
+
+    for rec in getattr(session, "structures", None) or []:
+        placement = _field(rec, "placement")
+        path = _field(rec, "model_path") or _field(rec, "model")
+        if placement is None or path is None:
+            continue
+        model = load_model(path)
+        if structure_info(model, path).template_space == MNI_TEMPLATE_SPACE:
+            return np.asarray(placement, dtype=np.float64) @ np.linalg.inv(model.world_transform)
+    return None
+
+
 def _field(record, key: str):
     """A structure record's field: a dict (session document) or an object with attributes."""
     return record.get(key) if isinstance(record, dict) else getattr(record, key, None)
@@ -146,9 +169,24 @@ def _vec(a) -> list[float] | None:
     return None if a is None else [float(v) for v in np.asarray(a).reshape(3)]
 
 
+@dataclass(frozen=True)
+class LeadChoice:
+    """The lead put on every trajectory of a plan: type key, tip depth past the target (mm),
+    rotation of directional segments (degrees); see ``core.planning.lead.place_lead``."""
+
+    lead: str
+    depth_mm: float = 0.0
+    rotation_deg: float = 0.0
+
+
 def trajectory_report(traj: Trajectory, structures: list[PlannedStructure],
-                      frame: ACPCFrame | None, extend_mm: float = 10.0) -> dict[str, Any]:
-    """Length, angles and per-structure (enter, leave) depths of one trajectory."""
+                      frame: ACPCFrame | None, extend_mm: float = 10.0, *,
+                      own: PlannedStructure | None = None, lead: LeadChoice | None = None,
+                      volume=None, avoid: tuple = ()) -> dict[str, Any]:
+    """Length, angles and per-structure (enter, leave) depths of one trajectory; its
+    warnings and the distance to every structure along the path (``own``: the trajectory's
+    structure; ``avoid``: further surfaces checked, e.g. the ventricles); with ``lead``, the
+    lead's contacts (``core.planning.lead.lead_report``)."""
     out: dict[str, Any] = {"entry": _vec(traj.entry), "target": _vec(traj.target),
                            "length_mm": traj.length, "direction": _vec(traj.direction)}
     if frame is not None:
@@ -159,12 +197,22 @@ def trajectory_report(traj: Trajectory, structures: list[PlannedStructure],
         {"structure": s.name, "enter_mm": a, "leave_mm": b}
         for s in structures for a, b in traj.segments_inside(s.vertices, s.faces, extend_mm)]
     out["crossings"].sort(key=lambda c: c["enter_mm"])
+    checked = list(structures) + list(avoid)
+    out["path_distances"] = path_distances(traj, [s for s in checked if s is not own])
+    out["warnings"] = trajectory_warnings(traj, own, checked)
+    if lead is not None:
+        from core.planning.lead import lead_report, place_lead
+
+        placed = place_lead(traj, lead.lead, lead.depth_mm, lead.rotation_deg)
+        out["lead"] = lead_report(placed, structures, frame, volume)
     return out
 
 
 def plan_report(structures: list[PlannedStructure], frame: ACPCFrame | None = None,
-                image: str | None = None) -> dict[str, Any]:
-    """The whole plan as a JSON-ready dict (see the module docstring)."""
+                image: str | None = None, *, lead: LeadChoice | None = None, volume=None,
+                avoid: tuple = ()) -> dict[str, Any]:
+    """The whole plan as a JSON-ready dict (see the module docstring); ``warnings`` lists
+    every trajectory's warnings with the structure whose trajectory it is."""
     doc: dict[str, Any] = {"format": REPORT_FORMAT, "format_version": REPORT_VERSION,
                            "units": "mm", "coordinates": "world RAS"}
     if image:
@@ -183,9 +231,13 @@ def plan_report(structures: list[PlannedStructure], frame: ACPCFrame | None = No
                 row["target_acpc"] = _vec(frame.to_acpc(s.target))
         traj = s.trajectory
         if traj is not None:
-            row["trajectory"] = trajectory_report(traj, structures, frame)
+            row["trajectory"] = trajectory_report(traj, structures, frame, own=s, lead=lead,
+                                                  volume=volume, avoid=avoid)
         rows.append(row)
     doc["structures"] = rows
+    doc["checked_surfaces"] = [a.name for a in avoid]
+    doc["warnings"] = [{"trajectory": row["name"], **w} for row in rows
+                       for w in row.get("trajectory", {}).get("warnings", [])]
     return doc
 
 
@@ -210,6 +262,28 @@ def structure_table_csv(report: dict[str, Any]) -> str:
 
 def save_structure_table(path: str | os.PathLike, report: dict[str, Any]) -> None:
     atomic_write_text(path, structure_table_csv(report))
+
+
+def contacts_csv(report: dict[str, Any]) -> str:
+    """Every lead contact of a report as CSV (one row per trajectory and contact): centre in
+    world RAS, AC-PC and voxel coordinates, the structure it lies in and the signed distance
+    to the nearest structure's surface (negative inside)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["trajectory", "lead", "contact", "r", "a", "s", "lat", "ap", "vert",
+                     "i", "j", "k", "structure", "nearest_structure", "distance_mm"])
+    for row in report["structures"]:
+        lead = row.get("trajectory", {}).get("lead")
+        for c in (lead or {}).get("contacts", []):
+            acpc = c.get("acpc") or ["", "", ""]
+            voxel = c.get("voxel") or ["", "", ""]
+            writer.writerow([row["name"], lead["type"], c["contact"],
+                             *(f"{v:.3f}" for v in c["world"]),
+                             *(f"{v:.3f}" if v != "" else "" for v in acpc),
+                             *(f"{v:.3f}" if v != "" else "" for v in voxel),
+                             c.get("structure") or "", c.get("nearest_structure") or "",
+                             "" if c.get("distance_mm") is None else f"{c['distance_mm']:.3f}"])
+    return buf.getvalue()
 
 
 def multi_label_map(structures: list[PlannedStructure], volume) -> np.ndarray:
@@ -280,28 +354,21 @@ def save_plan_markups(path: str | os.PathLike, structures: list[PlannedStructure
     atomic_write_json(path, plan_markups(structures, frame))
 
 
-def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], volume,
-                frame: ACPCFrame | None, image: str | None = None,
-                stem: str = "plan", meshes: bool = True) -> list[Path]:
-    """Write every plan file into ``folder``; returns the paths written.
-
-    ``<stem>.json`` (report), ``<stem>_structures.csv``, ``<stem>.mrk.json`` (markups) and,
-    with an image volume, the multi-label map twice: ``<stem>_labels.seg.nrrd`` (a 3D Slicer
-    Segmentation with each structure's name and colour) and ``<stem>_labels.nii.gz`` +
-    ``<stem>_labels.txt`` (ITK-SNAP label descriptions); with ``meshes``, one surface per
-    structure, ``<stem>_NN_<name>.vtk`` (world RAS, ``SPACE=RAS`` in the header).
-    """
+def export_all_structures(folder: str | os.PathLike, structures: list[PlannedStructure],
+                          volume, stem: str = "plan", dicom_series: list | None = None,
+                          meshes: bool = True) -> list[Path]:
+    """Every structure at once (the GUI's *Export all*): on ``volume``'s grid the multi-label
+    map as ``<stem>_labels.seg.nrrd`` (3D Slicer: names, colours) and ``<stem>_labels.nii.gz``
+    + ``<stem>_labels.txt`` (ITK-SNAP labels); with ``dicom_series`` (the source series' files,
+    when the image came from DICOM) ``<stem>_structures.seg.dcm`` (DICOM SEG) and
+    ``<stem>_structures.rtstruct.dcm`` (RTSTRUCT) referencing it; with ``meshes`` one surface
+    per structure, ``<stem>_NN_<name>.vtk``. Returns the paths written."""
     from core.io import save_volume
     from core.io.nrrd import Segment, write_segmentation
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    report = plan_report(structures, frame, image)
-    written = [folder / f"{stem}.json", folder / f"{stem}_structures.csv",
-               folder / f"{stem}.mrk.json"]
-    save_plan_report(written[0], report)
-    save_structure_table(written[1], report)
-    save_plan_markups(written[2], structures, frame)
+    written: list[Path] = []
     if volume is not None:
         label_map = multi_label_map(structures, volume)
         segmentation = folder / f"{stem}_labels.seg.nrrd"
@@ -312,6 +379,12 @@ def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], v
         names = folder / f"{stem}_labels.txt"
         atomic_write_text(names, itksnap_label_description(structures))
         written += [segmentation, labels, names]
+        if dicom_series:
+            from core.io.dicom_export import ExportStructure, export_structures_dicom
+
+            exports = [ExportStructure(s.name, s.color, s.vertices, s.faces) for s in structures]
+            written += export_structures_dicom(folder, exports, label_map, volume.affine,
+                                               list(dicom_series), stem=f"{stem}_structures")
     if meshes:
         for i, s in enumerate(structures, start=1):
             safe = "".join(c if c.isalnum() else "_" for c in s.name).strip("_") or f"structure{i}"
@@ -319,3 +392,32 @@ def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], v
             save_mesh(path, TriMesh(s.vertices, s.faces, safe))
             written.append(path)
     return written
+
+
+def export_plan(folder: str | os.PathLike, structures: list[PlannedStructure], volume,
+                frame: ACPCFrame | None, image: str | None = None,
+                stem: str = "plan", meshes: bool = True, *, lead: LeadChoice | None = None,
+                avoid: tuple = (), dicom_series: list | None = None) -> list[Path]:
+    """Write every plan file into ``folder``; returns the paths written.
+
+    ``<stem>.json`` (report), ``<stem>_structures.csv``, ``<stem>.mrk.json`` (markups) and,
+    with an image volume, the multi-label map twice: ``<stem>_labels.seg.nrrd`` (a 3D Slicer
+    Segmentation with each structure's name and colour) and ``<stem>_labels.nii.gz`` +
+    ``<stem>_labels.txt`` (ITK-SNAP label descriptions); with ``meshes``, one surface per
+    structure, ``<stem>_NN_<name>.vtk`` (world RAS, ``SPACE=RAS`` in the header); with
+    ``dicom_series`` also DICOM SEG and RTSTRUCT (:func:`export_all_structures`). ``lead`` and
+    ``avoid`` go into the report (:func:`plan_report`); with ``lead`` also
+    ``<stem>_contacts.csv`` (:func:`contacts_csv`).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    report = plan_report(structures, frame, image, lead=lead, volume=volume, avoid=avoid)
+    written = [folder / f"{stem}.json", folder / f"{stem}_structures.csv",
+               folder / f"{stem}.mrk.json"]
+    save_plan_report(written[0], report)
+    save_structure_table(written[1], report)
+    save_plan_markups(written[2], structures, frame)
+    if lead is not None:
+        written.append(folder / f"{stem}_contacts.csv")
+        atomic_write_text(written[-1], contacts_csv(report))
+    return written + export_all_structures(folder, structures, volume, stem, dicom_series, meshes)
