@@ -49,6 +49,7 @@ import numpy as np
 
 from core.geometry.toolkit import closest_points_on_surface, signed_surface_distance
 from core.geometry.mesh import volume as mesh_volume
+from core import RESOURCES_DIR
 
 #: AC and PC closer than this (mm) are refused: in adults they are ~23-28 mm apart.
 MIN_AC_PC_MM = 5.0
@@ -57,7 +58,7 @@ MIN_MIDLINE_OFFSET_MM = 5.0
 #: A path passing closer than this (mm) to a structure it does not cross is warned about.
 PATH_MARGIN_MM = 2.0
 #: The demo template's ventricles (make_demo.py), template world RAS mm.
-VENTRICLES_FILE = Path(__file__).resolve().parent.parent / "resources" / "ventricles_mni09a.vtk"
+VENTRICLES_FILE = RESOURCES_DIR / "ventricles_mni09a.vtk"
 VENTRICLES_NAME = "ventricles"
 
 
