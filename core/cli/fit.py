@@ -18,6 +18,7 @@ import numpy as np
 
 from core.io import TriMesh, atomic_write_json, load_model, load_points, save_mesh
 from core.reconstruction import METHODS, POSES, FitResult, fit_points
+from core.reconstruction.fit import placement_at
 
 COMMAND = "fit"
 HELP = "fit a shape model to contour points (GMM or ICP) and write the fitted surface"
@@ -45,7 +46,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the model is placed before fitting (the start and the centre of "
                              "the pose prior): 'x,y,z' moves the model's mean shape centre to that "
                              "world point (like the GUI's Place here), or a file with a 4x4 model -> "
-                             "world matrix (.txt/.csv rows, .npy, or .json); default: the model's "
+                             "world matrix (.txt/.csv rows, .npy, or .json), or 'points' (the "
+                             "model's centre at the points' centre); default: the model's "
                              "stored placement")
     parser.add_argument("--pose-spread", type=float, default=1.0,
                         help="spread of the pose prior around the placement, times the default "
@@ -56,19 +58,20 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also write the fit result (coefficients, pose, objective) as JSON")
 
 
-def placement_from_arg(text: str | None, model) -> np.ndarray | None:
-    """The --placement value as a 4x4 model -> world matrix (None: the model's own)."""
+def placement_from_arg(text: str | None, model) -> np.ndarray | str | None:
+    """The --placement value as a 4x4 model -> world matrix (None: the model's own;
+    "points": at the points' centre, resolved by ``fit_points``)."""
     if text is None:
         return None
+    if text == "points" and not Path(text).exists():
+        return "points"
     parts = text.split(",")
     if len(parts) == 3 and not Path(text).exists():
         try:
             target = np.array([float(v) for v in parts])
         except ValueError:
             raise ValueError(f"--placement {text!r}: expected x,y,z in mm or a matrix file") from None
-        placement = model.world_transform.copy()
-        placement[:3, 3] += target - model.world_instance().mean(axis=0)
-        return placement
+        return placement_at(model, target)
     path = Path(text)
     if not path.exists():
         raise ValueError(f"{path}: file not found (--placement)")
@@ -124,7 +127,8 @@ def write_json(path: Path | None, result: FitResult, **extra) -> None:
 def summary(result: FitResult) -> str:
     return (f"{result.method}, pose {result.pose_mode}: {result.n_points} points, "
             f"{result.n_iter} iterations ({result.stop_reason}), mean residual "
-            f"{result.residual_mm:.2f} mm, scale {result.scale:.3f}, {result.elapsed_s * 1000:.0f} ms")
+            f"{result.residual_mm:.2f} mm, scale {result.scale:.3f}, {result.elapsed_s * 1000:.0f} ms"
+            + "".join(f"\nwarning: {w}" for w in result.warnings))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
