@@ -34,6 +34,16 @@ the filled contours (0.5 mm voxels), what ITK-SNAP / 3D Slicer users get. Error:
 mean surface distance / Hausdorff distance (mm). The header gives the mean distance of the
 held-out shapes from the model span.
 
+Section "families" (issue 27, item 6): the known-correspondence problem without pose on the
+independent families of ``benchmarks/recon_families.py`` (PCA-10 of 40 training shapes per
+kind, 6 held-out shapes, 3 orthogonal / 2 parallel axial contours, 2 mm spacing, 0.2 mm
+noise); the tuning kinds (``--set tune``: bean, planted) are the only ones any default was
+chosen on, the report kinds (ovoid, tube, twist, ring, mixed, caudate) are reported. Peers
+side by side: ours (``fit_points(pose="none")``, defaults) and rustcpd ``register_atlas``
+with ``optimize_similarity=False`` and its documented defaults otherwise (lambda 0.1,
+tolerance 1e-3, 100 iterations), and with lambda 1 (our prior weight) and tolerance 1e-6.
+Cells: mean vertex error (mm); the last row the median time per fit.
+
 Latency: a ~2,000-vertex, 50-factor model (the demo topology with extra random smooth bumps
 so that PCA has 50 real modes) and 200 contour points; cold fits and warm refits (previous
 result as the start, one point dragged by ~0.5 mm, as in the GUI), p50/p99 over ``--reps``.
@@ -255,6 +265,18 @@ def known_shape(base, fields, faces, rng, kind: str) -> np.ndarray:
     return x
 
 
+def known_fit(model, user, method: str, rustcpd_options: dict | None) -> np.ndarray:
+    """Fitted vertices without pose: ours (``method`` in OURS) or rustcpd ``register_atlas``
+    with ``rustcpd_options``."""
+    if method in OURS:
+        return fit_points(model, user.points, user.normals, method=method, pose="none").vertices
+    import rustcpd
+
+    return np.asarray(rustcpd.register_atlas(user.points, model.mean, model.basis,
+                                             list(model.coef_var), optimize_similarity=False,
+                                             **rustcpd_options).points)
+
+
 def known_accuracy(which: str, with_rustcpd: bool, quick: bool):
     base, fields, faces = known_family()
     rng = np.random.default_rng(12345)
@@ -283,16 +305,9 @@ def known_accuracy(which: str, with_rustcpd: bool, quick: bool):
                 counts.append(len(user.points))
                 for method in methods:
                     t0 = time.perf_counter()
-                    if method in OURS:
-                        v = fit_points(model, user.points, user.normals, method=method,
-                                       pose="none").vertices
-                    else:
-                        import rustcpd
-
-                        v = np.asarray(rustcpd.register_atlas(
-                            user.points, model.mean, model.basis, list(model.coef_var),
-                            optimize_similarity=False, max_iterations=100, tolerance=1e-6,
-                            lambda_regularization=RUSTCPD_KNOWN[method]).points)
+                    v = known_fit(model, user, method, dict(
+                        max_iterations=100, tolerance=1e-6,
+                        lambda_regularization=RUSTCPD_KNOWN.get(method, 0.0)))
                     times[method].append(time.perf_counter() - t0)
                     err[method].append(float(np.linalg.norm(v - truth, axis=1).mean()))
             print(f"{kind:>10} | {label:>12} | {np.mean(counts):6.0f} | {np.mean(spans):6.3f} | "
@@ -300,6 +315,45 @@ def known_accuracy(which: str, with_rustcpd: bool, quick: bool):
     print(f"{'time/fit':>10} | {'(median)':>12} | {'':>6} | {'':>6} | "
           + " | ".join(f"{1000 * np.median(times[m]):9.1f} ms" for m in methods))
 
+
+
+RUSTCPD_FAMILIES = {"rustcpd (docs)": dict(lambda_regularization=0.1),
+                    "rustcpd l1": dict(lambda_regularization=1.0, tolerance=1e-6)}
+
+
+def family_accuracy(which: str, with_rustcpd: bool, quick: bool):
+    """Method x kind x contour layout on the independent families (section "families")."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from recon_families import REPORT, TUNING, family
+
+    kinds = (TUNING if which == "tune" else REPORT)[: 2 if quick else None]
+    methods = list(OURS) + (list(RUSTCPD_FAMILIES) if with_rustcpd else [])
+    print(f"\nIndependent families, known correspondences, no pose ({which} kinds {kinds}); "
+          "cells: mean vertex error (mm) over 6 held-out shapes")
+    print("| kind | contours | points | " + " | ".join(methods) + " |")
+    print("|---|---|---|" + "---|" * len(methods))
+    times = {m: [] for m in methods}
+    for kind in kinds:
+        fam = family(kind)
+        model = fam.model
+        for scenario, k, label in (("mixed", 3, "3 orthogonal"), ("axial", 2, "2 parallel")):
+            err = {m: [] for m in methods}
+            counts = []
+            for h, truth in enumerate(fam.held_out[: 2 if quick else None]):
+                user = simulate_user(truth, fam.faces, k, orientations=scenario, spacing=2.0,
+                                     noise=0.2, rng=np.random.default_rng(h))
+                counts.append(len(user.points))
+                for method in methods:
+                    t0 = time.perf_counter()
+                    v = known_fit(model, user, method, RUSTCPD_FAMILIES.get(method))
+                    times[method].append(time.perf_counter() - t0)
+                    err[method].append(float(np.linalg.norm(v - truth, axis=1).mean()))
+            best = min(np.mean(err[m]) for m in methods)
+            cells = [f"**{np.mean(err[m]):.3f}**" if np.mean(err[m]) == best else
+                     f"{np.mean(err[m]):.3f}" for m in methods]
+            print(f"| {kind} | {label} | {np.mean(counts):.0f} | " + " | ".join(cells) + " |")
+    print("| time/fit | (median) | | " + " | ".join(f"{1000 * np.median(times[m]):.0f} ms"
+                                                  for m in methods) + " |")
 
 
 def latency_model(shapes, faces, n_factors=50, seed=0):
@@ -383,7 +437,7 @@ def main(argv=None) -> int:
     parser.add_argument("--fixed-eta", action="store_true",
                         help="also gmm-aniso with a fixed eta = 10 (adaptive_anisotropy=False)")
     parser.add_argument("--skip", default="",
-                        help="comma list of sections to skip: known,mixed,axial,latency")
+                        help="comma list of sections to skip: known,families,mixed,axial,latency")
     parser.add_argument("--quick", action="store_true", help="smoke run: 2 cases, 3 counts, 5 reps")
     parser.add_argument("--latency-methods", default=None,
                         help="comma list of methods for the latency section (default all)")
@@ -406,6 +460,8 @@ def main(argv=None) -> int:
     skip = set(args.skip.split(","))
     if "known" not in skip:
         known_accuracy(args.set, not args.no_rustcpd, args.quick)
+    if "families" not in skip:
+        family_accuracy(args.set, not args.no_rustcpd, args.quick)
     if "mixed" not in skip:
         table, times, span = accuracy(shapes, faces, cases, counts, "mixed", False,
                                       not args.no_rustcpd, args.fixed_eta)

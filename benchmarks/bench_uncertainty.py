@@ -9,10 +9,24 @@ error is within 2 SD (95 % expected for a calibrated posterior), the mean SD and
 true error (mm), and the 2 SD radius of the target (centroid-anchored) ellipsoid.
 
 Cases 0-3 are kept for tuning: ``--tune`` prints, from them only, the factor by which the
-Laplace SDs must be widened so that 95 % of their vertices fall within 2 SD
-(``core.reconstruction.uncertainty.SD_CALIBRATION`` holds the value in use); the table reports cases 4-23.
+Laplace SDs must be widened so that 95 % of their vertices fall within 2 SD; the table
+reports cases 4-23.
+
+``--families tune|report`` (issue 27, item 7): unseen shapes of independent kinds
+(``benchmarks/recon_families.py``: PCA-10 of 40 training shapes per kind, 6 held-out shapes),
+each held-out shape turned by up to 25 degrees about its centre and shifted N(0, 10 mm) per
+axis from the training poses; a simulated user draws 1 axial / 1 sagittal / 2 parallel
+(axial) / 3 orthogonal contours (2 mm spacing, 0.2 mm noise); the model is placed at the
+points' centre, as *Place here* does (``placement="points"``), and fitted (gmm-aniso,
+similarity); coverage is the share of vertices where the true surface lies within 2 posterior
+SD along the fitted normal. Cells: mean coverage / worst shape, and how often the posterior
+says the pose dominates. ``--stored`` leaves the model at its stored placement instead (the
+fits' warnings are counted). ``core.reconstruction.uncertainty.SD_CALIBRATION`` is set from
+``--families tune --calibrate`` (the tuning kinds only).
 
     python benchmarks/bench_uncertainty.py [--cases N] [--tune]
+    python benchmarks/bench_uncertainty.py --families tune --calibrate
+    python benchmarks/bench_uncertainty.py --families report [--stored]
 """
 
 from __future__ import annotations
@@ -26,6 +40,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from core.geometry.toolkit import vertex_normals  # noqa: E402
 from core.planning.frames import anchored_point_weights, volume_centroid  # noqa: E402
@@ -69,12 +84,104 @@ def run(cases, counts=(1, 2, 3, 6, 10)):
     return rows
 
 
+CONTOURS = {"1 axial": ("axial", 1), "1 sagittal": ("sagittal", 1), "2 parallel": ("axial", 2),
+            "3 orthogonal": ("mixed", 3)}
+
+
+def unseen_cases(kind: str):
+    """(model, faces, [truth (N, 3)]) of a family: held-out shapes turned up to 25 degrees
+    and shifted N(0, 10 mm) per axis about their centre."""
+    from core.geometry.toolkit import random_rotation
+    from recon_families import family
+
+    fam = family(kind)
+    rng = np.random.default_rng(27)
+    truths = []
+    for shape in fam.held_out:
+        centre = shape.mean(axis=0)
+        rot = random_rotation(rng, 25.0)
+        truths.append((shape - centre) @ rot.T + centre + rng.normal(scale=10.0, size=3))
+    return fam.model, fam.faces, truths
+
+
+def family_coverage(kinds, stored: bool = False, calibration: float | None = None):
+    """Per (kind, contours): coverages, |error| / SD (uncalibrated), pose-dominant flags,
+    warnings, surface errors."""
+    from core.reconstruction.uncertainty import SD_CALIBRATION as in_use
+
+    rows = {}
+    for kind in kinds:
+        model, faces, truths = unseen_cases(kind)
+        for label, (orientation, k) in CONTOURS.items():
+            cell = rows.setdefault((kind, label), {"cover": [], "z": [], "pose": [], "warn": [],
+                                                   "err": []})
+            for h, truth in enumerate(truths):
+                rng = np.random.default_rng(100 * h + k)
+                user = simulate_user(truth, faces, k, orientations=orientation, spacing=2.0,
+                                     noise=0.2, rng=rng)
+                if len(user.points) < 3:
+                    continue
+                fit = fit_points(model, user.points, user.normals,
+                                 placement=None if stored else "points")
+                post = fit_posterior(model, user.points, fit.coef, fit.pose,
+                                     pose_mode=fit.pose_mode, fit=fit)
+                sd = post.vertex_sd()
+                if calibration is not None:
+                    sd = sd / in_use * calibration
+                normals = vertex_normals(fit.vertices, faces)
+                err = np.abs(np.einsum("ij,ij->i", truth - fit.vertices, normals))
+                cell["cover"].append(float(np.mean(err <= 2 * sd)))
+                cell["z"].append(err / np.maximum(sd, 1e-12) * in_use)
+                cell["pose"].append(post.pose_dominates)
+                cell["warn"].append(bool(fit.warnings))
+                cell["err"].append(float(np.linalg.norm(fit.vertices - truth, axis=1).mean()))
+    return rows
+
+
+def print_family_coverage(rows, title):
+    print(title)
+    print("| kind | contours | within 2 SD, mean | worst shape | mean vertex error (mm) "
+          "| pose dominates | warned |")
+    print("|---|---|---|---|---|---|---|")
+    for (kind, label), r in rows.items():
+        if not r["cover"]:
+            continue
+        print(f"| {kind} | {label} | {100 * np.mean(r['cover']):.1f} % | "
+              f"{100 * np.min(r['cover']):.0f} % | {np.mean(r['err']):.2f} | "
+              f"{sum(r['pose'])}/{len(r['pose'])} | {sum(r['warn'])}/{len(r['warn'])} |")
+    allc = [c for r in rows.values() for c in r["cover"]]
+    print(f"all cells: mean {100 * np.mean(allc):.1f} %, worst shape {100 * np.min(allc):.0f} %")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=20, help="reported cases (from case 4 on)")
     parser.add_argument("--tune", action="store_true",
                         help="print the SD calibration factor from the tuning cases 0-3 only")
+    parser.add_argument("--families", choices=("tune", "report"), default=None,
+                        help="unseen shapes of independent kinds (module docstring)")
+    parser.add_argument("--stored", action="store_true",
+                        help="--families: leave the model at its stored placement")
+    parser.add_argument("--calibrate", action="store_true",
+                        help="--families tune: print the SD widening that gives 95 %% coverage")
     args = parser.parse_args(argv)
+    if args.families:
+        from recon_families import REPORT, TUNING
+
+        kinds = TUNING if args.families == "tune" else REPORT
+        t0 = time.perf_counter()
+        rows = family_coverage(kinds, stored=args.stored)
+        if args.calibrate:
+            z = np.concatenate([np.concatenate(r["z"]) for r in rows.values() if r["z"]])
+            per_shape = [np.percentile(zz, 95) for r in rows.values() for zz in r["z"]]
+            print(f"tuning kinds {kinds}: 95th percentile of |error| / SD = "
+                  f"{np.percentile(z, 95):.3f}: SD_CALIBRATION = {np.percentile(z, 95) / 2:.3f} "
+                  f"(in use {SD_CALIBRATION}); per-shape 95th percentiles: median "
+                  f"{np.median(per_shape) / 2:.3f}, 90th {np.percentile(per_shape, 90) / 2:.3f}")
+        print_family_coverage(rows, f"Posterior coverage on unseen shapes, {args.families} kinds "
+                              f"{kinds}, placement {'stored' if args.stored else 'at the points'}"
+                              f" ({time.perf_counter() - t0:.0f} s)")
+        return 0
     if args.tune:
         rows = run(TUNING_CASES)
         z = np.concatenate([np.concatenate(r["z"]) for r in rows.values() if r["z"]])

@@ -98,7 +98,8 @@ def test_anisotropic_gmm_beats_icp_on_three_contours(family):
             fit = fit_points(model, user.points, user.normals, method=method)
             errors[method].append(_mean_surface_distance(fit.vertices, truth, faces))
     aniso, icp = np.mean(errors["gmm-aniso"]), np.mean(errors["icp"])
-    assert aniso < 0.75 * icp, errors
+    # 0.75 while ICP was point-to-point; point-to-plane ICP (issue 27) is closer
+    assert aniso < 0.9 * icp, errors
     assert aniso < 0.35  # mm, on shapes about 6 x 12 x 28 mm
 
 
@@ -455,3 +456,95 @@ def test_fit_reports_plausibility_and_coefficient_covariance(family):
         assert np.all(np.diag(cov) <= model.coef_var * (1 + 1e-6))  # the data only narrow it
     assert np.trace(fits[1].coef_covariance) < 0.5 * np.trace(fits[0].coef_covariance)
     assert fits[0].to_dict()["plausibility"]["placement_shift_mm"] >= 0
+
+
+# -- issue 27: correlated residuals, placement far from the points ----------------------------
+
+
+def _circle_points(radial: np.ndarray, radius: float = 10.0) -> np.ndarray:
+    """Points on the equator of a sphere of ``radius``, moved along the normal by ``radial``."""
+    theta = np.linspace(0, 2 * np.pi, len(radial), endpoint=False)
+    r = radius + radial
+    return np.column_stack([r * np.cos(theta), r * np.sin(theta), np.zeros_like(theta)])
+
+
+def test_residual_correlation_tells_white_noise_from_a_smooth_misfit():
+    """Known residuals on a sphere's equator: white noise has a lag-one correlation within a
+    few standard errors (1/sqrt(P)) of 0 and no inflation; a smooth offset along the contour
+    (what a shape outside the model's span leaves) has rho near 1, and the information of P
+    points shrinks to P (1 - rho) / (1 + rho)."""
+    from analytic import sphere
+    from core.reconstruction.fit import information_inflation, residual_correlation
+
+    v, f = sphere(10.0, [0, 0, 0], 5)
+    rng = np.random.default_rng(0)
+    p = 150
+    white = residual_correlation(_circle_points(rng.normal(scale=0.1, size=p)), v, f)
+    theta = np.linspace(0, 2 * np.pi, p, endpoint=False)
+    smooth = residual_correlation(_circle_points(0.3 * np.sin(3 * theta)), v, f)
+    assert abs(white[0]) < 3 / np.sqrt(p), white
+    assert white[1] == pytest.approx(0.1, rel=0.25)  # the RMS normal residual
+    assert smooth[0] > 0.9, smooth
+    assert information_inflation(white[0] if white[0] < 1 / np.sqrt(p) else 0.0, p) == (0.0, 1.0)
+    rho, inflation = information_inflation(smooth[0], p)
+    assert rho == pytest.approx(min(smooth[0] - 1 / np.sqrt(p), 0.8))
+    assert inflation == pytest.approx((1 + rho) / (1 - rho))
+
+
+def test_tempered_fit_is_the_fit_with_the_prior_weight_inflated(family):
+    """A held-out shape outside the model's span on two parallel contours: residuals along
+    the contours are correlated, and the fit is the one with the priors' weight multiplied
+    by (1 + rho) / (1 - rho) (the tempered likelihood), run from the same start."""
+    shapes, faces, model = family
+    truth = shapes[0] + 0.0
+    n = vertex_normals(truth, faces)
+    centre = truth[np.argmax(truth[:, 2])] * 0.5
+    truth = truth + (1.2 * np.exp(-((truth - centre) ** 2).sum(1) / (2 * 3.0 ** 2)))[:, None] * n
+    user = simulate_user(truth, faces, 2, orientations="axial", spacing=1.0, noise=0.05,
+                         rng=np.random.default_rng(4))
+    fit = fit_points(model, user.points, user.normals, pose="none")
+    assert fit.prior_inflation > 1.2, (fit.residual_correlation, fit.prior_inflation)
+    plain = fit_points(model, user.points, user.normals, pose="none", correlated_residuals=False,
+                       prior_weight=fit.prior_inflation)
+    assert np.abs(fit.vertices - plain.vertices).max() < 1e-6
+    assert plain.prior_inflation == 1.0 and plain.residual_correlation == 0.0
+
+
+def test_points_far_from_the_placement_warn_and_placement_at_the_points_fixes_it(family):
+    """The held-out shape 12 mm from the model's stored placement: the fit warns with the
+    distance and the remedy; placed at the points' centre it needs no warning and lands
+    within 1 mm of the truth (the stored placement leaves it several mm off)."""
+    shapes, faces, model = family
+    truth = shapes[0] + np.array([8.0, -6.0, 6.0])
+    user = simulate_user(truth, faces, 3, orientations="mixed", rng=np.random.default_rng(2))
+    stored = fit_points(model, user.points, user.normals)
+    assert stored.warnings and "--placement" in stored.warnings[0], stored.warnings
+    placed = fit_points(model, user.points, user.normals, placement="points")
+    assert placed.warnings == []
+    err_stored = np.linalg.norm(stored.vertices - truth, axis=1).mean()
+    err_placed = np.linalg.norm(placed.vertices - truth, axis=1).mean()
+    assert err_placed < 1.0 < err_stored, (err_placed, err_stored)
+    assert "warnings" in stored.to_dict()
+    # a correctly placed shape of the population does not warn
+    assert fit_points(model, simulate_user(shapes[0], faces, 3, rng=np.random.default_rng(2)).points
+                      ).warnings == []
+    with pytest.raises(ValueError, match="placement"):
+        fit_points(model, user.points, placement="centre")
+
+
+def test_icp_is_robust_on_two_parallel_contours(resources_dir):
+    """Demo caudates, leave-one-out PCA-10 of the other shapes, two parallel axial contours
+    (2 mm spacing, 0.2 mm noise), similarity pose: point-to-plane ICP ends within 0.6 mm of
+    the truth on average (point-to-point ICP: 1.52 mm, every case over 0.9 mm; gmm-aniso
+    0.34 mm), because the nearest vertices no longer drag the shape along the surface."""
+    data = np.load(resources_dir / "demo" / "ground_truth.npz")
+    shapes, faces = data["corresponded_shapes"], data["base_faces"]
+    model = pca_model(shapes[6:], faces, n_factors=10)
+    errors = []
+    for case in range(6):
+        user = simulate_user(shapes[case], faces, 2, orientations="axial", spacing=2.0,
+                             noise=0.2, rng=np.random.default_rng(case))
+        fit = fit_points(model, user.points, user.normals, method="icp")
+        errors.append(float(np.linalg.norm(fit.vertices - shapes[case], axis=1).mean()))
+    assert np.mean(errors) < 0.6, errors
+    assert max(errors) < 1.0, errors

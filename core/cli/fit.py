@@ -22,6 +22,7 @@ import numpy as np
 from core.io import TriMesh, atomic_write_json, load_model, load_points, save_mesh
 from core.io.registry import split_member
 from core.reconstruction import METHODS, POSES, FitResult, fit_points
+from core.reconstruction.fit import placement_at
 from core.reconstruction.plausibility import plausibility_warnings
 
 COMMAND = "fit"
@@ -51,7 +52,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the model is placed before fitting (the start and the centre of "
                              "the pose prior): 'x,y,z' moves the model's mean shape centre to that "
                              "world point (like the GUI's Place here), or a file with a 4x4 model -> "
-                             "world matrix (.txt/.csv rows, .npy, or .json); default: the model's "
+                             "world matrix (.txt/.csv rows, .npy, or .json), or 'points' (the "
+                             "model's centre at the points' centre); default: the model's "
                              "stored placement")
     parser.add_argument("--pose-spread", type=float, default=1.0,
                         help="spread of the pose prior around the placement, times the default "
@@ -62,19 +64,20 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also write the fit result (coefficients, pose, objective) as JSON")
 
 
-def placement_from_arg(text: str | None, model) -> np.ndarray | None:
-    """The --placement value as a 4x4 model -> world matrix (None: the model's own)."""
+def placement_from_arg(text: str | None, model) -> np.ndarray | str | None:
+    """The --placement value as a 4x4 model -> world matrix (None: the model's own;
+    "points": at the points' centre, resolved by ``fit_points``)."""
     if text is None:
         return None
+    if text == "points" and not Path(text).exists():
+        return "points"
     parts = text.split(",")
     if len(parts) == 3 and not Path(text).exists():
         try:
             target = np.array([float(v) for v in parts])
         except ValueError:
             raise ValueError(f"--placement {text!r}: expected x,y,z in mm or a matrix file") from None
-        placement = model.world_transform.copy()
-        placement[:3, 3] += target - model.world_instance().mean(axis=0)
-        return placement
+        return placement_at(model, target)
     path = Path(text)
     if not path.exists():
         raise ValueError(f"{path}: file not found (--placement)")
@@ -130,16 +133,18 @@ def write_json(path: Path | None, result: FitResult, **extra) -> None:
 
 
 def fit_warnings(result: FitResult) -> tuple[str, ...]:
-    """Why the fit looks implausible (the GUI's policy, core.reconstruction.plausibility)."""
-    return plausibility_warnings(result.plausibility())
+    """The fit's own warnings (points far from the placement: the pose, not the shape, is
+    uncertain) and why it looks implausible by the GUI's policy
+    (core.reconstruction.plausibility)."""
+    implausible = plausibility_warnings(result.plausibility())
+    return (*result.warnings,
+            *((f"implausible fit: {'; '.join(implausible)}",) if implausible else ()))
 
 
 def warn_if_implausible(command: str, result: FitResult) -> None:
-    """One warning line on stderr when the fit looks implausible, as the GUI flags it."""
-    warnings = fit_warnings(result)
-    if warnings:
-        print(f"ssm-studio {command}: warning: implausible fit: {'; '.join(warnings)}",
-              file=sys.stderr)
+    """One warning line on stderr each, as the GUI flags the fit."""
+    for warning in fit_warnings(result):
+        print(f"ssm-studio {command}: warning: {warning}", file=sys.stderr)
 
 
 def summary(result: FitResult) -> str:

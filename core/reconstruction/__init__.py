@@ -15,7 +15,8 @@ factors), EM minimises the negative log posterior
 w the uniform outlier weight, W_j the precision of component j (the covariance strategy,
 ``covariance``): ``gmm-iso`` W_j = I; ``gmm-aniso`` W_j = eta n_j n_j^T + (I - n_j n_j^T), n_j
 the current model normal (Eq. 5), so points slide along the surface instead of snapping to
-vertices; ``icp`` hard nearest-vertex responsibilities, the baseline.
+vertices; ``icp`` hard nearest-vertex responsibilities with a point-to-plane metric (W_j as
+gmm-aniso's with eta fixed at 100; Chen and Medioni 1992), the baseline.
 
 Modules: ``em`` (:class:`GMMFitter`, the EM loop in scikit-learn's GaussianMixture style),
 ``covariance`` (the strategies), ``pose`` (similarity, Procrustes, Gauss-Newton pose step,
@@ -62,6 +63,21 @@ point (a newly placed point is not an outlier). ``placement`` (default
 ``model.world_transform``) is the cold start and the centre of the pose prior (issue 11
 defect 1). All length defaults are relative to the model size (defect 7), so fitting a
 scaled problem gives the scaled result.
+
+Correlated residuals (issue 27): after the fit, the lag-one correlation rho of neighbouring
+points' normal residuals is measured (neighbours by foot point); a shape outside the model's
+span leaves residuals that vary smoothly along a contour, so P points carry the information
+of about P (1 - rho) / (1 + rho). When rho exceeds its standard error 1/sqrt(P), the fit is
+run again from the same start with the likelihood tempered by that factor (both priors'
+weights times (1 + rho) / (1 - rho)); ``FitResult.residual_correlation`` and
+``.prior_inflation`` record it. The normal variance of gmm-aniso is also divided by P - dof
+rather than P (dof: the trace of the data part of the shape step), as the residuals are
+what the shape was fitted to.
+
+Placement: ``placement="points"`` moves the stored placement to the points' centre (the
+GUI's *Place here*); when the points lie farther from the placed mean surface than the
+population's spread plus two pose-prior SDs, ``FitResult.warnings`` says so, with the
+distance and the remedy (``--placement``): the pose, not the shape, is then what is uncertain.
 
 The reported ``pose`` is the full model frame -> world transform (the fitted similarity
 composed with ``model.world_transform``).

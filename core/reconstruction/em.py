@@ -101,7 +101,7 @@ class GMMFitter:
                  outlier_weight: float = 0.0, normal_weight: float = 2.0,
                  sigma2_min: float = 0.0, max_iter: int = 100, tol: float = 1e-5,
                  xtol: float = 1e-2, n_neighbors: int = 6, max_neighbors: int | None = None,
-                 pose_first: bool = False, warm_start: bool = False,
+                 pose_first: bool = False, warm_start: bool = False, dof_correction: bool = True,
                  callback: Callable[[int, float], None] | None = None):
         self.covariance = covariance
         self.pose = pose
@@ -115,6 +115,7 @@ class GMMFitter:
         self.n_neighbors, self.max_neighbors = n_neighbors, max_neighbors
         self.pose_first = pose_first
         self.warm_start = warm_start
+        self.dof_correction = dof_correction
         self.callback = callback
 
     # -- set-up -----------------------------------------------------------------------------
@@ -278,14 +279,17 @@ class GMMFitter:
             lhs += c_mat @ c_mat.T
             r = r + (state.eta - 1.0) * n_b * np.einsum("jc,jc->j", n_b, r)[:, None]
         rhs = phi.reshape(n_factors, -1) @ r.reshape(-1)
+        data = lhs.copy() if self.dof_correction else None
         lhs[np.diag_indices(n_factors)] += self.prior_weight * sigma2_b * self.snap_.inv_var
         self.precision_ = lhs / sigma2_b  # posterior precision of the coefficients (Laplace)
+        if data is not None:  # effective number of parameters the points determine
+            self.dof_ = float(np.trace(np.linalg.solve(lhs, data)))
         return solve_shape(lhs, rhs, None if self.prior_weight > 0 else self.coef_bound)
 
     def _variance_step(self, state: FitState, resp: np.ndarray, pairs: _Pairs):
         """(state with the new s2 and eta, its geometry on ``pairs``)."""
         x, nv, parts = self._geometry(state, pairs)
-        sigma2, eta = self.covariance.update(resp, parts, self.sigma2_min, state.eta)
+        sigma2, eta = self.covariance.update(resp, parts, self.sigma2_min, state.eta, self.dof_)
         self._last_geometry = (pairs, sigma2, eta, (x, nv, self.covariance.with_eta(parts, eta)))
         return replace(state, sigma2=sigma2, eta=eta), self._last_geometry[3]
 
@@ -331,6 +335,7 @@ class GMMFitter:
         self.objective_, self.converged_ = [ev.objective], False
         self.stop_reason_, self.n_iter_ = f"reached max_iter={self.max_iter}", 0
         self.precision_, self._last_geometry = None, (None, None, None, None)
+        self.dof_ = 0.0
         for it in range(self.max_iter):
             if self.callback is not None:
                 self.callback(it, ev.objective)

@@ -78,6 +78,10 @@ class FitResult:
     coef_sd: np.ndarray | None = None
     coef_precision: np.ndarray | None = None
     centre_offset_mm: np.ndarray | None = None  # fitted centre minus placed centre (world)
+    residual_correlation: float = 0.0  # neighbouring points' normal residuals (fit_points)
+    prior_inflation: float = 1.0       # (1 + rho) / (1 - rho), the priors' weight factor used
+    warnings: list[str] = field(default_factory=list)  # e.g. points far from the placement
+    placement_source: str = "stored"   # "stored", "given" (a matrix) or "points" (Place here)
 
     @property
     def coef_covariance(self) -> np.ndarray | None:
@@ -126,6 +130,9 @@ class FitResult:
             "residual_mm": self.residual_mm, "sigma2": self.sigma2, "anisotropy": self.anisotropy,
             "n_points": self.n_points,
             "elapsed_s": self.elapsed_s,
+            "residual_correlation": self.residual_correlation,
+            "prior_inflation": self.prior_inflation,
+            "warnings": list(self.warnings),
         }
         if self.placement is not None:
             out["placement"] = np.asarray(self.placement).tolist()
