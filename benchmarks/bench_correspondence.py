@@ -735,7 +735,7 @@ def labels_table(repeats: int = 3) -> None:
 
     from core.io import load_volume
     from core.correspondence.mesh_labels import label_map_surface
-    from core.correspondence.mesh_labels import _polydata_arrays
+    from core.correspondence.mesh_labels import polydata_arrays
 
     print("\nmesh-labels, 256^3 uint8 label map (1 mm voxels), one structure, --vertices 2000; "
           "best of %d; shared machine: times are upper bounds" % repeats)
@@ -790,7 +790,7 @@ def labels_table(repeats: int = 3) -> None:
                 fe.SetInputData(image)
                 fe.SetValue(0, 1)
                 fe.Update()
-                v, f = _polydata_arrays(fe.GetOutput())
+                v, f = polydata_arrays(fe.GetOutput())
                 times.append(time.perf_counter() - t0)
                 cpus.append(time.process_time() - c0)
             rows.append(("VTK discrete flying edges", min(times), min(cpus), TriMesh(v, f)))

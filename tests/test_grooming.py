@@ -52,7 +52,7 @@ def test_each_grooming_step_can_be_switched_off():
     with pytest.raises(grooming.GroomingError, match="not a closed surface"):
         grooming.groom_mesh(mesh, {"fill_holes": False, "remesh": False})
     out, report = grooming.groom_mesh(mesh, {"remesh": False, "fix_orientation": True})
-    assert not report.remeshed and out.n_vertices == 643  # 642 + the hole's centre
+    assert not report.remeshed and out.n_vertices == 642  # the 3-edge hole: one triangle
 
 
 def test_grooming_refuses_what_it_cannot_fix_with_the_reason():
@@ -63,9 +63,22 @@ def test_grooming_refuses_what_it_cannot_fix_with_the_reason():
     flat = TriMesh(v * [1.0, 1.0, 0.0], f, "flat.vtk")
     with pytest.raises(grooming.GroomingError, match="no volume|not a closed surface"):
         grooming.groom_mesh(flat, {"remesh": False})
-    nonmanifold = TriMesh(v, np.vstack([f, np.array([[0, 1, 100]])]), "nm.vtk")  # a fin on one edge
-    with pytest.raises(grooming.GroomingError, match="closed surface"):
-        grooming.groom_mesh(nonmanifold, {"remesh": False, "fill_holes": False})
+    # a hole across a third of the surface is no small hole: refused, with its size
+    z = v[f].mean(axis=1)[:, 2]
+    cut = TriMesh(v, f[z < 0.5 * v[:, 2].max()], "cut.vtk")
+    with pytest.raises(grooming.GroomingError,
+                       match=r"boundary edges remain in 1 hole\(s\), the largest [0-9.]+ mm around"):
+        grooming.groom_mesh(cut, {"remesh": False})
+
+
+def test_a_stray_triangle_touching_the_surface_at_three_vertices_comes_off():
+    """Three non-manifold vertices (a triangle glued on by its corners): split, the triangle
+    is a piece of its own and is dropped; the rest is the closed ellipsoid again."""
+    v, f = ellipsoid_surface(2)
+    stray = TriMesh(v, np.vstack([f, np.array([[0, 1, 100]])]), "nm.vtk")
+    out, report = grooming.groom_mesh(stray, {"remesh": False, "fill_holes": False})
+    assert report.split_vertices == 3 and report.dropped_pieces == 1
+    assert meshops.is_closed_manifold(out.faces, out.n_vertices) and len(out.faces) == len(f)
 
 
 def test_tiny_coarse_mesh_is_remeshed_and_corresponds():

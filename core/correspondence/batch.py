@@ -22,7 +22,7 @@ from core.geometry import mesh as meshops
 from core.alignment.transforms import apply_transform, fit_transform
 from core.correspondence.pair import (DEFAULT_CPD_PARAMS, _normalise, _principal_axes, _task,
                                      mesh_problem, mirror_fit_ratio)
-from core.correspondence.grooming import GroomingError, groom_mesh
+from core.correspondence.grooming import GroomingError, describe, groom_mesh
 from core.correspondence.store import (InputFile, Scratch, VertexRows, open_mesh,
                                       open_rows, read_input, write_scratch_mesh)
 from core.runtime.parallel import JobError, preload_in_workers, run_jobs, runs_inline
@@ -326,7 +326,8 @@ def _pick_candidates(info: dict[int, dict], usable: list[int], n: int, grooming:
         rep = grooming.get(names[i], {})
         if counts[j] < 0.5 * np.median(counts):
             excluded[i] = f"coarse ({int(counts[j])} vertices)"
-        elif rep.get("dropped_pieces") or rep.get("filled_holes"):
+        elif any(rep.get(k) for k in ("dropped_pieces", "filled_holes", "split_vertices",
+                                      "removed_handles", "removed_non_manifold_faces")):
             excluded[i] = "needed repair"
         elif (dist[j] - np.median(dist)) / mad > 3.0:
             excluded[i] = "unrepresentative shape"
@@ -451,8 +452,25 @@ def _resolve_reference(reference, prepared: list, names: list[str], failures: di
     if reference != "auto":
         raise ValueError(f"reference must be 'auto', an index or a TriMesh, got {reference!r}")
     closed = [i for i in usable if info[i]["closed"]]
+    if not closed and usable:
+        # None is closed as given (grooming off): the most typical one that grooming repairs
+        # serves, as a repaired copy (every input is still corresponded as it is)
+        order, _ = _pick_candidates(info, usable, len(usable), grooming, names)
+        problems = {}
+        for i in order:
+            try:
+                repaired, rep = groom_mesh(open_mesh(prepared[i]), {"remesh": False})
+            except GroomingError as exc:
+                problems[names[i]] = f"not repairable: {exc}"
+                continue
+            repaired.name = f"{names[i]} (repaired)"
+            done = describe(rep.to_dict()) or "checked"
+            return [None], repaired, (f"a repaired copy of {names[i]} ({done}): no input is a "
+                                      f"closed surface as given")
+        failures = {**failures, **problems}
     if not closed:
-        raise ValueError("no input mesh can serve as reference (none is a valid closed surface: "
+        raise ValueError("no input mesh can serve as reference (none is a valid closed surface "
+                         "or can be repaired into one: "
                          + "; ".join(f"{k}: {v}" for k, v in failures.items()) + ")"
                          if failures else "no input mesh is a closed surface")
     candidates, why = _pick_candidates(info, closed, n_references, grooming, names)

@@ -5,14 +5,21 @@ a few voxels, a small hole, flipped triangles, and very different resolutions (a
 tiny structure next to a 5,000-vertex large one). Each step here fixes one of those and says
 what it did, so that the per-shape report can show it:
 
-1. weld duplicated vertices, drop unused vertices and degenerate triangles;
-2. keep the largest connected piece (by area), reporting the dropped pieces; a mesh whose
+1. weld duplicated vertices, drop unused vertices and degenerate or repeated triangles;
+2. split non-manifold edges and vertices (:func:`split_non_manifold`: every fan of triangles
+   around a vertex gets its own vertex, so sheets glued along an edge or touching at a point
+   come apart and a fin comes off as a piece of its own);
+3. keep the largest connected piece (by area), reporting the dropped pieces; a mesh whose
    dropped part is a large share of its area (``max_dropped_share``) is refused;
-3. fill small holes (boundary loops of at most ``max_hole_edges`` edges, by default
-   max(6, sqrt(N) / 2) for N vertices) with a fan around the loop's centroid;
-4. make the orientation consistent (flip faces to agree with their neighbours, breadth-first
-   over the manifold edges) and outward (positive enclosed volume);
-5. remesh to a target vertex count with an even density (:func:`remesh`: linear subdivision
+4. fill holes small against the mesh: boundary loops up to ``max_hole_perimeter`` (0.3) of
+   the bounding box diagonal around, or up to ``max_hole_edges`` edges (by default
+   max(6, sqrt(N) / 2) for N vertices), with a triangle or a fan around the loop's centroid;
+5. make the orientation consistent (flip faces to agree with their neighbours, breadth-first
+   over the manifold edges) and outward (positive enclosed volume); refuse, saying why, what
+   is still not one closed, oriented 2-manifold (:func:`core.geometry.mesh.topology`);
+6. remove small handles (:func:`remove_small_handles`: thinner than about one mean edge
+   length, found by voxelising the surface and repairing the mask as ``mesh-labels`` does);
+7. remesh to a target vertex count with an even density (:func:`remesh`: linear subdivision
    while too coarse, quadric decimation to the target, Garland & Heckbert, SIGGRAPH 1997, in
    VTK, then tangential relaxation projected onto the input surface, the same fairing as
    the correspondence step with a uniform rest state).
@@ -42,7 +49,10 @@ DEFAULT_GROOMING = {
     "remesh": True,
     "vertices": 2000,           # target vertex count of every groomed mesh
     "max_dropped_share": 0.25,  # refuse when more of the area than this is not in the largest piece
+    "repair_non_manifold": True,
+    "remove_small_handles": True,  # handles thinner than about one mean edge length
     "max_hole_edges": None,     # loops up to this many edges are filled (None: max(6, sqrt(N) / 2))
+    "max_hole_perimeter": 0.3,  # ... and loops up to this share of the bounding box diagonal
 }
 
 
@@ -61,8 +71,14 @@ class GroomReport:
     dropped_pieces: int = 0
     dropped_vertices: int = 0
     dropped_area_share: float = 0.0
+    non_manifold_edges: int = 0
+    non_manifold_vertices: int = 0
+    removed_non_manifold_faces: int = 0
+    split_vertices: int = 0
     filled_holes: int = 0
     open_boundary_edges: int = 0
+    genus: int | None = None
+    removed_handles: int = 0
     flipped_faces: int = 0
     turned_outward: bool = False
     remeshed: bool = False
@@ -82,10 +98,18 @@ def describe(report: dict) -> str:
                     f" ({f'{share:.0f}%' if share >= 0.5 else '<1%'} of the area)")
     if report.get("filled_holes"):
         done.append(f"filled {report['filled_holes']} hole{'s' if report['filled_holes'] > 1 else ''}")
+    if report.get("split_vertices"):
+        done.append(f"split {report.get('non_manifold_edges', 0)} non-manifold edges and "
+                    f"{report.get('non_manifold_vertices', 0)} vertices")
+    if report.get("removed_non_manifold_faces"):
+        done.append(f"removed {report['removed_non_manifold_faces']} triangles on non-manifold edges")
+    if report.get("removed_handles"):
+        done.append(f"removed {report['removed_handles']} small handle"
+                    f"{'s' if report['removed_handles'] > 1 else ''}")
     if report.get("welded_vertices"):
         done.append(f"welded {report['welded_vertices']} vertices")
     if report.get("removed_degenerate_faces"):
-        done.append(f"removed {report['removed_degenerate_faces']} degenerate triangles")
+        done.append(f"removed {report['removed_degenerate_faces']} degenerate or duplicate triangles")
     if report.get("flipped_faces"):
         done.append(f"reoriented {report['flipped_faces']} triangles")
     if report.get("turned_outward"):
@@ -150,6 +174,43 @@ def largest_piece(vertices: np.ndarray, faces: np.ndarray
     return v, f, len(used_pieces) - 1, len(np.unique(faces)) - len(v), share
 
 
+def split_non_manifold(vertices: np.ndarray, faces: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Split a mesh into a 2-manifold with boundary: every fan of triangles around a vertex
+    (joined across edges of exactly two triangles, :func:`core.geometry.mesh.vertex_fans`) gets its
+    own copy of the vertex, so that sheets glued along a non-manifold edge (marching cubes
+    at voxels touching along an edge: four triangles on it) or touching at a point come
+    apart, and a fin comes off as a piece of its own. Triangles on an edge that still has
+    three or more after that (rare) are removed, leaving holes for :func:`fill_holes`. Returns (vertices, faces, triangles removed, vertices added)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    n_faces, n_used = len(f), len(np.unique(f))
+    for _ in range(5):
+        fans = meshops.vertex_fans(f, len(v))
+        _, first = np.unique(fans.ravel(), return_index=True)
+        v, f = v[f.ravel()[first]], fans
+        _, counts, face_edges = meshops.edge_table(f)
+        bad = (counts[face_edges] > 2).any(axis=1)
+        if not bad.any():
+            break
+        f = f[~bad]
+        v, f = compact(v, f)
+    return v, f, n_faces - len(f), int(len(v) - n_used)
+
+
+def hole_limit(vertices: np.ndarray, faces: np.ndarray, max_edges: int | None,
+               max_perimeter: float) -> tuple[int, float]:
+    """The largest hole :func:`fill_holes` closes: (edges, perimeter mm). Edges: ``max_edges``,
+    else max(6, sqrt(N) / 2); perimeter: ``max_perimeter`` times the bounding box diagonal."""
+    edges = max_edges or max(6, int(round(0.5 * np.sqrt(len(vertices)))))
+    diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+    return int(edges), float(max_perimeter) * diagonal
+
+
+def _perimeter(vertices: np.ndarray, loop: np.ndarray) -> float:
+    return float(np.linalg.norm(vertices[loop] - vertices[np.roll(loop, -1)], axis=1).sum())
+
+
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     """Closed boundary loops (vertex index arrays, in the faces' direction).
 
@@ -178,18 +239,22 @@ def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     return loops
 
 
-def fill_holes(vertices: np.ndarray, faces: np.ndarray, max_edges: int
-               ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Close boundary loops of at most ``max_edges`` edges by a fan around their centroid."""
-    loops = [loop for loop in boundary_loops(faces) if len(loop) <= max_edges]
+def fill_holes(vertices: np.ndarray, faces: np.ndarray, max_edges: int,
+               max_perimeter: float = 0.0) -> tuple[np.ndarray, np.ndarray, int]:
+    """Close boundary loops of at most ``max_edges`` edges or ``max_perimeter`` mm: a triangle
+    loop by one triangle, a longer one by a fan around its centroid."""
+    loops = [loop for loop in boundary_loops(faces)
+             if len(loop) <= max_edges or _perimeter(vertices, loop) <= max_perimeter]
     if not loops:
         return vertices, faces, 0
     new_v, new_f = [vertices], [faces]
     n = len(vertices)
     for loop in loops:
-        centre = vertices[loop].mean(axis=0)
-        new_v.append(centre[None])
-        # The loop runs along the faces' own direction; the fan traverses each edge backwards.
+        # The loop runs along the faces' own direction; the fill traverses each edge backwards.
+        if len(loop) == 3:
+            new_f.append(loop[::-1][None])
+            continue
+        new_v.append(vertices[loop].mean(axis=0)[None])
         new_f.append(np.column_stack([np.roll(loop, -1), loop, np.full(len(loop), n)]))
         n += 1
     return np.vstack(new_v), np.vstack(new_f), len(loops)
@@ -262,7 +327,11 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
     closed 1,281-vertex tube came out with one edge on three triangles at a target of 1,200
     and closed at 1,100 and 1,250); a result that is not closed or has another Euler
     characteristic than the input is decimated again to a target 2 % or 4 % off, up to
-    :data:`REMESH_ATTEMPTS` times, and the last attempt is returned as it is (callers check).
+    :data:`REMESH_ATTEMPTS` times (each also with its folds split and their holes closed,
+    :func:`_refold`, which mostly gives the input's topology back); then by topology-preserving decimation (vtkDecimatePro;
+    Schroeder, Zarge & Lorensen, SIGGRAPH 1992), and if that too does not give one closed
+    2-manifold of the input's Euler characteristic, the input is returned as it is. Vertices
+    then only move (relaxation), so a closed manifold input gives a closed manifold output.
     """
     import pyvista as pv
 
@@ -282,15 +351,47 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
         shift = step if attempt % 2 else -step
         reduction = 1.0 - (target_faces + shift) / poly.n_cells
         out = poly.decimate(reduction, volume_preservation=True) if reduction > 0 else poly
-        out = out.clean().triangulate()
-        rv = np.asarray(out.points, dtype=np.float64)
-        rf = np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
-        rv, rf = compact(rv, rf)
-        if meshops.is_closed(rf) and meshops.euler_characteristic(len(rv), rf) == euler:
+        rv, rf = _arrays(out.triangulate())
+        if _same_topology(rv, rf, euler):
             break
+        rv, rf = _refold(rv, rf)
+        if _same_topology(rv, rf, euler):
+            break
+    else:
+        # Topology-preserving decimation (vtkDecimatePro without splitting: no collapse that
+        # changes the topology), when every quadric attempt folded the surface.
+        rv, rf = _arrays(poly.decimate_pro(1.0 - target_faces / poly.n_cells,
+                                           preserve_topology=True, splitting=False,
+                                           boundary_vertex_deletion=False).triangulate())
+        if not _same_topology(rv, rf, euler):
+            return v, f  # the input as it is: a valid surface at its own resolution
     projector = SurfaceProjector(dense_v, dense_f, exact=False, candidates="centroids")
     rv = meshops.fair_mesh(rv, rf, projector, iterations=relax_iterations, step=0.5)
     return rv, rf
+
+
+def _arrays(poly) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of a triangulated pyvista PolyData, unused vertices dropped."""
+    rv = np.asarray(poly.points, dtype=np.float64)
+    rf = np.asarray(poly.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
+    return compact(rv, rf)
+
+
+def _refold(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A decimation's few folds undone: the non-manifold edges and vertices split
+    (:func:`split_non_manifold`), stray bits dropped, the small holes left closed, oriented
+    (the caller checks that the topology is the input's)."""
+    v, f, _, _ = split_non_manifold(vertices, faces)
+    v, f, _, _, _ = largest_piece(v, f)
+    v, f, _ = fill_holes(v, f, 12)
+    f, _, _ = orient(v, f)
+    return v, f
+
+
+def _same_topology(vertices: np.ndarray, faces: np.ndarray, euler: int) -> bool:
+    """One closed, 2-manifold, consistently oriented surface of Euler characteristic ``euler``."""
+    check = meshops.topology(faces, len(vertices))
+    return check["genus"] is not None and check["euler"] == euler
 
 
 def needs_remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int) -> bool:
@@ -301,6 +402,54 @@ def needs_remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int) -> bo
     e = meshops.edges(faces)
     length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     return bool(length.std() > 0.5 * length.mean())
+
+
+def remove_small_handles(vertices: np.ndarray, faces: np.ndarray, genus: int
+                         ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The surface without its handles thinner than about one mean edge length h:
+    (vertices, faces, handles removed). The closed surface is voxelised at h
+    (``vtkPolyDataToImageStencil`` through pyvista) and the mask repaired as a label's is
+    (:func:`core.correspondence.mesh_labels.repair_mask`: one-voxel bridges cut, tunnels filled while there
+    are more handles than a 1-voxel opening and closing leave); when that removes handles,
+    the repaired mask's smoothed Surface Nets surface replaces the mesh (then remeshed by the
+    caller), else the mesh is returned as it is."""
+    import pyvista as pv
+
+    from core.correspondence.mesh_labels import mask_surface, repair_mask
+
+    h = meshops.mean_edge_length(vertices, faces)
+    poly = pv.PolyData(vertices, np.column_stack([np.full(len(faces), 3), faces]).ravel())
+    image = poly.voxelize_binary_mask(spacing=h)
+    mask = np.asarray(image.point_data["mask"]).reshape(image.dimensions, order="F") > 0
+    if mask.sum() < 27:
+        return vertices, faces, 0
+    solid, info = repair_mask(mask)
+    if info["genus"] is None or info["genus"] >= genus:
+        return vertices, faces, 0
+    affine = np.eye(4)
+    affine[:3, :3] = np.diag(image.spacing)
+    affine[:3, 3] = image.origin
+    v, f = mask_surface(solid, affine)
+    if meshops.topology(f, len(v))["genus"] != info["genus"]:
+        return vertices, faces, 0
+    return v, f, int(genus - info["genus"])
+
+
+def _not_closed_reason(vertices: np.ndarray, faces: np.ndarray, check: dict, max_edges: int,
+                      max_perimeter: float) -> str:
+    """Why a groomed mesh is still not one closed, oriented 2-manifold (one line)."""
+    if check["open_edges"]:
+        loops = boundary_loops(faces)
+        longest = max((_perimeter(vertices, loop) for loop in loops), default=0.0)
+        return (f"not a closed surface: {check['open_edges']} boundary edges remain in "
+                f"{len(loops)} hole(s), the largest {longest:.1f} mm around (holes up to "
+                f"{max_perimeter:.1f} mm or {max_edges} edges are filled)")
+    if check["non_manifold_edges"] or check["non_manifold_vertices"]:
+        return (f"not a closed surface: {check['non_manifold_edges']} non-manifold edges and "
+                f"{check['non_manifold_vertices']} non-manifold vertices remain")
+    if check["misoriented_edges"]:
+        return "the surface is not orientable (no consistent inside and outside)"
+    return f"not one closed surface: {check['pieces']} pieces"
 
 
 def groom_mesh(mesh: TriMesh, options: dict | None = None) -> tuple[TriMesh, GroomReport]:
@@ -326,6 +475,13 @@ def groom_mesh(mesh: TriMesh, options: dict | None = None) -> tuple[TriMesh, Gro
     v, f, report.welded_vertices, report.removed_degenerate_faces = weld(v, f)
     if len(f) < 4:
         raise GroomingError(f"only {len(f)} non-degenerate triangles; a closed surface needs at least 4")
+    check = meshops.topology(f, len(v))
+    report.non_manifold_edges = check["non_manifold_edges"]
+    report.non_manifold_vertices = check["non_manifold_vertices"]
+    if opt["repair_non_manifold"] and (report.non_manifold_edges or report.non_manifold_vertices):
+        v, f, report.removed_non_manifold_faces, report.split_vertices = split_non_manifold(v, f)
+        if len(f) < 4:
+            raise GroomingError("nothing is left once the triangles on non-manifold edges are removed")
     if opt["largest_piece"]:
         v, f, report.dropped_pieces, report.dropped_vertices, report.dropped_area_share = \
             largest_piece(v, f)
@@ -333,23 +489,25 @@ def groom_mesh(mesh: TriMesh, options: dict | None = None) -> tuple[TriMesh, Gro
             raise GroomingError(
                 f"the largest connected piece has only {100 * (1 - report.dropped_area_share):.0f}% "
                 f"of the surface ({report.dropped_pieces + 1} pieces); keeping it would drop too much")
-    max_hole = opt["max_hole_edges"] or max(6, int(round(0.5 * np.sqrt(len(v)))))
+    max_edges, max_perimeter = hole_limit(v, f, opt["max_hole_edges"], opt["max_hole_perimeter"])
     if opt["fill_holes"]:
-        v, f, report.filled_holes = fill_holes(v, f, int(max_hole))
+        v, f, report.filled_holes = fill_holes(v, f, max_edges, max_perimeter)
     report.open_boundary_edges = int(len(meshops.boundary_edges(f)))
     if opt["fix_orientation"]:
         f, report.flipped_faces, report.turned_outward = orient(v, f)
-    if not meshops.is_closed(f):
-        why = (f"{report.open_boundary_edges} boundary edges remain (holes larger than "
-               f"{max_hole} edges are not filled)" if report.open_boundary_edges
-               else "some edges have more than two triangles (non-manifold)")
-        raise GroomingError(f"not a closed surface: {why}")
+    check = meshops.topology(f, len(v))
+    if check["genus"] is None:
+        raise GroomingError(_not_closed_reason(v, f, check, max_edges, max_perimeter))
+    report.genus = int(check["genus"])
+    if opt["remove_small_handles"] and report.genus > 0:
+        v, f, report.removed_handles = remove_small_handles(v, f, report.genus)
+        report.genus -= report.removed_handles
     if abs(meshops.volume(v, f)) <= 1e-9 * max(float(np.ptp(v, axis=0).max()), 1e-300) ** 3:
         raise GroomingError("the surface encloses no volume (flat or collapsed)")
     if opt["remesh"] and needs_remesh(v, f, int(opt["vertices"])):
         v, f = remesh(v, f, int(opt["vertices"]))
         report.remeshed = True
-        if not meshops.is_closed(f) or meshops.n_components(f, len(v)) != 1:
-            raise GroomingError("remeshing did not give one closed surface")
+        if meshops.topology(f, len(v))["genus"] != report.genus:
+            raise GroomingError("remeshing did not give one closed 2-manifold surface")
     report.output_vertices = int(len(v))
     return TriMesh(v, f, mesh.name), report

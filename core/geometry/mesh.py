@@ -91,6 +91,67 @@ def is_consistently_oriented(faces: np.ndarray) -> bool:
     return len(np.unique(directed, axis=0)) == len(directed)
 
 
+def vertex_fans(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Fan label of every face corner (F, 3): corners of one vertex joined across the
+    manifold edges (two triangles) through it; a manifold vertex has all its corners in one fan.
+
+    The labels are global (0 .. n_fans - 1); a vertex whose corners have several labels is a
+    non-manifold vertex (two surfaces touching at a point, or a fin's edge).
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    n_f = len(faces)
+    _, counts, face_edges = edge_table(faces)
+    # Per face and edge slot (01, 12, 20): the corner slots of the edge's two ends.
+    ends = np.array([[0, 1], [1, 2], [2, 0]])
+    fe = face_edges.reshape(-1)
+    face_of = np.repeat(np.arange(n_f), 3)
+    slot = np.tile(np.arange(3), n_f)
+    manifold = counts[fe] == 2
+    order = np.argsort(fe[manifold], kind="stable")
+    pair_face = face_of[manifold][order].reshape(-1, 2)
+    pair_slot = slot[manifold][order].reshape(-1, 2)
+    rows, cols = [], []
+    for end in (0, 1):  # join the corners of each end vertex in the two faces
+        ca = pair_face[:, 0] * 3 + ends[pair_slot[:, 0], end]
+        va = faces[pair_face[:, 0], ends[pair_slot[:, 0], end]]
+        # the same vertex's corner in the other face: whichever end of its slot it is
+        other = ends[pair_slot[:, 1]]
+        in_b = np.where(faces[pair_face[:, 1], other[:, 0]] == va, other[:, 0], other[:, 1])
+        rows.append(ca)
+        cols.append(pair_face[:, 1] * 3 + in_b)
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_f, 3 * n_f))
+    return connected_components(graph, directed=False)[1].reshape(n_f, 3)
+
+
+def topology(faces: np.ndarray, n_vertices: int) -> dict:
+    """Counts of a mesh's topology defects and its Euler characteristic and pieces:
+    ``open_edges`` (one triangle), ``non_manifold_edges`` (three or more),
+    ``non_manifold_vertices`` (several fans), ``misoriented_edges`` (a directed edge used
+    twice), ``pieces``, ``euler``, and ``genus`` (of one closed manifold piece, else None)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    _, counts, _ = edge_table(faces)
+    fans = vertex_fans(faces, n_vertices)
+    n_fans = len(np.unique(fans))
+    used = len(np.unique(faces))
+    directed = _directed_edges(faces)
+    misoriented = len(directed) - len(np.unique(directed, axis=0))
+    euler = euler_characteristic(used, faces)
+    out = {"open_edges": int((counts == 1).sum()), "non_manifold_edges": int((counts > 2).sum()),
+           "non_manifold_vertices": int(n_fans - used), "misoriented_edges": int(misoriented),
+           "pieces": n_components(faces, n_vertices), "euler": int(euler)}
+    clean = not (out["open_edges"] or out["non_manifold_edges"] or out["non_manifold_vertices"]
+                 or out["misoriented_edges"]) and out["pieces"] == 1
+    out["genus"] = (2 - euler) // 2 if clean else None
+    return out
+
+
+def is_closed_manifold(faces: np.ndarray, n_vertices: int) -> bool:
+    """One closed, 2-manifold (every edge on two triangles, every vertex one fan), consistently
+    oriented surface."""
+    return topology(faces, n_vertices)["genus"] is not None
+
+
 def volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Enclosed volume (mm^3) of a closed, consistently oriented surface (divergence theorem)."""
     v = vertices[faces]
