@@ -165,9 +165,10 @@ def test_recovered_session_saves_to_its_own_file(make_window, tmp_path, monkeypa
     window.wait_for_refit(20000)
     window._autosave_timer.stop()
     window.write_recovery()
-    code = ("import os, sys; from core.session.document import load_session, write_recovery; "
-            "write_recovery(load_session(sys.argv[1])); os._exit(3)")
-    result = subprocess.run([sys.executable, "-c", code, str(sessions.recovery_path())],
+    code = ("import os, sys; from core.session.document import load_session; "
+            "from core.session.recovery import CrashRecovery; "
+            "CrashRecovery().write(load_session(sys.argv[1])); os._exit(3)")
+    result = subprocess.run([sys.executable, "-c", code, str(window.sessions.recovery.path)],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 3, result.stderr
     window.close()

@@ -183,6 +183,7 @@ class CrashRecovery:
     def __init__(self, folder: str | os.PathLike | None = None):
         self.folder = Path(folder) if folder is not None else state_dir()
         self.pid = os.getpid()
+        self.created = psutil.Process(self.pid).create_time()  # recorded against pid reuse
         self._next_slot = 0  # which of the two slots the next autosave replaces
         self._lock = filelock.FileLock(_lock_path(self.folder, self.pid), thread_local=False)
 
@@ -203,7 +204,7 @@ class CrashRecovery:
         doc = to_document(session, None, packed=True)
         doc["writer"] = {"pid": self.pid, "host": socket.gethostname(),
                          "sequence": time.time_ns(),
-                         "created": psutil.Process(self.pid).create_time()}
+                         "created": self.created}
         text = json.dumps(doc, separators=(",", ":"))
         target = _slot_paths(self.folder, self.pid)[self._next_slot]
         target.parent.mkdir(parents=True, exist_ok=True)
