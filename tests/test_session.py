@@ -259,6 +259,8 @@ def test_state_dir_defaults(monkeypatch, tmp_path):
     monkeypatch.delenv("XDG_STATE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     assert rec.state_dir() == tmp_path / "home" / ".local" / "state" / "ssm-studio"
+    monkeypatch.setenv("XDG_STATE_HOME", "relative/state")  # ignored, as the XDG spec says
+    assert rec.state_dir() == tmp_path / "home" / ".local" / "state" / "ssm-studio"
 
 
 def test_recovery_lifecycle_in_one_run(state_dir, tmp_path, recovery):
@@ -443,6 +445,88 @@ def test_reused_pid_does_not_hide_a_crashed_run(state_dir, recovery):
     finally:
         other.kill()
         other.wait()
+
+
+def _as_written_by(recovery, state_dir: Path, pid: int, **writer) -> Path:
+    """This process's autosave, rewritten as if ``pid`` had written it without a lock file."""
+    own = recovery.write(Session(points=[[7.0, 8.0, 9.0]]))
+    doc = json.loads(own.read_text())
+    doc["writer"].update(pid=pid, **writer)
+    for key in [k for k, v in writer.items() if v is None]:
+        del doc["writer"][key]
+    target = state_dir / f"recovery-{pid}-a.json"
+    target.write_text(json.dumps(doc))
+    own.unlink()
+    return target
+
+
+def test_writer_with_its_recorded_create_time_is_running(state_dir, recovery):
+    """The pid-reuse check itself: the process whose creation time is the one recorded is
+    the writer (not offered), the same pid with another time is not (offered)."""
+    import psutil
+
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        created = psutil.Process(other.pid).create_time()
+        _as_written_by(recovery, state_dir, other.pid, created=created)
+        assert not (state_dir / f"recovery-{other.pid}.lock").exists()  # psutil decides
+        assert rec.writer_running(other.pid, created, state_dir)
+        assert not rec.previous_run_crashed() and recovery.read() is None
+        assert not rec.writer_running(other.pid, created - 5.0, state_dir)
+        assert not rec.writer_running(other.pid, created + 5.0, state_dir)
+    finally:
+        other.kill()
+        other.wait()
+    assert not rec.writer_running(other.pid, created, state_dir)  # reaped: no such process
+    np.testing.assert_array_equal(recovery.read().points, [[7.0, 8.0, 9.0]])
+
+
+def test_file_from_before_psutil_is_judged_by_pid(state_dir, recovery):
+    """A recovery file of the previous version records ``started`` in clock ticks, not a
+    creation time: a live pid keeps it (not offered), an ended one has it offered."""
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        _as_written_by(recovery, state_dir, other.pid, created=None, started=123456)
+        assert not rec.previous_run_crashed()
+    finally:
+        other.kill()
+        other.wait()
+    assert rec.previous_run_crashed()
+    np.testing.assert_array_equal(recovery.read().points, [[7.0, 8.0, 9.0]])
+
+
+def test_left_over_unlocked_lock_file_does_not_hide_a_crash(state_dir, recovery):
+    """filelock leaves the lock file in place; one nobody holds means its writer ended, even
+    when the pid is alive again (reused), and it is removed when read."""
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        _as_written_by(recovery, state_dir, other.pid)
+        (state_dir / f"recovery-{other.pid}.lock").write_bytes(b"")
+        assert rec.previous_run_crashed()
+        assert not (state_dir / f"recovery-{other.pid}.lock").exists()
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_two_autosaves_keep_their_own_state(tmp_path):
+    """No module state: two CrashRecovery objects in other folders alternate their own slots,
+    and clearing one leaves the other's file and lock."""
+    first, second = rec.CrashRecovery(tmp_path / "one"), rec.CrashRecovery(tmp_path / "two")
+    try:
+        a1 = first.write(Session(points=[[1.0, 1.0, 1.0]]))
+        b1 = second.write(Session(points=[[2.0, 2.0, 2.0]]))
+        a2 = first.write(Session(points=[[3.0, 3.0, 3.0]]))
+        assert (a1.parent, b1.parent) == (tmp_path / "one", tmp_path / "two")
+        assert a1.name.endswith("-a.json") and a2.name.endswith("-b.json") and first.path == a2
+        first.clear()
+        assert list((tmp_path / "one").iterdir()) == []
+        assert sorted(p.name for p in (tmp_path / "two").iterdir()) == \
+            [f"recovery-{os.getpid()}-a.json", f"recovery-{os.getpid()}.lock"]
+        np.testing.assert_array_equal(sessions.load_session(second.path).points, [[2.0, 2.0, 2.0]])
+    finally:
+        first.clear()
+        second.clear()
 
 
 def test_running_writer_holds_its_lock(state_dir):
