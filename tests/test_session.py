@@ -18,6 +18,7 @@ from core.session import document as sessions
 from core.session import recovery as rec
 from core.io import DataFileError
 from core.session.document import Session
+from recovery_runs import crashing_run
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -239,19 +240,6 @@ def test_failed_save_keeps_previous_session(tmp_path, monkeypatch):
 # --------------------------------------------------------------------------------------
 
 
-def _crashing_run(state: Path, script: str) -> int:
-    """Run ``script`` in a new Python process that ends without a clean exit; its pid."""
-    code = ("import os, numpy as np\nfrom core.session import document as s\n"
-            "from core.session.recovery import CrashRecovery\nr = CrashRecovery()\n" + script +
-            "\nos._exit(3)\n")
-    env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state))
-    # -u: os._exit() skips flushing, and the pid printed on stdout must get through the pipe
-    proc = subprocess.run([sys.executable, "-u", "-c", code], cwd=ROOT, env=env, timeout=60,
-                          capture_output=True, text=True)
-    assert proc.returncode == 3, proc.stderr
-    return int(proc.stdout.strip().splitlines()[-1])
-
-
 def test_state_dir_defaults(monkeypatch, tmp_path):
     monkeypatch.delenv("SSM_STUDIO_STATE_DIR")
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
@@ -281,15 +269,14 @@ def test_recovery_lifecycle_in_one_run(state_dir, tmp_path, recovery):
 
 
 def test_crash_leaves_a_recovery_that_is_offered_once(state_dir, tmp_path, recovery):
-    pid = _crashing_run(state_dir, f"""
+    pid = crashing_run(state_dir=state_dir, script=f"""
 pts = np.arange(1500, dtype=float).reshape(500, 3) / 7
 sess = s.Session(image={str(tmp_path / 'scan.nii.gz')!r}, points=pts,
                  point_slices=[("axial", float(z)) for z in pts[:, 2]], coef=[0.1, -0.2],
                  pose=np.eye(4), window=(400.0, 40.0), fit={{"method": "gmm-iso"}})
 r.write(sess)
 sess.points = pts + 1.0
-r.write(sess)
-print(os.getpid())""")
+r.write(sess)""")
     assert pid != os.getpid()
     assert rec.previous_run_crashed()
     assert all(str(pid) in p.name for p in rec.orphaned_recovery_files())
@@ -326,11 +313,10 @@ def test_running_instance_files_are_not_offered(state_dir, tmp_path, recovery):
 
 
 def test_newest_damaged_slot_falls_back_to_the_older(state_dir, recovery):
-    pid = _crashing_run(state_dir, """
+    pid = crashing_run(state_dir=state_dir, script="""
 r.write(s.Session(points=[[1.0, 1.0, 1.0]]))
 newest = r.write(s.Session(points=[[2.0, 2.0, 2.0]]))
-newest.write_text(newest.read_text()[:100])   # the crash hit in the middle of a write
-print(os.getpid())""")
+newest.write_text(newest.read_text()[:100])   # the crash hit in the middle of a write""")
     recovered = recovery.read()
     np.testing.assert_array_equal(recovered.points, [[1.0, 1.0, 1.0]])
     assert not any(str(pid) in p.name for p in state_dir.iterdir())
@@ -554,10 +540,9 @@ def test_recovered_session_that_does_not_fit_its_model_is_refused(state_dir, tmp
     from core.io import save_model
 
     save_model(tmp_path / "m.npz", _model(3))
-    _crashing_run(state_dir, f"""
+    crashing_run(state_dir=state_dir, script=f"""
 r.write(s.Session(model={str(tmp_path / 'm.npz')!r}, points=[[1.0, 2.0, 3.0]],
-                  coef=[0.5] * 4))
-print(os.getpid())""")
+                  coef=[0.5] * 4))""")
     with pytest.raises(DataFileError, match="holds 4 shape coefficients but the model has 3"):
         SessionController(WorkspaceState()).pending_recovery()
     assert not rec.previous_run_crashed()  # discarded, not offered again
