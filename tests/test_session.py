@@ -380,7 +380,6 @@ def test_session_whose_coefficients_do_not_fit_the_model_is_refused_whole(tmp_pa
     """Before: three Qt-slot tracebacks, then the error; now one error naming the session,
     raised before any of it is applied (the GUI's session controller reads through it)."""
     from app.controllers import SessionController
-    from app.state import WorkspaceState
     from core.io import save_model
 
     save_model(tmp_path / "m.npz", _model(3))
