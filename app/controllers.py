@@ -34,6 +34,16 @@ class SessionController:
         self.info_providers: dict[str, Callable[[], Any]] = {}
         # and read back by key when a session is applied (``read(session.info.get(key))``)
         self.info_readers: dict[str, Callable[[Any], None]] = {}
+        self._recovery = None  # core.session.recovery.CrashRecovery, made on first use
+
+    @property
+    def recovery(self):
+        """This process's crash-recovery autosave (:class:`core.session.recovery.CrashRecovery`)."""
+        if self._recovery is None:
+            from core.session.recovery import CrashRecovery
+
+            self._recovery = CrashRecovery()
+        return self._recovery
 
     # -- image and models --------------------------------------------------------------
     def open_image(self, path: str | os.PathLike, series: str | None = None) -> str:
@@ -202,8 +212,7 @@ class SessionController:
         sessions.save_session(path, self.to_session(fit_settings))
         return f"Saved session {Path(path).name}"
 
-    @staticmethod
-    def pending_recovery():
+    def pending_recovery(self):
         """(session, question to ask) left by a run that did not exit normally, or None.
 
         An unreadable recovery file is discarded, then its error raised.
@@ -211,38 +220,33 @@ class SessionController:
         from core.session import document as sessions
 
         try:
-            session = sessions.read_recovery()
+            session = self.recovery.read()
         except (ValueError, OSError):
-            sessions.clear_recovery()
+            self.recovery.clear()
             raise
         if session is None:
             return None
         if session.model_path is not None and split_member(session.model_path)[0].exists():
             try:  # a model rebuilt since: refuse the recovery whole, not half-way
                 sessions.check_session_model(session, load_model(session.model_path),
-                                             sessions.recovery_path())
+                                             self.recovery.path)
             except (ValueError, OSError):
-                sessions.clear_recovery()
+                self.recovery.clear()
                 raise
         n_points = len(np.asarray(session.points).reshape(-1, 3))
         return session, (f"SSM Studio did not close normally last time. Restore the unsaved "
                          f"session ({n_points} contour point(s))?")
 
-    @staticmethod
-    def clear_recovery() -> None:
-        from core.session import document as sessions
-
-        sessions.clear_recovery()
+    def clear_recovery(self) -> None:
+        self.recovery.clear()
 
     def write_recovery(self, fit_settings: dict, session_path: Path | None = None) -> None:
         """Autosave for crash recovery, with the file the session was opened from or saved
         to (``info["session_path"]``: restored with the work)."""
-        from core.session import document as sessions
-
         session = self.to_session(fit_settings)
         if session_path is not None:
             session.info[RECOVERED_PATH_KEY] = str(Path(session_path).resolve())
-        sessions.write_recovery(session)
+        self.recovery.write(session)
 
 
 def edits_path(labels_path: str | os.PathLike) -> Path:

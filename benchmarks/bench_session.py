@@ -2,7 +2,7 @@
 
 Peers, on the same session in the same run (median and 95th percentile of 200 writes):
 
-- ``write_recovery``: :func:`core.session.document.write_recovery` (arrays packed as base64, two
+- ``write_recovery``: :meth:`core.session.recovery.CrashRecovery.write` (arrays packed as base64, two
   alternating slots, no rename over an existing file);
 - ``save_session``: :func:`core.session.document.save_session` (readable JSON, relative paths, atomic
   rename over the previous file);
@@ -27,6 +27,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from core.session import document as sessions  # noqa: E402
+from core.session.recovery import CrashRecovery  # noqa: E402
 
 
 def _session(n_points: int) -> sessions.Session:
@@ -49,7 +50,7 @@ def _time(fn, repeats: int = 200) -> tuple[float, float]:
 
 def main() -> None:
     with tempfile.TemporaryDirectory() as folder:
-        os.environ["SSM_STUDIO_STATE_DIR"] = str(Path(folder) / "state")
+        recovery = CrashRecovery(Path(folder) / "state")
         print(f"{'points':>7} {'method':<16} {'median ms':>10} {'p95 ms':>8} {'bytes':>8}")
         for n in (100, 500, 5000):
             session = _session(n)
@@ -63,15 +64,15 @@ def main() -> None:
                 tmp.write_text(json.dumps(doc, indent=2))
                 os.replace(tmp, naive)
 
-            rows = [("write_recovery", lambda: sessions.write_recovery(session),
-                     sessions.recovery_path),
+            rows = [("write_recovery", lambda: recovery.write(session),
+                     lambda: recovery.path),
                     ("save_session", lambda: sessions.save_session(target, session),
                      lambda: target),
                     ("naive json", naive_write, lambda: naive)]
             for name, fn, path in rows:
                 median, p95 = _time(fn)
                 print(f"{n:>7} {name:<16} {median:>10.2f} {p95:>8.2f} {path().stat().st_size:>8}")
-        sessions.clear_recovery()
+        recovery.clear()
 
 
 if __name__ == "__main__":

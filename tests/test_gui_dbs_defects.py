@@ -4,8 +4,6 @@ failed at eb2bdcf."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -17,6 +15,7 @@ from PySide6.QtCore import QMimeData, QPointF, Qt, QUrl  # noqa: E402
 from PySide6.QtGui import QDropEvent  # noqa: E402
 from PySide6.QtWidgets import QFileDialog, QInputDialog, QMessageBox  # noqa: E402
 
+from recovery_runs import crashing_run  # noqa: E402
 from app import demo, demo_tour  # noqa: E402
 from core.io import load_model, save_points  # noqa: E402
 from core.io.model_library import RESOURCES_MODELS, structure_info  # noqa: E402
@@ -165,11 +164,7 @@ def test_recovered_session_saves_to_its_own_file(make_window, tmp_path, monkeypa
     window.wait_for_refit(20000)
     window._autosave_timer.stop()
     window.write_recovery()
-    code = ("import os, sys; from core.session.document import load_session, write_recovery; "
-            "write_recovery(load_session(sys.argv[1])); os._exit(3)")
-    result = subprocess.run([sys.executable, "-c", code, str(sessions.recovery_path())],
-                            capture_output=True, text=True, timeout=60)
-    assert result.returncode == 3, result.stderr
+    crashing_run("r.write(s.load_session(sys.argv[1]))", str(window.sessions.recovery.path))
     window.close()
 
     fresh = make_window(load_demo=False, recovery=True)

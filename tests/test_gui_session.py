@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -16,6 +14,7 @@ pytestmark = pytest.mark.gui
 from PySide6.QtCore import QPoint, Qt  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
+from recovery_runs import crashing_run  # noqa: E402
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
 from core.io import load_mesh, load_points, load_volume  # noqa: E402
@@ -130,25 +129,20 @@ def test_session_round_trip_with_relative_paths(qtbot, tmp_path, state_dir):
 
 def test_autosave_and_recovery_after_a_crash(qtbot, tmp_path, state_dir):
     _need_demo()
-    from core.session import document as sessions
 
     window = _window(qtbot, recovery=True)
     window.load_demo()
     window.show()
     _draw(window, RING[:6])
     window.wait_for_refit(20000)
-    qtbot.waitUntil(lambda: sessions.recovery_path().exists(), timeout=5000)
+    qtbot.waitUntil(lambda: window.sessions.recovery.path.exists(), timeout=5000)
     window._autosave_timer.stop()
     window.write_recovery()                      # the autosave of the last edit
     points = window.state.points.xyz.copy()
     coef = window.state.coef.copy()
 
     # a run that autosaved the same work and then died without cleaning up
-    code = ("import os, sys; from core.session.document import load_session, write_recovery; "
-            "write_recovery(load_session(sys.argv[1])); os._exit(3)")
-    result = subprocess.run([sys.executable, "-c", code, str(sessions.recovery_path())],
-                            capture_output=True, text=True, timeout=60)
-    assert result.returncode == 3, result.stderr
+    crashing_run("r.write(s.load_session(sys.argv[1]))", str(window.sessions.recovery.path))
     window.close()                               # clean exit: its own file is removed
 
     asked = []

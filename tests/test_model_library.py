@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -55,6 +57,18 @@ def test_library_lists_user_models_and_reports_bad_files(tmp_path, monkeypatch):
     assert [e.path.name for e in entries] == ["mine.npz", "broken.npz"]
     assert entries[0].structure.label == "Left pallidum" and entries[0].n_vertices == 4
     assert "broken.npz" in entries[1].error and entries[1].structure is None
+
+
+def test_user_models_dir_defaults(tmp_path, monkeypatch):
+    """Without SSM_STUDIO_DATA_DIR: the XDG data folder, else ~/.local/share (Linux)."""
+    if sys.platform != "linux":
+        pytest.skip("the XDG defaults are Linux's")
+    monkeypatch.delenv("SSM_STUDIO_DATA_DIR", raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
+    assert user_models_dir() == tmp_path / "xdg" / "ssm-studio" / "models"
+    monkeypatch.delenv("XDG_DATA_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert user_models_dir() == tmp_path / "home" / ".local" / "share" / "ssm-studio" / "models"
 
 
 def test_shipped_library_models_sit_on_their_side_of_the_symmetric_template():

@@ -1,4 +1,5 @@
-"""Tests for core.session.document: session files (relative paths, versions, bad files) and recovery."""
+"""Tests for core.session: session files (relative paths, versions, bad files: document.py) and
+crash recovery (recovery.py)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ import numpy as np
 import pytest
 
 from core.session import document as sessions
+from core.session import recovery as rec
 from core.io import DataFileError
 from core.session.document import Session
+from recovery_runs import crashing_run
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -26,6 +29,14 @@ def state_dir(tmp_path, monkeypatch) -> Path:
     folder = tmp_path / "state"
     monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(folder))
     return folder
+
+
+@pytest.fixture
+def recovery(state_dir) -> rec.CrashRecovery:
+    """This process's autosave in the test's recovery folder; cleared (lock released) after."""
+    autosave = rec.CrashRecovery()
+    yield autosave
+    autosave.clear()
 
 
 def full_session(folder: Path, n_points: int = 40) -> Session:
@@ -229,59 +240,48 @@ def test_failed_save_keeps_previous_session(tmp_path, monkeypatch):
 # --------------------------------------------------------------------------------------
 
 
-def _crashing_run(state: Path, script: str) -> int:
-    """Run ``script`` in a new Python process that ends without a clean exit; its pid."""
-    code = ("import os, numpy as np\nfrom core.session import document as s\n" + script +
-            "\nos._exit(3)\n")
-    env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state))
-    # -u: os._exit() skips flushing, and the pid printed on stdout must get through the pipe
-    proc = subprocess.run([sys.executable, "-u", "-c", code], cwd=ROOT, env=env, timeout=60,
-                          capture_output=True, text=True)
-    assert proc.returncode == 3, proc.stderr
-    return int(proc.stdout.strip().splitlines()[-1])
-
-
 def test_state_dir_defaults(monkeypatch, tmp_path):
     monkeypatch.delenv("SSM_STUDIO_STATE_DIR")
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
-    assert sessions.state_dir() == tmp_path / "xdg" / "ssm-studio"
+    assert rec.state_dir() == tmp_path / "xdg" / "ssm-studio"
     monkeypatch.delenv("XDG_STATE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    assert sessions.state_dir() == tmp_path / "home" / ".local" / "state" / "ssm-studio"
+    assert rec.state_dir() == tmp_path / "home" / ".local" / "state" / "ssm-studio"
+    monkeypatch.setenv("XDG_STATE_HOME", "relative/state")  # ignored, as the XDG spec says
+    assert rec.state_dir() == tmp_path / "home" / ".local" / "state" / "ssm-studio"
 
 
-def test_recovery_lifecycle_in_one_run(state_dir, tmp_path):
-    assert sessions.read_recovery() is None
-    assert not sessions.previous_run_crashed()
+def test_recovery_lifecycle_in_one_run(state_dir, tmp_path, recovery):
+    assert recovery.read() is None
+    assert not rec.previous_run_crashed()
     session = full_session(tmp_path)
-    path = sessions.write_recovery(session)
+    path = recovery.write(session)
     assert path.parent == state_dir and str(os.getpid()) in path.name
-    assert sessions.recovery_path() == path
+    assert recovery.path == path
     session.points = session.points + 1.0
-    second = sessions.write_recovery(session)
-    assert second != path and sessions.recovery_path() == second  # the two slots alternate
+    second = recovery.write(session)
+    assert second != path and recovery.path == second  # the two slots alternate
     # this run's own autosave is never offered as "left by a crash"
-    assert sessions.read_recovery() is None
-    assert not sessions.previous_run_crashed()
-    sessions.clear_recovery()
+    assert recovery.read() is None
+    assert not rec.previous_run_crashed()
+    recovery.clear()
     assert list(state_dir.iterdir()) == []
 
 
-def test_crash_leaves_a_recovery_that_is_offered_once(state_dir, tmp_path):
-    pid = _crashing_run(state_dir, f"""
+def test_crash_leaves_a_recovery_that_is_offered_once(state_dir, tmp_path, recovery):
+    pid = crashing_run(state_dir=state_dir, script=f"""
 pts = np.arange(1500, dtype=float).reshape(500, 3) / 7
 sess = s.Session(image={str(tmp_path / 'scan.nii.gz')!r}, points=pts,
                  point_slices=[("axial", float(z)) for z in pts[:, 2]], coef=[0.1, -0.2],
                  pose=np.eye(4), window=(400.0, 40.0), fit={{"method": "gmm-iso"}})
-s.write_recovery(sess)
+r.write(sess)
 sess.points = pts + 1.0
-s.write_recovery(sess)
-print(os.getpid())""")
+r.write(sess)""")
     assert pid != os.getpid()
-    assert sessions.previous_run_crashed()
-    assert all(str(pid) in p.name for p in sessions.orphaned_recovery_files())
+    assert rec.previous_run_crashed()
+    assert all(str(pid) in p.name for p in rec.orphaned_recovery_files())
 
-    recovered = sessions.read_recovery()
+    recovered = recovery.read()
     expected = np.arange(1500, dtype=float).reshape(500, 3) / 7 + 1.0  # the newer autosave
     np.testing.assert_array_equal(recovered.points, expected)
     assert recovered.image_path == tmp_path / "scan.nii.gz"
@@ -290,54 +290,53 @@ print(os.getpid())""")
     assert recovered.window == (400.0, 40.0) and recovered.fit_method == "gmm-iso"
 
     # claimed: now this process's file, not offered again, removed by a clean exit
-    assert not sessions.previous_run_crashed()
-    assert sessions.read_recovery() is None
+    assert not rec.previous_run_crashed()
+    assert recovery.read() is None
     assert all(str(os.getpid()) in p.name for p in state_dir.iterdir())
-    sessions.write_recovery(recovered)  # this run goes on autosaving
-    sessions.clear_recovery()
+    recovery.write(recovered)  # this run goes on autosaving
+    recovery.clear()
     assert list(state_dir.iterdir()) == []
 
 
-def test_running_instance_files_are_not_offered(state_dir, tmp_path):
+def test_running_instance_files_are_not_offered(state_dir, tmp_path, recovery):
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
-        own = sessions.write_recovery(Session(points=[[1.0, 2.0, 3.0]]))
+        own = recovery.write(Session(points=[[1.0, 2.0, 3.0]]))
         os.replace(own, state_dir / f"recovery-{other.pid}-a.json")
-        assert not sessions.previous_run_crashed()
-        assert sessions.read_recovery() is None
+        assert not rec.previous_run_crashed()
+        assert recovery.read() is None
     finally:
         other.kill()
         other.wait()
-    assert sessions.previous_run_crashed()  # that instance has gone without cleaning up
-    np.testing.assert_array_equal(sessions.read_recovery().points, [[1.0, 2.0, 3.0]])
+    assert rec.previous_run_crashed()  # that instance has gone without cleaning up
+    np.testing.assert_array_equal(recovery.read().points, [[1.0, 2.0, 3.0]])
 
 
-def test_newest_damaged_slot_falls_back_to_the_older(state_dir):
-    pid = _crashing_run(state_dir, """
-s.write_recovery(s.Session(points=[[1.0, 1.0, 1.0]]))
-newest = s.write_recovery(s.Session(points=[[2.0, 2.0, 2.0]]))
-newest.write_text(newest.read_text()[:100])   # the crash hit in the middle of a write
-print(os.getpid())""")
-    recovered = sessions.read_recovery()
+def test_newest_damaged_slot_falls_back_to_the_older(state_dir, recovery):
+    pid = crashing_run(state_dir=state_dir, script="""
+r.write(s.Session(points=[[1.0, 1.0, 1.0]]))
+newest = r.write(s.Session(points=[[2.0, 2.0, 2.0]]))
+newest.write_text(newest.read_text()[:100])   # the crash hit in the middle of a write""")
+    recovered = recovery.read()
     np.testing.assert_array_equal(recovered.points, [[1.0, 1.0, 1.0]])
     assert not any(str(pid) in p.name for p in state_dir.iterdir())
 
 
-def test_damaged_recovery_gives_clear_error_and_is_cleared(state_dir):
+def test_damaged_recovery_gives_clear_error_and_is_cleared(state_dir, recovery):
     state_dir.mkdir()
     (state_dir / "recovery-999999999-a.json").write_text('{"format": "ssm-studio-sess')
-    assert sessions.previous_run_crashed()
+    assert rec.previous_run_crashed()
     with pytest.raises(DataFileError) as info:
-        sessions.read_recovery()
+        recovery.read()
     assert "recovery-" in str(info.value) and "not valid JSON" in str(info.value)
-    sessions.clear_recovery()
+    recovery.clear()
     assert list(state_dir.iterdir()) == []
-    assert sessions.read_recovery() is None
+    assert recovery.read() is None
 
 
-def test_recovery_stores_absolute_paths(tmp_path, monkeypatch):
+def test_recovery_stores_absolute_paths(tmp_path, monkeypatch, recovery):
     monkeypatch.chdir(tmp_path)
-    path = sessions.write_recovery(Session(image="scan.nii", model=Path("models") / "m.npz"))
+    path = recovery.write(Session(image="scan.nii", model=Path("models") / "m.npz"))
     doc = json.loads(path.read_text())
     assert doc["image"] == str(tmp_path / "scan.nii")
     assert doc["model"] == str(tmp_path / "models" / "m.npz")
@@ -392,10 +391,11 @@ def test_session_whose_coefficients_do_not_fit_the_model_is_refused_whole(tmp_pa
     sessions.check_session_model(Session(coef=[0.1] * 3), _model(3), tmp_path / "s.json")
 
 
-def test_zombie_recovery_writer_is_recognised_as_ended(state_dir):
+def test_zombie_recovery_writer_is_recognised_as_ended(state_dir, recovery):
     """Before: os.kill(pid, 0) succeeds on a zombie, so the crashed run was never offered."""
     code = ("import os, time\nfrom core.session import document as s\n"
-            "s.write_recovery(s.Session(points=[[4.0, 5.0, 6.0]]))\nos._exit(3)\n")
+            "from core.session.recovery import CrashRecovery\nr = CrashRecovery()\n"
+            "r.write(s.Session(points=[[4.0, 5.0, 6.0]]))\nos._exit(3)\n")
     env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state_dir))
     child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env)
     try:
@@ -404,39 +404,121 @@ def test_zombie_recovery_writer_is_recognised_as_ended(state_dir):
             assert time.monotonic() < deadline, "the child did not end"
             time.sleep(0.02)
         # its other threads may still be ending (holding the files) for a moment
-        while not sessions.previous_run_crashed():
+        while not rec.previous_run_crashed():
             assert time.monotonic() < deadline, "a zombie writer was taken for running"
             time.sleep(0.02)
         os.kill(child.pid, 0)  # the pid still "exists": it is a zombie, not reaped
-        np.testing.assert_array_equal(sessions.read_recovery().points, [[4.0, 5.0, 6.0]])
+        np.testing.assert_array_equal(recovery.read().points, [[4.0, 5.0, 6.0]])
     finally:
         child.wait()
 
 
-def test_reused_pid_does_not_hide_a_crashed_run(state_dir):
+def test_reused_pid_does_not_hide_a_crashed_run(state_dir, recovery):
     """A recovery file whose writer ended, and whose pid now belongs to another process
     (checked by the start time the writer recorded): offered (before: suppressed)."""
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
-        own = sessions.write_recovery(Session(points=[[7.0, 8.0, 9.0]]))
-        sessions._release_lock()  # as when this process has ended
+        own = recovery.write(Session(points=[[7.0, 8.0, 9.0]]))
         doc = json.loads(own.read_text())
         doc["writer"]["pid"] = other.pid
-        doc["writer"]["started"] -= 1000  # the writer started before the process now there
+        doc["writer"]["created"] -= 1000  # the writer started before the process now there
         target = state_dir / f"recovery-{other.pid}-a.json"
         target.write_text(json.dumps(doc))
         own.unlink()
-        assert sessions.previous_run_crashed()
-        np.testing.assert_array_equal(sessions.read_recovery().points, [[7.0, 8.0, 9.0]])
+        assert rec.previous_run_crashed()
+        np.testing.assert_array_equal(recovery.read().points, [[7.0, 8.0, 9.0]])
     finally:
         other.kill()
         other.wait()
 
 
+def _as_written_by(recovery, state_dir: Path, pid: int, **writer) -> Path:
+    """This process's autosave, rewritten as if ``pid`` had written it without a lock file."""
+    own = recovery.write(Session(points=[[7.0, 8.0, 9.0]]))
+    doc = json.loads(own.read_text())
+    doc["writer"].update(pid=pid, **writer)
+    for key in [k for k, v in writer.items() if v is None]:
+        del doc["writer"][key]
+    target = state_dir / f"recovery-{pid}-a.json"
+    target.write_text(json.dumps(doc))
+    own.unlink()
+    return target
+
+
+def test_writer_with_its_recorded_create_time_is_running(state_dir, recovery):
+    """The pid-reuse check itself: the process whose creation time is the one recorded is
+    the writer (not offered), the same pid with another time is not (offered)."""
+    import psutil
+
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        created = psutil.Process(other.pid).create_time()
+        _as_written_by(recovery, state_dir, other.pid, created=created)
+        assert not (state_dir / f"recovery-{other.pid}.lock").exists()  # psutil decides
+        assert rec.writer_running(other.pid, created, state_dir)
+        assert not rec.previous_run_crashed() and recovery.read() is None
+        assert not rec.writer_running(other.pid, created - 5.0, state_dir)
+        assert not rec.writer_running(other.pid, created + 5.0, state_dir)
+    finally:
+        other.kill()
+        other.wait()
+    assert not rec.writer_running(other.pid, created, state_dir)  # reaped: no such process
+    np.testing.assert_array_equal(recovery.read().points, [[7.0, 8.0, 9.0]])
+
+
+def test_file_from_before_psutil_is_judged_by_pid(state_dir, recovery):
+    """A recovery file of the previous version records ``started`` in clock ticks, not a
+    creation time: a live pid keeps it (not offered), an ended one has it offered."""
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        _as_written_by(recovery, state_dir, other.pid, created=None, started=123456)
+        assert not rec.previous_run_crashed()
+    finally:
+        other.kill()
+        other.wait()
+    assert rec.previous_run_crashed()
+    np.testing.assert_array_equal(recovery.read().points, [[7.0, 8.0, 9.0]])
+
+
+def test_left_over_unlocked_lock_file_does_not_hide_a_crash(state_dir, recovery):
+    """filelock leaves the lock file in place; one nobody holds means its writer ended, even
+    when the pid is alive again (reused), and it is removed when read."""
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        _as_written_by(recovery, state_dir, other.pid)
+        (state_dir / f"recovery-{other.pid}.lock").write_bytes(b"")
+        assert rec.previous_run_crashed()
+        assert not (state_dir / f"recovery-{other.pid}.lock").exists()
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_two_autosaves_keep_their_own_state(tmp_path):
+    """No module state: two CrashRecovery objects in other folders alternate their own slots,
+    and clearing one leaves the other's file and lock."""
+    first, second = rec.CrashRecovery(tmp_path / "one"), rec.CrashRecovery(tmp_path / "two")
+    try:
+        a1 = first.write(Session(points=[[1.0, 1.0, 1.0]]))
+        b1 = second.write(Session(points=[[2.0, 2.0, 2.0]]))
+        a2 = first.write(Session(points=[[3.0, 3.0, 3.0]]))
+        assert (a1.parent, b1.parent) == (tmp_path / "one", tmp_path / "two")
+        assert a1.name.endswith("-a.json") and a2.name.endswith("-b.json") and first.path == a2
+        first.clear()
+        assert list((tmp_path / "one").iterdir()) == []
+        assert sorted(p.name for p in (tmp_path / "two").iterdir()) == \
+            [f"recovery-{os.getpid()}-a.json", f"recovery-{os.getpid()}.lock"]
+        np.testing.assert_array_equal(sessions.load_session(second.path).points, [[2.0, 2.0, 2.0]])
+    finally:
+        first.clear()
+        second.clear()
+
+
 def test_running_writer_holds_its_lock(state_dir):
     """A live instance (lock held) is not offered, even when its files look old."""
     code = ("import sys, time\nfrom core.session import document as s\n"
-            "s.write_recovery(s.Session(points=[[1.0, 1.0, 1.0]]))\nprint('ready', flush=True)\n"
+            "from core.session.recovery import CrashRecovery\nr = CrashRecovery()\n"
+            "r.write(s.Session(points=[[1.0, 1.0, 1.0]]))\nprint('ready', flush=True)\n"
             "sys.stdin.readline()\n")
     env = dict(os.environ, SSM_STUDIO_STATE_DIR=str(state_dir))
     child = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env, text=True,
@@ -444,22 +526,22 @@ def test_running_writer_holds_its_lock(state_dir):
     try:
         assert child.stdout.readline().strip() == "ready"
         assert (state_dir / f"recovery-{child.pid}.lock").exists()
-        assert not sessions.previous_run_crashed()
+        assert not rec.previous_run_crashed()
     finally:
         child.kill()
         child.wait()
-    assert sessions.previous_run_crashed()  # killed: the lock went with it
+    assert rec.previous_run_crashed()  # killed: the lock went with it
 
 
 def test_recovered_session_that_does_not_fit_its_model_is_refused(state_dir, tmp_path):
     from app.controllers import SessionController
+    from app.state import WorkspaceState
     from core.io import save_model
 
     save_model(tmp_path / "m.npz", _model(3))
-    _crashing_run(state_dir, f"""
-s.write_recovery(s.Session(model={str(tmp_path / 'm.npz')!r}, points=[[1.0, 2.0, 3.0]],
-                           coef=[0.5] * 4))
-print(os.getpid())""")
+    crashing_run(state_dir=state_dir, script=f"""
+r.write(s.Session(model={str(tmp_path / 'm.npz')!r}, points=[[1.0, 2.0, 3.0]],
+                  coef=[0.5] * 4))""")
     with pytest.raises(DataFileError, match="holds 4 shape coefficients but the model has 3"):
-        SessionController.pending_recovery()
-    assert not sessions.previous_run_crashed()  # discarded, not offered again
+        SessionController(WorkspaceState()).pending_recovery()
+    assert not rec.previous_run_crashed()  # discarded, not offered again

@@ -241,7 +241,7 @@ def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
     restored = WorkspaceState()
     recovered, question = SessionController(restored).pending_recovery() or (None, "")
     assert recovered is None          # this process is alive: its own file is not offered
-    session = sessions.load_session(sessions.recovery_path())
+    session = sessions.load_session(controller.recovery.path)
     SessionController(restored).apply(session)
     a, b = restored.structures
     assert restored.active is b and (len(a.points), len(b.points)) == (1, 3)

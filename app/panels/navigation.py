@@ -153,7 +153,7 @@ def set_colormap(window, name: str) -> None:
 
 # -- recent files ------------------------------------------------------------------------------
 def recent_path() -> Path:
-    from core.session.document import state_dir
+    from core.session.recovery import state_dir
 
     return state_dir() / "recent.json"
 

@@ -30,10 +30,11 @@ on macOS, ``%APPDATA%`` on Windows) + ``ssm-studio/models``.
 from __future__ import annotations
 
 import os
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+import platformdirs
 
 from core import RESOURCES_DIR
 from core.models.shape_model import ShapeModel
@@ -166,17 +167,12 @@ def with_structure(model: ShapeModel, info: StructureInfo) -> ShapeModel:
 
 
 def user_models_dir() -> Path:
-    """The per-user model folder (not created here)."""
+    """The per-user model folder (not created here): ``$SSM_STUDIO_DATA_DIR/models``, else
+    :func:`platformdirs.user_data_dir` (roaming on Windows, as before) + ``ssm-studio/models``."""
     override = os.environ.get("SSM_STUDIO_DATA_DIR")
     if override:
         return Path(override) / "models"
-    if sys.platform == "darwin":
-        base = Path.home() / "Library" / "Application Support"
-    elif os.name == "nt":
-        base = Path(os.environ.get("APPDATA", Path.home() / "AppData" / "Roaming"))
-    else:
-        base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
-    return base / "ssm-studio" / "models"
+    return Path(platformdirs.user_data_dir("ssm-studio", appauthor=False, roaming=True)) / "models"
 
 
 def library_dirs() -> list[Path]:

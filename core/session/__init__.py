@@ -1,1 +1,1 @@
-"""The session document (JSON, relative paths) and its crash recovery."""
+"""The session document (JSON, relative paths: document.py) and its crash recovery (recovery.py)."""

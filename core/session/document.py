@@ -1,4 +1,4 @@
-"""Segmentation sessions on disk: the session JSON file and the crash-recovery autosave.
+"""Segmentation sessions on disk: the session JSON document.
 
 A session is everything needed to pick up a segmentation where it was left: which image and
 which shape model, the contour points (world RAS mm) with the slice each was drawn on, the
@@ -11,24 +11,8 @@ moved on its own. :func:`load_session` resolves the paths, checks the format nam
 version and every array's shape, and raises :class:`core.io.DataFileError` naming the file
 and the problem.
 
-Recovery: the GUI calls :func:`write_recovery` after each edit and :func:`clear_recovery`
-when it closes normally, so a recovery file still there at the next start means that run
-did not exit cleanly. Each running process autosaves into its own two files,
-``recovery-<pid>-a.json`` and ``-b.json``, written in turn (a complete one exists at every
-moment, and no rename replaces an existing file, which ext4 follows with a synchronous
-flush), with the arrays packed as base64: about 0.4 ms for 500 points. They live in the
-state folder: ``$SSM_STUDIO_STATE_DIR``, else ``$XDG_STATE_HOME/ssm-studio``, else
-``~/.local/state/ssm-studio`` (``%LOCALAPPDATA%\\ssm-studio`` on Windows). Two instances
-never overwrite each other; :func:`read_recovery` only offers files of processes that are
-no longer running, and claims what it offers (renames it to this process's name), so it
-is offered once and then kept up to date by this run's autosaves or cleared.
-
-"No longer running" is not judged by the pid alone (a crashed run's pid may be a zombie, or
-reused by another program): a writing process holds an exclusive lock on
-``recovery-<pid>.lock`` (POSIX ``flock``, released by the kernel when the process ends,
-zombie or not), so a lock that can be taken means its writer is gone. For files without a
-lock file, the process start time recorded in the file is compared with that of the
-running pid (Linux ``/proc``), and zombies count as ended.
+Crash recovery (the two-slot autosave, and which runs have ended) is
+:mod:`core.session.recovery`; it stores the same document with the arrays packed.
 
 The JSON layout (``format_version`` 1)::
 
@@ -72,8 +56,6 @@ import base64
 import binascii
 import json
 import os
-import socket
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -96,8 +78,6 @@ MAX_STRUCTURES = 256
 # 3x3 part s R with s in this range, the singular values equal to this relative tolerance.
 POSE_SCALE_RANGE = (1e-3, 1e3)
 POSE_SIMILARITY_TOLERANCE = 1e-2
-STATE_DIR_ENV = "SSM_STUDIO_STATE_DIR"
-_RECOVERY_PREFIX = "recovery-"
 
 
 @dataclass(init=False, eq=False)
@@ -607,7 +587,7 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split())[:200] or type(exc).__name__
 
 
-def _to_document(session: Session, base: Path | None, packed: bool = False) -> dict[str, Any]:
+def to_document(session: Session, base: Path | None, packed: bool = False) -> dict[str, Any]:
     """The JSON document of ``session``; paths relative to ``base`` (absolute if None).
 
     ``packed`` stores the arrays as base64 (the recovery file: ~20x faster to write than
@@ -646,7 +626,9 @@ def _to_document(session: Session, base: Path | None, packed: bool = False) -> d
     }
 
 
-def _from_document(doc: Any, source: Path, base: Path | None) -> Session:
+def from_document(doc: Any, source: Path, base: Path | None) -> Session:
+    """The session a parsed JSON document holds; relative paths resolved against ``base``
+    (None: stored absolute, as in recovery files). Raises DataFileError naming ``source``."""
     if not isinstance(doc, dict):
         raise DataFileError(source, "not an SSM Studio session (the JSON is not an object)")
     if doc.get("format") != SESSION_FORMAT:
@@ -688,7 +670,7 @@ def save_session(path: str | os.PathLike, session: Session) -> None:
     """Write ``session`` as JSON at ``path`` (atomically), paths relative to its folder."""
     path = Path(path)
     try:
-        doc = _to_document(session, path.parent)
+        doc = to_document(session, path.parent)
     except ValueError as exc:
         raise DataFileError(path, f"cannot save an invalid session: {exc}") from None
     with atomic_path(path) as tmp:
@@ -707,7 +689,8 @@ def _readable_json(doc: dict[str, Any]) -> str:
     return "{\n" + ",\n".join(lines) + "\n}\n"
 
 
-def _read_document(path: Path) -> Any:
+def read_document(path: Path) -> Any:
+    """The parsed JSON of a session (or recovery) file; DataFileError naming it if unreadable."""
     if not path.exists():
         raise DataFileError(path, "file not found")
     if path.is_dir():
@@ -739,285 +722,4 @@ def load_session(path: str | os.PathLike) -> Session:
         shapes or NaN values; the message names the file.
     """
     path = Path(path)
-    return _from_document(_read_document(path), path, Path(os.path.abspath(path)).parent)
-
-
-# --------------------------------------------------------------------------------------
-# Recovery (autosave)
-# --------------------------------------------------------------------------------------
-
-
-def state_dir() -> Path:
-    """Per-user folder for recovery files (see the module docstring); not created here."""
-    override = os.environ.get(STATE_DIR_ENV)
-    if override:
-        return Path(override)
-    if sys.platform == "win32":
-        return Path(os.environ.get("LOCALAPPDATA", Path.home() / "AppData" / "Local")) / "ssm-studio"
-    xdg = os.environ.get("XDG_STATE_HOME")
-    base = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".local" / "state"
-    return base / "ssm-studio"
-
-
-def _slot_paths(pid: int) -> tuple[Path, Path]:
-    folder = state_dir()
-    return (folder / f"{_RECOVERY_PREFIX}{pid}-a.json", folder / f"{_RECOVERY_PREFIX}{pid}-b.json")
-
-
-_next_slot = 0  # which of this process's two slots the next autosave replaces
-
-
-def _read_slot(path: Path) -> tuple[int, dict] | None:
-    """(sequence, document) of a complete recovery slot, None if missing or unreadable."""
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-        return int(doc["writer"]["sequence"]), doc
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
-def _newest_slot(pid: int) -> Path | None:
-    slots = [(read[0], path) for path in _slot_paths(pid) if (read := _read_slot(path))]
-    return max(slots)[1] if slots else None
-
-
-def recovery_path() -> Path:
-    """This process's current recovery file (the newest of its two autosave slots)."""
-    return _newest_slot(os.getpid()) or _slot_paths(os.getpid())[0]
-
-
-def write_recovery(session: Session) -> Path:
-    """Autosave ``session`` for crash recovery; returns the file written.
-
-    Two slots per process are written in turn: the new text goes to a temporary file, the
-    older slot is removed and the temporary file takes its name, so a complete recovery file
-    exists at every moment. (This avoids renaming over an existing file, which ext4 follows
-    with a synchronous data flush of several ms; durability against power loss is not the
-    point here, surviving a crash of the program is.) Paths are stored absolute.
-    """
-    global _next_slot
-    doc = _to_document(session, None, packed=True)
-    doc["writer"] = {"pid": os.getpid(), "host": socket.gethostname(),
-                     "sequence": time.time_ns(), "started": _start_time(os.getpid())}
-    text = json.dumps(doc, separators=(",", ":"))
-    target = _slot_paths(os.getpid())[_next_slot]
-    target.parent.mkdir(parents=True, exist_ok=True)
-    _hold_lock()
-    tmp = target.with_name(target.name + ".tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        target.unlink(missing_ok=True)
-        os.replace(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
-    _next_slot = 1 - _next_slot
-    return target
-
-
-def _pid_of(path: Path) -> int | None:
-    stem = path.name[len(_RECOVERY_PREFIX):].split("-")[0].split(".")[0]
-    return int(stem) if stem.isdigit() else None
-
-
-def _lock_path(pid: int) -> Path:
-    return state_dir() / f"{_RECOVERY_PREFIX}{pid}.lock"
-
-
-_held_lock: tuple[Path, Any] | None = None  # (path, open file) of this process's lock
-
-
-def _hold_lock() -> None:
-    """Take this process's liveness lock (once; kept open until :func:`clear_recovery`)."""
-    global _held_lock
-    path = _lock_path(os.getpid())
-    if _held_lock is not None and _held_lock[0] == path:
-        return
-    try:
-        import fcntl
-    except ImportError:  # Windows: the pid check is used
-        return
-    try:
-        fh = open(path, "a+b")
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        return
-    _held_lock = (path, fh)
-
-
-def _release_lock() -> None:
-    global _held_lock
-    if _held_lock is None:
-        return
-    path, fh = _held_lock
-    _held_lock = None
-    path.unlink(missing_ok=True)
-    fh.close()
-
-
-def _lock_says_running(pid: int) -> bool | None:
-    """True/False from pid's lock file; None when there is none (or no flock here)."""
-    try:
-        import fcntl
-    except ImportError:
-        return None
-    path = _lock_path(pid)
-    try:
-        fh = open(path, "rb")
-    except OSError:
-        return None
-    with fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
-        except OSError:
-            return None
-        fcntl.flock(fh, fcntl.LOCK_UN)
-    path.unlink(missing_ok=True)  # its writer has ended
-    return False
-
-
-def _proc_stat(pid: int) -> list[str] | None:
-    """Fields of /proc/<pid>/stat after the command name, or None (no /proc, no process)."""
-    try:
-        text = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    return text.rsplit(")", 1)[-1].split()
-
-
-def _start_time(pid: int) -> int | None:
-    """When ``pid`` started, in clock ticks after boot (Linux), or None if unknown."""
-    fields = _proc_stat(pid)
-    try:
-        return int(fields[19]) if fields else None  # field 22 of the full line
-    except (IndexError, ValueError):
-        return None
-
-
-def _process_running(pid: int, started: int | None = None) -> bool:
-    """Whether the process that wrote a recovery file with ``pid`` is still running.
-
-    A held lock file decides; else a zombie counts as ended and, when the writer's start
-    time is known, a process with that pid but another start time is someone else.
-    """
-    if pid == os.getpid():
-        return True
-    if pid <= 0:
-        return False
-    locked = _lock_says_running(pid)
-    if locked is not None:
-        return locked
-    fields = _proc_stat(pid)
-    if fields is not None:
-        if fields[0] in ("Z", "X"):  # zombie or dead: it has ended, nobody reaped it yet
-            return False
-        if started is not None and _start_time(pid) != started:
-            return False  # the pid was reused by a later process
-        return True
-    if Path("/proc/self/stat").exists():  # Linux, and no such process
-        return False
-    if sys.platform == "win32":  # os.kill(pid, 0) would terminate the process on Windows
-        import ctypes
-
-        handle = ctypes.windll.kernel32.OpenProcess(0x1000, False, pid)  # QUERY_LIMITED_INFO
-        if not handle:
-            return False
-        code = ctypes.c_ulong()
-        ctypes.windll.kernel32.GetExitCodeProcess(handle, ctypes.byref(code))
-        ctypes.windll.kernel32.CloseHandle(handle)
-        return code.value == 259  # STILL_ACTIVE
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _orphan_pids() -> list[int]:
-    """Processes that left recovery files and are no longer running, newest files first."""
-    folder = state_dir()
-    if not folder.is_dir():
-        return []
-    newest: dict[int, float] = {}
-    for path in folder.glob(f"{_RECOVERY_PREFIX}*.json*"):
-        pid = _pid_of(path)
-        if pid is None or pid == os.getpid():
-            continue
-        try:
-            newest[pid] = max(newest.get(pid, 0.0), path.stat().st_mtime)
-        except FileNotFoundError:  # claimed meanwhile by another instance
-            continue
-    return sorted((pid for pid in newest if not _process_running(pid, _writer_start(pid))),
-                  key=lambda pid: newest[pid], reverse=True)
-
-
-def _writer_start(pid: int) -> int | None:
-    """The start time the newest complete recovery slot of ``pid`` recorded, if any."""
-    slot = _newest_slot(pid)
-    read = _read_slot(slot) if slot is not None else None
-    writer = read[1]["writer"] if read and isinstance(read[1].get("writer"), dict) else {}
-    started = writer.get("started")
-    if writer.get("pid") != pid:  # the file was not written by that pid: its time says nothing
-        return None
-    return started if isinstance(started, int) else None
-
-
-def orphaned_recovery_files() -> list[Path]:
-    """Recovery files left by runs that did not exit cleanly (not those of running ones)."""
-    folder = state_dir()
-    return sorted(p for pid in _orphan_pids()
-                  for p in folder.glob(f"{_RECOVERY_PREFIX}{pid}-*.json*"))
-
-
-def previous_run_crashed() -> bool:
-    """True when a run that has ended left a recovery file, i.e. it did not exit cleanly."""
-    return bool(_orphan_pids())
-
-
-def read_recovery() -> Session | None:
-    """The newest session left by a run that did not exit cleanly, or None.
-
-    Call it at start-up, before the first autosave. The left-over files are claimed
-    (renamed to this process's slots), so they are offered only once; :func:`clear_recovery`
-    removes them (after a refusal, or at the next clean exit) and this run's autosaves
-    replace them. Several crashed runs are offered one per start, newest first.
-
-    Raises
-    ------
-    DataFileError
-        The recovery file exists but cannot be read (it is claimed all the same, so that
-        :func:`clear_recovery` discards it).
-    """
-    global _next_slot
-    folder = state_dir()
-    own = _slot_paths(os.getpid())[0]
-    for pid in _orphan_pids():
-        files = sorted(folder.glob(f"{_RECOVERY_PREFIX}{pid}-*.json*"))
-        keep = _newest_slot(pid)
-        if keep is None:  # only damaged files: claim one all the same, to report and clear it
-            keep = next((f for f in files if f.suffix == ".json"), None)
-        if keep is None:
-            for path in files:
-                path.unlink(missing_ok=True)
-            continue
-        try:
-            os.replace(keep, own)
-        except FileNotFoundError:  # another instance claimed it first
-            continue
-        for path in files:
-            if path != keep:
-                path.unlink(missing_ok=True)  # the older slot, or a half-written temporary
-        _next_slot = 1
-        return _from_document(_read_document(own), own, None)
-    return None
-
-
-def clear_recovery() -> None:
-    """Remove this process's recovery files: on a clean exit, or after refusing recovery."""
-    for path in _slot_paths(os.getpid()):
-        path.unlink(missing_ok=True)
-        path.with_name(path.name + ".tmp").unlink(missing_ok=True)
-    _release_lock()
+    return from_document(read_document(path), path, Path(os.path.abspath(path)).parent)
