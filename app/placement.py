@@ -131,16 +131,14 @@ class AutoPlacement(QObject):
     def readout(self) -> str:
         """The nudge so far (shift and turn of the structures against the registration) and
         the contour points' mean distance to the surfaces."""
-        from core.geometry.toolkit import rotation_vector
+        from core.registration.placement import nudge_of
 
         if self.transform is None or self.result is None:
             return "No automatic placement yet: Place models automatically first."
-        move = self.result.transform @ np.linalg.inv(self.transform)     # N, world
-        angle = float(np.degrees(np.linalg.norm(rotation_vector(move[:3, :3]))))
         structures = self.placed_structures()
         centre = np.vstack([s.surface_vertices() for s in structures]).mean(axis=0) \
             if structures else np.zeros(3)
-        shift = float(np.linalg.norm(move[:3, :3] @ centre + move[:3, 3] - centre))
+        shift, angle = nudge_of(self.result.transform, self.transform, centre)
         text = (f"Nudged {shift:.1f} mm and {angle:.1f}° from the registration "
                 f"({len(self._nudges)} step(s))")
         with_points = [s for s in structures if len(s.points)]

@@ -76,3 +76,21 @@ def test_auto_place_option_errors_are_one_line(moved_case, resources_dir, capsys
                      "--out", str(tmp / "x.nii.gz"), "--auto-place", "--placement", "1,2,3"])
     assert code == 2
     assert "exclude each other" in capsys.readouterr().err
+
+
+def test_a_nudge_reads_back_as_the_shift_and_turn_it_made():
+    """nudge_of inverts nudged: a registration T with a known hand move (turn about the
+    structures' centre, then shift) reads back that shift at the centre and that angle,
+    whatever T itself does."""
+    from core.registration.placement import nudge_of, nudged
+
+    rng = np.random.default_rng(4)
+    t = np.eye(4)
+    t[:3, :3] = 1.04 * Rotation.from_rotvec(rng.normal(scale=0.3, size=3)).as_matrix()
+    t[:3, 3] = rng.normal(scale=20.0, size=3)
+    centre = np.array([-12.0, 8.0, 15.0])
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    moved = nudged(t, np.deg2rad(7.0) * axis, np.array([1.5, -2.0, 0.5]), centre)
+    shift, angle = nudge_of(t, moved, centre)
+    assert shift == pytest.approx(np.linalg.norm([1.5, -2.0, 0.5]), abs=1e-9)
+    assert angle == pytest.approx(7.0, abs=1e-9)

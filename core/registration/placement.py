@@ -60,3 +60,18 @@ def nudged(image_to_template: np.ndarray, rotation: np.ndarray, translation: np.
     move[:3, :3] = rot
     move[:3, 3] = centre - rot @ centre + np.asarray(translation, dtype=np.float64)
     return np.asarray(image_to_template, dtype=np.float64) @ np.linalg.inv(move)
+
+
+def nudge_of(image_to_template: np.ndarray, nudged_transform: np.ndarray,
+             centre: np.ndarray) -> tuple[float, float]:
+    """How far a nudged registration (:func:`nudged`) moved the structures from the
+    registration's result: (shift of ``centre`` in mm, turn in degrees). The hand move in
+    image world is N = inv(T') @ T."""
+    from core.geometry.toolkit import rotation_vector
+
+    move = np.linalg.inv(np.asarray(nudged_transform, dtype=np.float64)) \
+        @ np.asarray(image_to_template, dtype=np.float64)
+    centre = np.asarray(centre, dtype=np.float64)
+    angle = float(np.degrees(np.linalg.norm(rotation_vector(move[:3, :3]))))
+    shift = float(np.linalg.norm(move[:3, :3] @ centre + move[:3, 3] - centre))
+    return shift, angle
