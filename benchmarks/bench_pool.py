@@ -57,7 +57,7 @@ def session(mode: str, n_items: int, n_pools: int) -> dict:
     if mode == "loky context":
         from loky.backend import get_context
 
-        import core.runtime.pool as pool
+        from core.runtime import pool
 
         pool._pool_context = lambda fn: get_context("loky")
     common = np.full((20, 20), 0.25)
@@ -70,7 +70,7 @@ def session(mode: str, n_items: int, n_pools: int) -> dict:
         first: list[float] = []
         start = time.perf_counter()
         results = run_jobs(short_job, items, common=common, n_jobs=2,
-                           on_result=lambda k, v: first.append(time.perf_counter()) or v)
+                           on_result=lambda k, v, first=first: first.append(time.perf_counter()) or v)
         wall = time.perf_counter() - start
         pools.append({"startup": first[0] - start, "wall": wall,
                       "per_job_ms": 1000 * (first[-1] - first[0]) / (n_items - 1),
@@ -118,7 +118,7 @@ def main() -> None:
             print(f"{mode:<20}{k + 1:>3}{np.median([p['startup'] for p in per]):>12.3f}"
                   f"{np.median([p['wall'] for p in per]):>9.3f}"
                   f"{np.median([p['per_job_ms'] for p in per]):>9.2f}{inline:>15.2f}"
-                  f"{str(all(p['equal'] for p in per)):>7}")
+                  f"{all(p['equal'] for p in per)!s:>7}")
 
 
 if __name__ == "__main__":

@@ -158,12 +158,17 @@ _SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
-    (tmp_path / "helper_jobs.py").write_text("import time\n\ndef sleepy(arg, common):\n"
-                                             "    time.sleep(0.3)\n    return arg\n")
+def _start_script(tmp_path: Path, script: str, jobs_source: str) -> subprocess.Popen:
+    """``python -c script`` with a module ``helper_jobs`` (``jobs_source``) importable."""
+    (tmp_path / "helper_jobs.py").write_text(jobs_source)
     env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}")
-    proc = subprocess.Popen([sys.executable, "-c", _SCRIPT], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
+
+
+def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
+    proc = _start_script(tmp_path, _SCRIPT, "import time\n\ndef sleepy(arg, common):\n"
+                                            "    time.sleep(0.3)\n    return arg\n")
     try:
         first = proc.stdout.readline()  # a job finished: workers are up and busy
         assert first.startswith("done"), proc.stderr.read()
@@ -202,12 +207,9 @@ _CANCEL_SCRIPT = textwrap.dedent("""
 def test_a_pool_cancelled_with_large_jobs_queued_lets_the_process_exit(tmp_path):
     """Cancel while the pool's call queue is still feeding large jobs to workers that are then
     killed: the run stops, and the process exits (a feeder thread blocked on the pipe would
-    keep the interpreter from ending), leaving no worker."""
-    (tmp_path / "helper_jobs.py").write_text("import time\n\ndef total(arg, common):\n"
-                                             "    time.sleep(0.2)\n    return float(arg.sum())\n")
-    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}")
-    proc = subprocess.Popen([sys.executable, "-c", _CANCEL_SCRIPT], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    keep the interpreter from ending)."""
+    proc = _start_script(tmp_path, _CANCEL_SCRIPT, "import time\n\ndef total(arg, common):\n"
+                                                   "    time.sleep(0.2)\n    return float(arg.sum())\n")
     try:
         out, err = proc.communicate(timeout=120)  # a hang guard, not a timing assertion
     except subprocess.TimeoutExpired:
