@@ -158,12 +158,17 @@ _SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
-    (tmp_path / "helper_jobs.py").write_text("import time\n\ndef sleepy(arg, common):\n"
-                                             "    time.sleep(0.3)\n    return arg\n")
+def _start_script(tmp_path: Path, script: str, jobs_source: str) -> subprocess.Popen:
+    """``python -c script`` with a module ``helper_jobs`` (``jobs_source``) importable."""
+    (tmp_path / "helper_jobs.py").write_text(jobs_source)
     env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}")
-    proc = subprocess.Popen([sys.executable, "-c", _SCRIPT], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
+
+
+def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
+    proc = _start_script(tmp_path, _SCRIPT, "import time\n\ndef sleepy(arg, common):\n"
+                                            "    time.sleep(0.3)\n    return arg\n")
     try:
         first = proc.stdout.readline()  # a job finished: workers are up and busy
         assert first.startswith("done"), proc.stderr.read()
@@ -176,6 +181,43 @@ def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
     assert proc.returncode == 143, err
     assert "stopped after" in out
     assert still_alive(workers) == []
+
+
+_CANCEL_SCRIPT = textwrap.dedent("""
+    import numpy as np
+    from core.runtime.parallel import run_jobs
+    from core.runtime.progress import Cancelled
+    import helper_jobs
+
+    big = np.arange(4_000_000, dtype=float)  # 32 MB a job: far more than a pipe holds
+    seen = []
+
+    def progress(fraction, message):
+        if fraction > 0:  # the first result is in: Cancel while jobs fill the call queue
+            raise Cancelled()
+
+    try:
+        run_jobs(helper_jobs.total, [(i, big) for i in range(24)], n_jobs=2, window=12,
+                 progress=progress, on_result=lambda k, v: seen.append(v) or v)
+    except Cancelled:
+        print("cancelled after", len(seen), "sum ok", seen[0] == big.sum(), flush=True)
+""")
+
+
+def test_a_pool_cancelled_with_large_jobs_queued_lets_the_process_exit(tmp_path):
+    """Cancel while the pool's call queue is still feeding large jobs to workers that are then
+    killed: the run stops, and the process exits (a feeder thread blocked on the pipe would
+    keep the interpreter from ending)."""
+    proc = _start_script(tmp_path, _CANCEL_SCRIPT, "import time\n\ndef total(arg, common):\n"
+                                                   "    time.sleep(0.2)\n    return float(arg.sum())\n")
+    try:
+        out, err = proc.communicate(timeout=120)  # a hang guard, not a timing assertion
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("the process did not exit after a cancelled pool")
+    assert proc.returncode == 0, err
+    assert "sum ok True" in out and 1 <= int(out.split()[2]) < 24
+    assert "Traceback" not in err and "leaked" not in err
 
 
 @pytest.fixture(scope="module")
