@@ -21,7 +21,7 @@ from app.planning import PlanningState
 from app.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
 from core.geometry.planes import PLANE_AXIS
-from core.planning.report import export_plan
+from core.planning.report import export_all_structures, export_plan
 from core.planning.frames import anchored_point_weights, format_acpc
 from core.reconstruction.uncertainty import ellipsoid, fit_posterior, suggest_slice
 
@@ -45,6 +45,9 @@ def install_planning(window) -> PlanController:
     window.side_dock.raise_()
     window.plan = PlanController(window, window.planning, window.planning_panel)
     window.sessions.info_providers["planning"] = window.planning.to_document
+    # Export all: every structure (label map with names and colours, DICOM SEG + RTSTRUCT
+    # when the image came from DICOM), not only the active one
+    window.exports.extra_exports.append(window.plan.export_structures)
     return window.plan
 
 
@@ -204,6 +207,21 @@ class PlanController(QObject):
         """'AC-PC: lat ... mm' for the status bar, or '' without a frame."""
         frame = self.planning.frame()
         return "" if frame is None or world is None else format_acpc(frame.to_acpc(world))
+
+    def export_structures(self, folder) -> list[Path]:
+        """Every fitted structure into ``folder`` (``core.planning.report.export_all_structures``:
+        ``all_labels.seg.nrrd``/``.nii.gz``/``.txt``, and ``all_structures.seg.dcm`` +
+        ``all_structures.rtstruct.dcm`` referencing the source series for a DICOM image); [] without
+        an image or a fitted structure."""
+        from core.cli.plan import _dicom_files
+
+        structures = self.planning.planned_structures()
+        volume = self.workspace.volume
+        if not structures or volume is None:
+            return []
+        return export_all_structures(folder, structures, volume, stem="all",
+                                     dicom_series=_dicom_files(self.workspace.image_path),
+                                     meshes=False)
 
     def export(self, folder) -> list[Path]:
         """Every plan file plus one mesh per fitted structure into ``folder``."""
