@@ -36,6 +36,9 @@ def install_planning(window) -> PlanController:
     scroll.setWidgetResizable(True)
     scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
     scroll.setWidget(window.planning_panel)
+    # as wide as the panel wants: no coordinate, button or contact row is cut at 1280 x 800
+    scroll.setMinimumWidth(window.planning_panel.minimumSizeHint().width()
+                           + scroll.verticalScrollBar().sizeHint().width() + 6)
     dock = window.plan_dock = QDockWidget("Planning", window)
     dock.setObjectName("planning-dock")
     dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)

@@ -214,7 +214,11 @@ class PlanningPanel(QWidget):
         self.contact_table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         header = self.contact_table.horizontalHeader()
         header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-        header.setStretchLastSection(True)
+        header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)
+        # as tall as its rows (set in refresh): the panel scrolls, not the table
+        self.contact_table.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.contact_table.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.contact_table.setTextElideMode(Qt.TextElideMode.ElideMiddle)
         grid.addWidget(self.contact_table, 2, 0, 1, 4)
         return box
 
@@ -360,12 +364,18 @@ class PlanningPanel(QWidget):
         table.horizontalHeaderItem(1).setText("AC-PC mm" if frame is not None else "World mm")
         for i, row in enumerate(rows):
             xyz = row.get("acpc", row["world"])
-            where = row["structure"] or (f"outside ({row['nearest_structure']})"
-                                         if row["nearest_structure"] else "—")
+            # outside every structure: "outside", the nearest one in the tooltip (and the
+            # distance column: positive = outside it)
+            where = row["structure"] or ("outside" if row["nearest_structure"] else "—")
             distance = "" if row["distance_mm"] is None else f"{row['distance_mm']:+.1f}"
             for j, text in enumerate((row["contact"], "{:+.1f}, {:+.1f}, {:+.1f}".format(*xyz),
                                       where, distance)):
-                table.setItem(i, j, QTableWidgetItem(text))
+                item = QTableWidgetItem(text)
+                if row["nearest_structure"]:
+                    item.setToolTip(f"{'in' if row['structure'] else 'nearest'}: "
+                                    f"{row['nearest_structure']}, {distance} mm from its surface")
+                table.setItem(i, j, item)
+        table.resizeRowsToContents()
         table.setFixedHeight(table.horizontalHeader().height() + 4 +
                              sum(table.rowHeight(i) for i in range(len(rows))) if rows
                              else table.horizontalHeader().height() + 4)
