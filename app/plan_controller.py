@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QObject, Qt
+from PySide6.QtCore import QEventLoop, QObject, Qt
 from PySide6.QtGui import QKeySequence
 from PySide6.QtWidgets import QDockWidget, QFileDialog, QScrollArea
 
@@ -20,6 +20,7 @@ from app.panels.planning import PlanningPanel
 from app.planning import PlanningState
 from app.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
+from app.workers import DialogTask
 from core.geometry.planes import PLANE_AXIS
 from core.planning.report import export_all_structures, export_plan
 from core.planning.frames import anchored_point_weights, format_acpc
@@ -222,9 +223,27 @@ class PlanController(QObject):
         volume = self.workspace.volume
         if not structures or volume is None:
             return []
-        return export_all_structures(folder, structures, volume, stem="all",
-                                     dicom_series=_dicom_files(self.workspace.image_path),
-                                     meshes=False)
+        series = _dicom_files(self.workspace.image_path)
+        # ~2 s for three structures on a 1 mm head: in a worker behind a progress dialog with
+        # Cancel (stops before the next file), the caller waiting for the outcome
+        task = DialogTask("Export all", "Writing every structure…", self.window)
+        loop = QEventLoop()
+        outcome: dict = {}
+        task.succeeded.connect(lambda paths: outcome.update(paths=paths))
+        task.failed.connect(lambda message: outcome.update(error=message))
+        task.cancelled.connect(lambda: outcome.update(cancelled=True))
+        for signal in (task.succeeded, task.failed, task.cancelled):
+            signal.connect(loop.quit)
+        task.start(export_all_structures, folder, structures, volume, stem="all",
+                   dicom_series=series, meshes=False,
+                   show_dialog=not self.window._quiet_errors())
+        loop.exec()     # the GUI keeps painting; the dialog's Cancel reaches the worker
+        if "error" in outcome:
+            raise ValueError(outcome["error"])
+        if outcome.get("cancelled"):
+            self.window.show_message("Export all: every-structure files cancelled")
+            return []
+        return outcome["paths"]
 
     def export(self, folder) -> list[Path]:
         """Every plan file plus one mesh per fitted structure into ``folder``."""

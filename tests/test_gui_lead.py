@@ -170,3 +170,22 @@ def test_export_all_writes_every_structure_as_dicom_seg_and_rtstruct(make_window
     rt = pydicom.dcmread(tmp_path / "out" / "all_structures.rtstruct.dcm")
     assert [r.ROIName for r in rt.StructureSetROISequence] == labels
     assert len(series) == 50
+    # the engine reports each file it writes (the GUI's progress dialog), and a cancel through
+    # that callback stops before the next file
+    from core.planning.report import export_all_structures
+    from core.runtime.progress import Cancelled
+
+    seen = []
+
+    def stop_at_dicom(fraction, message=""):
+        seen.append(message)
+        if "DICOM" in message:
+            raise Cancelled()
+
+    with pytest.raises(Cancelled):
+        export_all_structures(tmp_path / "cancelled", window.planning.planned_structures(),
+                              window.state.volume, stem="all", dicom_series=series,
+                              meshes=False, progress=stop_at_dicom)
+    assert len(seen) == 3
+    assert (tmp_path / "cancelled" / "all_labels.seg.nrrd").exists()
+    assert not (tmp_path / "cancelled" / "all_structures.seg.dcm").exists()
