@@ -252,5 +252,9 @@ class PlanController(QObject):
         if not structures:
             raise ValueError("nothing to export: no structure has a model")
         image = self.workspace.image_path.name if self.workspace.image_path else None
+        # the report puts one lead on every trajectory (core.planning.report.plan_report): the
+        # active structure's, else the first one planned
+        leads = self.planning.leads
+        lead = leads.get(self.workspace.active.id) or next(iter(leads.values()), None)
         return export_plan(folder, structures, self.workspace.volume, self.planning.frame(),
-                           image=image)
+                           image=image, lead=lead)

@@ -129,6 +129,12 @@ def test_a_session_with_a_lead_round_trips(window, tmp_path):
     assert after is not None and after.lead.key == "boston-cartesia-directional"
     np.testing.assert_allclose([c.centre for c in after.contacts],
                                [c.centre for c in before.contacts], atol=1e-9)
+    # Export plan... reads the contacts out in the report and contacts CSV
+    written = {p.name for p in window.plan.export(tmp_path / "plan")}
+    assert "plan_contacts.csv" in written
+    report = json.loads((tmp_path / "plan" / "plan.json").read_text())
+    contacts = report["structures"][0]["trajectory"]["lead"]["contacts"]
+    assert len(contacts) == 8 and contacts[1]["contact"] == "2a"
     # an older session's planning block (no "lead" key) still opens
     del doc["info"]["planning"]["structures"][0]["lead"]
     session.write_text(json.dumps(doc))

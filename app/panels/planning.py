@@ -68,6 +68,16 @@ def _small_button(text: str, tip: str, slot) -> QToolButton:
     return button
 
 
+def _spin_box(limit: float, step: float, decimals: int, suffix: str, tip: str) -> QDoubleSpinBox:
+    box = QDoubleSpinBox()
+    box.setRange(-limit, limit)
+    box.setSingleStep(step)
+    box.setDecimals(decimals)
+    box.setSuffix(suffix)
+    box.setToolTip(tip)
+    return box
+
+
 class PlanningPanel(QWidget):
     """See the module docstring. ``message(text)`` reports to the status bar."""
 
@@ -185,20 +195,10 @@ class PlanningPanel(QWidget):
         self.lead_combo.setToolTip("The DBS lead on the active structure's trajectory")
         grid.addWidget(QLabel("Type"), 0, 0)
         grid.addWidget(self.lead_combo, 0, 1, 1, 3)
-        self.lead_depth = QDoubleSpinBox()
-        self.lead_depth.setRange(-30.0, 30.0)
-        self.lead_depth.setSingleStep(0.5)
-        self.lead_depth.setDecimals(1)
-        self.lead_depth.setSuffix(" mm")
-        self.lead_depth.setToolTip("Tip past the target along the trajectory (0: tip at the "
-                                   "target; negative: short of it)")
-        self.lead_rotation = QDoubleSpinBox()
-        self.lead_rotation.setRange(-360.0, 360.0)
-        self.lead_rotation.setSingleStep(15.0)
-        self.lead_rotation.setDecimals(0)
-        self.lead_rotation.setSuffix("°")
-        self.lead_rotation.setToolTip("Directional segments: segment a's angle from anterior, "
-                                      "towards the left")
+        self.lead_depth = _spin_box(30.0, 0.5, 1, " mm", "Tip past the target along the "
+                                    "trajectory (0: tip at the target; negative: short of it)")
+        self.lead_rotation = _spin_box(360.0, 15.0, 0, "°", "Directional segments: segment "
+                                       "a's angle from anterior, towards the left")
         grid.addWidget(QLabel("Tip depth"), 1, 0)
         grid.addWidget(self.lead_depth, 1, 1)
         grid.addWidget(QLabel("Rotation"), 1, 2)
