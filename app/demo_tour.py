@@ -8,7 +8,12 @@
    (``core.evaluation.simulated_user.simulate_user`` on those slices), with the live refit after each
    point;
 3. a sweep of the first factor's slider from -2 to +2 SD with its colour map in 3D;
-4. an export (label map, surface, points) into a temporary folder (or ``DIR/export``).
+4. an export (label map, surface, points) into a temporary folder (or ``DIR/export``);
+5. a bilateral STN plan: left and right STN added from the library (placed on the demo
+   template, which is their template), a few contours on each (the simulated user draws a
+   synthetic individual: the model's own shape at +1 SD of its first factor, as the demo has
+   no held-out STN), AC, PC and a midline point at the template's commissures, and per side
+   an entry 60 mm above the model's target with a Medtronic 3389 lead, tip at the target.
 
 Any key stops the tour and leaves the session as it is, editable. ``--record DIR`` writes a
 PNG of the window after every step (``DIR/frame_0001.png``, ...) and quits at the end.
@@ -28,6 +33,14 @@ from app import demo
 SLICES = ("axial", "coronal", "sagittal")
 SWEEP_SD = (-2.0, -1.0, 0.0, 1.0, 2.0, 0.0)
 RECORD_EVERY = 5
+#: the demo template's commissures and a midline point (MNI152 2009a world mm, read off the
+#: template's midsagittal slice)
+TEMPLATE_AC = np.array([0.0, 2.0, -4.0])
+TEMPLATE_PC = np.array([0.0, -24.0, -2.0])
+TEMPLATE_MIDLINE = np.array([0.0, -10.0, 40.0])
+#: entry from target (mm, before the side's sign on x): a usual frontal STN approach
+STN_ENTRY_OFFSET = np.array([20.0, 25.0, 55.0])
+STN_LEAD = "medtronic-3389"
 
 
 def truth_surface():
@@ -44,33 +57,72 @@ def truth_surface():
 def tour_steps(window, truth, out_dir: Path, seed: int = 0, spacing: float = 3.0) -> list[tuple]:
     """The tour as a list of steps ``(kind, *args)`` for :class:`DemoTour`; ``spacing`` (mm)
     between the contour points the simulated user clicks."""
-    from core.geometry.planes import FRAMES
-    from core.evaluation.simulated_user import simulate_user
-
     vertices, faces = truth
     state = window.state
-    centre = vertices.mean(axis=0)
     steps: list[tuple] = [("message", "Demo tour: contours drawn slice by slice, the model "
                                       "follows (any key stops the tour)"),
                           ("zoom",)]
     rng = np.random.default_rng(seed)
-    for name in SLICES:
+    steps += contour_steps(state, vertices, faces, SLICES, spacing, rng)
+    steps.append(("message", "Factor 1 from -2 to +2 SD: its colour map in 3D"))
+    steps.extend(("factor", 0, sd) for sd in SWEEP_SD)
+    steps.append(("export", out_dir))
+    steps += stn_plan_steps()
+    steps.append(("message", "Demo tour finished: the session is yours to edit"))
+    return steps
+
+
+def contour_steps(state, vertices, faces, slices, spacing: float, rng,
+                  noise: float = 0.3) -> list[tuple]:
+    """The simulated user's contour points of the surface (vertices, faces) on the slices
+    named ``slices`` through its centre (``core.evaluation.simulated_user.simulate_user``)."""
+    from core.geometry.planes import FRAMES
+    from core.evaluation.simulated_user import simulate_user
+
+    centre = vertices.mean(axis=0)
+    steps: list[tuple] = []
+    for name in slices:
         frame = FRAMES[name]
         depth = state.sampler.snap_depth(frame, frame.depth(centre))
         origin = np.asarray(frame.n) * depth
         user = simulate_user(vertices, faces, 1, planes=[(origin, np.asarray(frame.n))],
-                             spacing=spacing, noise=0.3, rng=rng)
+                             spacing=spacing, noise=noise, rng=rng)
         if len(user.points) == 0:
             continue
         steps.append(("slice", name, centre - (centre @ frame.n - depth) * np.asarray(frame.n)))
         for i, xyz in enumerate(user.points):
             steps.append(("point", xyz, name, depth, i == 0))
         steps.append(("wait_fit",))
-    steps.append(("message", "Factor 1 from -2 to +2 SD: its colour map in 3D"))
-    steps.extend(("factor", 0, sd) for sd in SWEEP_SD)
-    steps.append(("export", out_dir))
-    steps.append(("message", "Demo tour finished: the session is yours to edit"))
     return steps
+
+
+def stn_plan_steps() -> list[tuple]:
+    """Steps of the bilateral STN plan (module docstring, 5.); the contours are made when the
+    STN is in (``stn_contours``: they need the placed model)."""
+    from core.io.model_library import RESOURCES_MODELS
+
+    steps: list[tuple] = [("message", "A bilateral STN plan: both STN from the library, a few "
+                                      "contours each, AC-PC, a trajectory and a lead per side")]
+    for name, xyz in (("ac", TEMPLATE_AC), ("pc", TEMPLATE_PC), ("midline", TEMPLATE_MIDLINE)):
+        steps.append(("landmark", name, xyz))
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        steps += [("add_structure", RESOURCES_MODELS / f"{side}_stn.npz"),
+                  ("stn_contours",), ("wait_fit",),
+                  ("entry", STN_ENTRY_OFFSET * [sign, 1.0, 1.0]), ("lead", STN_LEAD)]
+    steps.append(("zoom",))
+    return steps
+
+
+def stn_contours(window, seed: int = 1, spacing: float = 1.5) -> list[tuple]:
+    """Contour steps on the active (placed) structure: axial and coronal contours of its
+    model's shape at +1 SD of the first factor (a synthetic individual)."""
+    s = window.state.active
+    coef = np.zeros(s.model.n_factors)
+    coef[0] = 1.0
+    local = s.model.instance(coef)
+    world = local @ s.pose[:3, :3].T + s.pose[:3, 3]
+    return contour_steps(window.state, world, s.model.faces, ("axial", "coronal"), spacing,
+                         np.random.default_rng(seed), noise=0.2)
 
 
 class DemoTour(QObject):
@@ -144,6 +196,21 @@ class DemoTour(QObject):
             w._show_factor_region(step[1])
         elif kind == "export":
             w._guarded(lambda: w.export_all(step[1]))
+        elif kind == "add_structure":
+            w.add_structure(step[1])
+        elif kind == "stn_contours":        # drawn on the structure just added and placed
+            self.steps[self.index:self.index] = stn_contours(w)
+        elif kind == "landmark":
+            w.planning.set_landmark(step[1], step[2])
+        elif kind == "entry":
+            s = w.state.active
+            target = w.planning.target_of(s)
+            if target is not None:
+                w.planning.set_entry(s, target + step[1])
+        elif kind == "lead":
+            from core.planning.report import LeadChoice
+
+            w.planning.set_lead(w.state.active, LeadChoice(step[1]))
         # a frame after each step, but only every RECORD_EVERY-th contour point (a 3D
         # render under software OpenGL costs ~0.5 s)
         if self.record is not None and kind != "wait_fit" and \

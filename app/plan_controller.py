@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QObject, Qt
+from PySide6.QtCore import QEventLoop, QObject, Qt
 from PySide6.QtGui import QKeySequence
 from PySide6.QtWidgets import QDockWidget, QFileDialog, QScrollArea
 
@@ -20,8 +20,9 @@ from app.panels.planning import PlanningPanel
 from app.planning import PlanningState
 from app.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
+from app.workers import DialogTask
 from core.geometry.planes import PLANE_AXIS
-from core.planning.report import export_plan
+from core.planning.report import export_all_structures, export_plan
 from core.planning.frames import anchored_point_weights, format_acpc
 from core.reconstruction.uncertainty import ellipsoid, fit_posterior, suggest_slice
 
@@ -36,6 +37,9 @@ def install_planning(window) -> PlanController:
     scroll.setWidgetResizable(True)
     scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
     scroll.setWidget(window.planning_panel)
+    # as wide as the panel wants: no coordinate, button or contact row is cut at 1280 x 800
+    scroll.setMinimumWidth(window.planning_panel.minimumSizeHint().width()
+                           + scroll.verticalScrollBar().sizeHint().width() + 6)
     dock = window.plan_dock = QDockWidget("Planning", window)
     dock.setObjectName("planning-dock")
     dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)
@@ -45,6 +49,9 @@ def install_planning(window) -> PlanController:
     window.side_dock.raise_()
     window.plan = PlanController(window, window.planning, window.planning_panel)
     window.sessions.info_providers["planning"] = window.planning.to_document
+    # Export all: every structure (label map with names and colours, DICOM SEG + RTSTRUCT
+    # when the image came from DICOM), not only the active one
+    window.exports.extra_exports.append(window.plan.export_structures)
     return window.plan
 
 
@@ -205,6 +212,39 @@ class PlanController(QObject):
         frame = self.planning.frame()
         return "" if frame is None or world is None else format_acpc(frame.to_acpc(world))
 
+    def export_structures(self, folder) -> list[Path]:
+        """Every fitted structure into ``folder`` (``core.planning.report.export_all_structures``:
+        ``all_labels.seg.nrrd``/``.nii.gz``/``.txt``, and ``all_structures.seg.dcm`` +
+        ``all_structures.rtstruct.dcm`` referencing the source series for a DICOM image); [] without
+        an image or a fitted structure."""
+        from core.cli.plan import _dicom_files
+
+        structures = self.planning.planned_structures()
+        volume = self.workspace.volume
+        if not structures or volume is None:
+            return []
+        series = _dicom_files(self.workspace.image_path)
+        # ~2 s for three structures on a 1 mm head: in a worker behind a progress dialog with
+        # Cancel (stops before the next file), the caller waiting for the outcome
+        task = DialogTask("Export all", "Writing every structure…", self.window)
+        loop = QEventLoop()
+        outcome: dict = {}
+        task.succeeded.connect(lambda paths: outcome.update(paths=paths))
+        task.failed.connect(lambda message: outcome.update(error=message))
+        task.cancelled.connect(lambda: outcome.update(cancelled=True))
+        for signal in (task.succeeded, task.failed, task.cancelled):
+            signal.connect(loop.quit)
+        task.start(export_all_structures, folder, structures, volume, stem="all",
+                   dicom_series=series, meshes=False,
+                   show_dialog=not self.window._quiet_errors())
+        loop.exec()     # the GUI keeps painting; the dialog's Cancel reaches the worker
+        if "error" in outcome:
+            raise ValueError(outcome["error"])
+        if outcome.get("cancelled"):
+            self.window.show_message("Export all: every-structure files cancelled")
+            return []
+        return outcome["paths"]
+
     def export(self, folder) -> list[Path]:
         """Every plan file plus one mesh per fitted structure into ``folder``."""
         folder = Path(folder)
@@ -212,5 +252,9 @@ class PlanController(QObject):
         if not structures:
             raise ValueError("nothing to export: no structure has a model")
         image = self.workspace.image_path.name if self.workspace.image_path else None
+        # the report puts one lead on every trajectory (core.planning.report.plan_report): the
+        # active structure's, else the first one planned
+        leads = self.planning.leads
+        lead = leads.get(self.workspace.active.id) or next(iter(leads.values()), None)
         return export_plan(folder, structures, self.workspace.volume, self.planning.frame(),
-                           image=image)
+                           image=image, lead=lead)

@@ -10,6 +10,9 @@ to the :class:`app.state.WorkspaceState` and refers to its structures by identit
   the fitted surface: the target stored in the model file, else the fitted surface's
   centroid; ``core.planning.report.model_target``) and an optional entry point; with both, the
   structure has a trajectory;
+- per structure an optional lead on its trajectory (``core.planning.report.LeadChoice``: type,
+  tip depth past the target, rotation of directional segments; placed by
+  ``core.planning.lead.place_lead``);
 - its own undo history of these edits (the structures' undo stacks stay theirs).
 
 Events (``planning.events.<name>.connect``): ``landmarks``, ``trajectory(structure)``,
@@ -27,8 +30,9 @@ from app.events import EmitterGroup
 from app.history import UndoHistory
 from app.state import Structure, WorkspaceState
 from core.io.model_library import structure_info
-from core.planning.report import PlannedStructure, model_target, plan_report
-from core.planning.frames import ACPCFrame, PlanningError, Trajectory
+from core.planning.lead import PlacedLead, contact_readout, place_lead
+from core.planning.report import LeadChoice, PlannedStructure, model_target, plan_report
+from core.planning.frames import ACPCFrame, PlanningError, Trajectory, trajectory_warnings
 
 LANDMARKS = ("ac", "pc", "midline")
 LANDMARK_LABELS = {"ac": "AC", "pc": "PC", "midline": "Midline"}
@@ -39,6 +43,7 @@ class _Snapshot:
     landmarks: dict
     targets: dict
     entries: dict
+    leads: dict
 
 
 @dataclass(eq=False)
@@ -49,6 +54,7 @@ class PlanningState:
     landmarks: dict = field(default_factory=lambda: {name: None for name in LANDMARKS})
     targets: dict = field(default_factory=dict)     # structure id -> (3,) world
     entries: dict = field(default_factory=dict)     # structure id -> (3,) world
+    leads: dict = field(default_factory=dict)       # structure id -> LeadChoice
 
     def __post_init__(self) -> None:
         self.events = EmitterGroup(landmarks=(), trajectory=("structure",), history=(),
@@ -115,6 +121,48 @@ class PlanningState:
         self.events.trajectory(structure)
         self.events.edited("entry")
 
+    def set_lead(self, structure: Structure, choice: LeadChoice | None) -> None:
+        """The lead on ``structure``'s trajectory (None: no lead); undoable."""
+        if choice is not None:
+            place_lead(Trajectory([0, 0, 1.0], [0, 0, 0]), choice.lead, choice.depth_mm,
+                       choice.rotation_deg)          # refuses an unknown type or depth now
+        if self.leads.get(structure.id) == choice:
+            return
+        self._checkpoint()
+        if choice is None:
+            self.leads.pop(structure.id, None)
+        else:
+            self.leads[structure.id] = choice
+        self.events.trajectory(structure)
+        self.events.edited("lead")
+
+    def lead_of(self, structure: Structure) -> LeadChoice | None:
+        return self.leads.get(structure.id)
+
+    def placed_lead_of(self, structure: Structure) -> PlacedLead | None:
+        """The structure's lead placed on its trajectory (None without lead or trajectory)."""
+        choice, traj = self.lead_of(structure), self.trajectory_of(structure)
+        if choice is None or traj is None:
+            return None
+        return place_lead(traj, choice.lead, choice.depth_mm, choice.rotation_deg)
+
+    def contact_rows(self, structure: Structure) -> list[dict]:
+        """``core.planning.lead.contact_readout`` of the structure's lead ([] without one)."""
+        placed = self.placed_lead_of(structure)
+        if placed is None:
+            return []
+        return contact_readout(placed, self.planned_structures(), self.frame(),
+                               self.workspace.volume)
+
+    def warnings_of(self, structure: Structure) -> list[dict]:
+        """``core.planning.frames.trajectory_warnings`` of the structure's trajectory against
+        every fitted structure ([] without a trajectory)."""
+        traj = self.trajectory_of(structure)
+        if traj is None:
+            return []
+        own = self._planned(structure) if structure.model is not None else None
+        return trajectory_warnings(traj, own, self.planned_structures())
+
     def target_is_default(self, structure: Structure) -> bool:
         return structure.id not in self.targets
 
@@ -150,14 +198,12 @@ class PlanningState:
 
     def planned_structures(self) -> list[PlannedStructure]:
         """The fitted structures with their targets and entries, for reports and exports."""
-        out = []
-        for s in self.workspace.structures:
-            if s.model is None:
-                continue
-            out.append(PlannedStructure(s.label, s.surface_vertices(), s.model.faces,
-                                        tuple(c / 255.0 for c in s.color),
-                                        target=self.target_of(s), entry=self.entry_of(s)))
-        return out
+        return [self._planned(s) for s in self.workspace.structures if s.model is not None]
+
+    def _planned(self, s: Structure) -> PlannedStructure:
+        return PlannedStructure(s.label, s.surface_vertices(), s.model.faces,
+                                tuple(c / 255.0 for c in s.color),
+                                target=self.target_of(s), entry=self.entry_of(s))
 
     def report(self) -> dict:
         """The plan report (``core.planning.report.plan_report``) of the current workspace."""
@@ -166,7 +212,8 @@ class PlanningState:
 
     # -- undo ---------------------------------------------------------------------------------
     def _snapshot(self) -> _Snapshot:
-        return _Snapshot(dict(self.landmarks), dict(self.targets), dict(self.entries))
+        return _Snapshot(dict(self.landmarks), dict(self.targets), dict(self.entries),
+                         dict(self.leads))
 
     def _checkpoint(self) -> None:
         self.history.checkpoint()
@@ -185,6 +232,7 @@ class PlanningState:
 
     def _restore(self, snap: _Snapshot) -> None:
         self.landmarks, self.targets, self.entries = snap.landmarks, snap.targets, snap.entries
+        self.leads = snap.leads
         self.events.landmarks()
         for s in self.workspace.structures:
             self.events.trajectory(s)
@@ -200,11 +248,17 @@ class PlanningState:
             return None if v is None else [float(c) for c in v]
 
         per_structure = []
-        for sid in sorted(set(self.targets) | set(self.entries), key=lambda k: index.get(k, 1e9)):
+        for sid in sorted(set(self.targets) | set(self.entries) | set(self.leads),
+                          key=lambda k: index.get(k, 1e9)):
             if sid not in index:
                 continue
-            per_structure.append({"structure": index[sid], "target": vec(self.targets.get(sid)),
-                                  "entry": vec(self.entries.get(sid))})
+            item = {"structure": index[sid], "target": vec(self.targets.get(sid)),
+                    "entry": vec(self.entries.get(sid))}
+            lead = self.leads.get(sid)
+            if lead is not None:     # optional key: older sessions have none
+                item["lead"] = {"type": lead.lead, "depth_mm": float(lead.depth_mm),
+                                "rotation_deg": float(lead.rotation_deg)}
+            per_structure.append(item)
         return {**{name: vec(self.landmarks[name]) for name in LANDMARKS},
                 "structures": per_structure}
 
@@ -213,7 +267,7 @@ class PlanningState:
         doc = doc or {}
         landmarks = {name: (None if doc.get(name) is None else np.asarray(doc[name], float))
                      for name in LANDMARKS}
-        targets, entries = {}, {}
+        targets, entries, leads = {}, {}, {}
         structures = self.workspace.structures
         for item in doc.get("structures", []):
             i = int(item["structure"])
@@ -225,7 +279,12 @@ class PlanningState:
                 targets[sid] = np.asarray(item["target"], dtype=np.float64)
             if item.get("entry") is not None:
                 entries[sid] = np.asarray(item["entry"], dtype=np.float64)
+            lead = item.get("lead")
+            if lead:
+                leads[sid] = LeadChoice(str(lead["type"]), float(lead.get("depth_mm", 0.0)),
+                                        float(lead.get("rotation_deg", 0.0)))
         self.landmarks, self.targets, self.entries = landmarks, targets, entries
+        self.leads = leads
         self.history.clear()
         self.events.landmarks()
         for s in structures:
@@ -240,3 +299,4 @@ class PlanningState:
         alive = {s.id for s in self.workspace.structures}
         self.targets = {k: v for k, v in self.targets.items() if k in alive}
         self.entries = {k: v for k, v in self.entries.items() if k in alive}
+        self.leads = {k: v for k, v in self.leads.items() if k in alive}

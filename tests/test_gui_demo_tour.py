@@ -3,6 +3,7 @@ refit, sweeps a factor, exports; any key stops it; --record writes PNG frames.""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 pytest.importorskip("PySide6")
@@ -42,19 +43,36 @@ def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
     with qtbot.waitSignal(tour.finished, timeout=120000) as done:
         pass
     assert done.args == [True]
-    pts = window.state.points
+    caudate = window.state.structures[0]
+    pts = caudate.points
     assert pts.n_slices() == 3 and len(pts) > 8
     assert set(pts.frame.tolist()) == {0, 1, 2}          # axial, coronal, sagittal
     # the live refit followed the contours: the fit is closer to the drawn structure
     qtbot.waitUntil(lambda: not window.refit.is_busy, timeout=30000)
-    s = window.state.active
+    s = caudate
     end = symmetric_surface_distance(s.surface_vertices(), s.model.faces, truth_v, truth_f)
     print(f"\ntour: surface distance to the drawn structure {start:.2f} -> {end:.2f} mm")
     assert end < start
-    # the factor sweep ended at 0 SD on factor 1, and the export went to DIR/export
+    # the factor sweep ended at 0 SD on factor 1 of the caudate, and the export went to
+    # DIR/export (the STN plan came after it, and left a STN active)
+    window.state.set_active(caudate)
     assert window.factors_panel.sliders[0].value() == 0
     exported = {p.name for p in (tmp_path / "rec" / "export").iterdir()}
     assert {"segmentation.nii.gz", "surface.vtk", "points.csv"} <= exported
+    # then the bilateral STN plan: both STN fitted to a few contours, a lead on each side
+    stn = [s for s in window.state.structures if "subthalamic" in s.label.lower()]
+    assert len(stn) == 2
+    planning = window.planning
+    assert planning.frame() is not None
+    for s in stn:
+        assert len(s.points) >= 6 and s.points.n_slices() == 2
+        placed = planning.placed_lead_of(s)
+        assert placed is not None and placed.lead.key == "medtronic-3389"
+        np.testing.assert_allclose(placed.tip, planning.target_of(s), atol=1e-9)
+        rows = planning.contact_rows(s)
+        assert len(rows) == 4 and rows[0]["nearest_structure"] == s.label
+    # left lead on the left (RAS x < 0), right on the right
+    assert planning.placed_lead_of(stn[0]).tip[0] < 0 < planning.placed_lead_of(stn[1]).tip[0]
     frames = sorted((tmp_path / "rec").glob("frame_*.png"))
     assert len(frames) == len(tour.frames) > 8
     assert frames[0].name == "frame_0001.png"

@@ -15,13 +15,16 @@ import re
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import (QCheckBox, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
-                               QLineEdit, QPushButton, QSlider, QToolButton, QVBoxLayout,
-                               QWidget)
+from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QDoubleSpinBox,
+                               QGridLayout, QGroupBox, QHBoxLayout, QHeaderView, QLabel,
+                               QLineEdit, QPushButton, QSlider, QTableWidget,
+                               QTableWidgetItem, QToolButton, QVBoxLayout, QWidget)
 
 from app.planning import LANDMARK_LABELS, LANDMARKS, PlanningState
 from app.views.plan_overlays import ProbeView
 from core.planning.frames import format_acpc
+from core.planning.lead import LEAD_TYPES
+from core.planning.report import LeadChoice
 
 
 def _xyz(p) -> str:
@@ -65,6 +68,16 @@ def _small_button(text: str, tip: str, slot) -> QToolButton:
     return button
 
 
+def _spin_box(limit: float, step: float, decimals: int, suffix: str, tip: str) -> QDoubleSpinBox:
+    box = QDoubleSpinBox()
+    box.setRange(-limit, limit)
+    box.setSingleStep(step)
+    box.setDecimals(decimals)
+    box.setSuffix(suffix)
+    box.setToolTip(tip)
+    return box
+
+
 class PlanningPanel(QWidget):
     """See the module docstring. ``message(text)`` reports to the status bar."""
 
@@ -81,6 +94,7 @@ class PlanningPanel(QWidget):
         layout.setContentsMargins(4, 4, 4, 4)
         layout.addWidget(self._landmark_box())
         layout.addWidget(self._trajectory_box())
+        layout.addWidget(self._lead_box())
         layout.addWidget(self._probe_box(), 1)
         layout.addWidget(self._uncertainty_box())
         export = QPushButton("Export plan…")
@@ -162,6 +176,50 @@ class PlanningPanel(QWidget):
         self.trajectory_label.setWordWrap(True)
         self.trajectory_label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         grid.addWidget(self.trajectory_label, 4, 0, 1, 2)
+        self.warnings_label = QLabel()
+        self.warnings_label.setObjectName("trajectory-warnings")
+        self.warnings_label.setWordWrap(True)
+        self.warnings_label.setStyleSheet("color: #e03030; font-weight: bold;")
+        grid.addWidget(self.warnings_label, 5, 0, 1, 2)
+        return box
+
+    def _lead_box(self) -> QGroupBox:
+        box = QGroupBox("Lead")
+        grid = QGridLayout(box)
+        grid.setColumnStretch(1, 1)
+        self.lead_combo = QComboBox()
+        self.lead_combo.setObjectName("lead-type")
+        self.lead_combo.addItem("No lead", None)
+        for key, lead in LEAD_TYPES.items():
+            self.lead_combo.addItem(lead.name, key)
+        self.lead_combo.setToolTip("The DBS lead on the active structure's trajectory")
+        grid.addWidget(QLabel("Type"), 0, 0)
+        grid.addWidget(self.lead_combo, 0, 1, 1, 3)
+        self.lead_depth = _spin_box(30.0, 0.5, 1, " mm", "Tip past the target along the "
+                                    "trajectory (0: tip at the target; negative: short of it)")
+        self.lead_rotation = _spin_box(360.0, 15.0, 0, "°", "Directional segments: segment "
+                                       "a's angle from anterior, towards the left")
+        grid.addWidget(QLabel("Tip depth"), 1, 0)
+        grid.addWidget(self.lead_depth, 1, 1)
+        grid.addWidget(QLabel("Rotation"), 1, 2)
+        grid.addWidget(self.lead_rotation, 1, 3)
+        self.lead_combo.currentIndexChanged.connect(self._lead_edited)
+        self.lead_depth.editingFinished.connect(self._lead_edited)
+        self.lead_rotation.editingFinished.connect(self._lead_edited)
+        self.contact_table = QTableWidget(0, 4)
+        self.contact_table.setObjectName("contact-table")
+        self.contact_table.setHorizontalHeaderLabels(["Contact", "AC-PC mm", "Structure",
+                                                      "Dist. mm"])
+        self.contact_table.verticalHeader().setVisible(False)
+        self.contact_table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        header = self.contact_table.horizontalHeader()
+        header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(2, QHeaderView.ResizeMode.Stretch)
+        # as tall as its rows (set in refresh): the panel scrolls, not the table
+        self.contact_table.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.contact_table.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.contact_table.setTextElideMode(Qt.TextElideMode.ElideMiddle)
+        grid.addWidget(self.contact_table, 2, 0, 1, 4)
         return box
 
     def _probe_box(self) -> QGroupBox:
@@ -232,6 +290,13 @@ class PlanningPanel(QWidget):
         if not same:
             apply(xyz)
 
+    def _lead_edited(self, *_):
+        """The lead widgets changed: one undoable plan edit (nothing if the same)."""
+        key = self.lead_combo.currentData()
+        choice = None if key is None else LeadChoice(key, self.lead_depth.value(),
+                                                     self.lead_rotation.value())
+        self.planning.set_lead(self.workspace.active, choice)
+
     def go_to(self, xyz) -> None:
         if xyz is not None:
             self.workspace.set_crosshair(xyz)
@@ -275,6 +340,45 @@ class PlanningPanel(QWidget):
             self.depth_slider.setValue(int(round(2 * traj.length)))
         self.depth_slider.blockSignals(blocked)
         self.probe.set_view(traj, self.depth_slider.value() / 2.0)
+        self.warnings_label.setText("\n".join(
+            "⚠ " + w["message"][:1].upper() + w["message"][1:]
+            for w in planning.warnings_of(active)))
+        self._refresh_lead(active, frame)
+
+    def _refresh_lead(self, active, frame) -> None:
+        choice = self.planning.lead_of(active)
+        widgets = (self.lead_combo, self.lead_depth, self.lead_rotation)
+        blocked = [w.blockSignals(True) for w in widgets]
+        self.lead_combo.setCurrentIndex(max(0, self.lead_combo.findData(
+            None if choice is None else choice.lead)))
+        if choice is not None:
+            self.lead_depth.setValue(choice.depth_mm)
+            self.lead_rotation.setValue(choice.rotation_deg)
+        directional = choice is not None and any(n > 1 for n in LEAD_TYPES[choice.lead].levels)
+        self.lead_rotation.setEnabled(directional)
+        for w, b in zip(widgets, blocked):
+            w.blockSignals(b)
+        rows = self.planning.contact_rows(active)
+        table = self.contact_table
+        table.setRowCount(len(rows))
+        table.horizontalHeaderItem(1).setText("AC-PC mm" if frame is not None else "World mm")
+        for i, row in enumerate(rows):
+            xyz = row.get("acpc", row["world"])
+            # outside every structure: "outside", the nearest one in the tooltip (and the
+            # distance column: positive = outside it)
+            where = row["structure"] or ("outside" if row["nearest_structure"] else "—")
+            distance = "" if row["distance_mm"] is None else f"{row['distance_mm']:+.1f}"
+            for j, text in enumerate((row["contact"], "{:+.1f}, {:+.1f}, {:+.1f}".format(*xyz),
+                                      where, distance)):
+                item = QTableWidgetItem(text)
+                if row["nearest_structure"]:
+                    item.setToolTip(f"{'in' if row['structure'] else 'nearest'}: "
+                                    f"{row['nearest_structure']}, {distance} mm from its surface")
+                table.setItem(i, j, item)
+        table.resizeRowsToContents()
+        table.setFixedHeight(table.horizontalHeader().height() + 4 +
+                             sum(table.rowHeight(i) for i in range(len(rows))) if rows
+                             else table.horizontalHeader().height() + 4)
 
     def _trajectory_text(self, traj, frame) -> str:
         if traj is None:

@@ -3,9 +3,11 @@
 - :class:`SlicePlanOverlay` paints in every slice view (a painter of ``SliceView.overlays``):
   AC, PC and the midline point as labelled diamonds on their slice, each structure's target
   (a cross in its colour) and entry, and each trajectory as its projection on the slice
-  (dashed) with the point where it pierces the slice (a ring).
+  (dashed) with the point where it pierces the slice (a ring); a lead's contacts as bands
+  (``core.planning.lead.contact_extents``) projected on the slice, as wide as the lead,
+  solid where the contact crosses the slice.
 - :class:`VolumePlanOverlay` keeps the 3D view's plan meshes (``VolumeView.set_overlay``): a
-  tube per trajectory, spheres at targets and entries, the landmarks, and the target's
+  tube per trajectory, the lead's contacts as short cylinders on it, spheres at targets and entries, the landmarks, and the target's
   uncertainty ellipsoid when shown.
 - :class:`ProbeView` is the probe's-eye view: the image on the plane orthogonal to the
   trajectory at an adjustable depth (``core.geometry.planes.frame_along`` / ``sample_patch``), with the
@@ -23,11 +25,14 @@ from PySide6.QtWidgets import QSizePolicy, QWidget
 from app.planning import LANDMARK_LABELS, PlanningState
 from core.geometry.planes import frame_along, window_to_uint8
 from core.geometry.slicing import intersect_plane
+from core.planning.lead import contact_extents
 from core.reconstruction.uncertainty import section_sd
 
 LANDMARK_COLOR = QColor(255, 80, 200)
 LANDMARK_RGB = (1.0, 0.31, 0.78)
 TRAJECTORY_RGB = (1.0, 1.0, 0.3)
+#: a lead's contacts in every view (distinct from the trajectory's yellow)
+CONTACT_RGB = (0.2, 0.85, 1.0)
 
 
 class SlicePlanOverlay:
@@ -60,6 +65,9 @@ class SlicePlanOverlay:
             traj = planning.trajectory_of(s)
             if traj is not None:
                 self._paint_trajectory(painter, view, traj, color)
+            placed = planning.placed_lead_of(s)
+            if placed is not None:
+                self._paint_contacts(painter, view, placed)
             for point, kind in ((target, "target"), (entry, "entry")):
                 if point is None or abs(float(depth_of(point)) - view.depth) > tolerance:
                     continue
@@ -101,6 +109,43 @@ class SlicePlanOverlay:
                 x, y = view.world_to_screen(traj.point_at(t))
                 painter.setPen(QPen(QColor(255, 255, 80), 2))
                 painter.drawEllipse(QPointF(x, y), 5, 5)
+
+
+    @staticmethod
+    def contact_bands(view, placed) -> list[tuple[str, np.ndarray, np.ndarray, float, bool]]:
+        """Per contact (name, screen start, screen end, width px, crosses the slice): its
+        band on the lead's axis projected on the slice; crossing when the slice's plane cuts
+        the band's extent along the lead (within half a voxel step)."""
+        n = np.asarray(view.frame.n, dtype=np.float64)
+        across = np.cross(n, placed.axis)
+        if np.linalg.norm(across) < 1e-6:        # the lead runs along the slice normal
+            across = np.asarray(view.frame.u, dtype=np.float64)
+        across /= np.linalg.norm(across)
+        half_step = view._step() / 2
+        out = []
+        for band in contact_extents(placed):
+            a, b = view.world_to_screen(np.stack([band["start"], band["end"]]))
+            edge = view.world_to_screen(band["start"] + 2 * band["radius_mm"] * across)
+            width = max(3.0, float(np.hypot(*(np.asarray(edge) - a))))
+            depths = sorted((float(band["start"] @ n), float(band["end"] @ n)))
+            crosses = depths[0] - half_step <= view.depth <= depths[1] + half_step
+            out.append((band["name"], np.asarray(a), np.asarray(b), width, crosses))
+        return out
+
+    def _paint_contacts(self, painter: QPainter, view, placed) -> None:
+        rgb = QColor(*(int(255 * c) for c in CONTACT_RGB))
+        for name, a, b, width, crosses in self.contact_bands(view, placed):
+            color = QColor(rgb)
+            color.setAlpha(255 if crosses else 110)
+            pen = QPen(color, width)
+            pen.setCapStyle(Qt.PenCapStyle.FlatCap)
+            painter.setPen(pen)
+            if np.hypot(*(b - a)) < 1.0:          # seen end on: a disc
+                painter.setBrush(color)
+                painter.drawEllipse(QPointF(*a), width / 2, width / 2)
+                painter.setBrush(Qt.BrushStyle.NoBrush)
+            else:
+                painter.drawLine(QPointF(*a), QPointF(*b))
 
 
 class VolumePlanOverlay:
@@ -145,6 +190,11 @@ class VolumePlanOverlay:
                 want(f"trajectory-{s.id}", tuple(traj.entry) + tuple(traj.target),
                      lambda t=traj: pv.Line(t.entry, t.target).tube(radius=0.4),
                      color=TRAJECTORY_RGB)
+            placed = planning.placed_lead_of(s)
+            if placed is not None:
+                want(f"lead-{s.id}", tuple(placed.tip) + tuple(placed.axis) +
+                     (placed.lead.key, placed.rotation_deg),
+                     lambda p=placed: _contact_cylinders(p), color=CONTACT_RGB)
         e = self.ellipsoid
         if e is not None and e.radius_mm > 0:
             want("target-ellipsoid", tuple(e.centre) + tuple(np.ravel(e.semi_axes)) +
@@ -168,6 +218,24 @@ def _sphere(radius: float, centre) -> pv.PolyData:
     mesh = _SPHERES[radius].copy()
     mesh.points = mesh.points + np.asarray(centre, dtype=np.float64)
     return mesh
+
+
+def _contact_cylinders(placed) -> pv.PolyData:
+    """One mesh of the lead's contacts: a short cylinder per level (directional segments
+    drawn as their level's ring), slightly wider than the trajectory's tube."""
+    cylinders = []
+    seen = set()
+    for band in contact_extents(placed):
+        key = tuple(np.round(band["start"], 6))
+        if key in seen:                 # the segments of one level share its band
+            continue
+        seen.add(key)
+        centre = (band["start"] + band["end"]) / 2
+        cylinders.append(pv.Cylinder(center=centre, direction=placed.axis,
+                                     radius=max(band["radius_mm"], 0.6),
+                                     height=float(np.linalg.norm(band["end"] - band["start"])),
+                                     resolution=24))
+    return pv.merge(cylinders) if len(cylinders) > 1 else cylinders[0]
 
 
 def _ellipsoid_mesh(e) -> pv.PolyData:

@@ -356,21 +356,26 @@ def save_plan_markups(path: str | os.PathLike, structures: list[PlannedStructure
 
 def export_all_structures(folder: str | os.PathLike, structures: list[PlannedStructure],
                           volume, stem: str = "plan", dicom_series: list | None = None,
-                          meshes: bool = True) -> list[Path]:
+                          meshes: bool = True, progress=None) -> list[Path]:
     """Every structure at once (the GUI's *Export all*): on ``volume``'s grid the multi-label
     map as ``<stem>_labels.seg.nrrd`` (3D Slicer: names, colours) and ``<stem>_labels.nii.gz``
     + ``<stem>_labels.txt`` (ITK-SNAP labels); with ``dicom_series`` (the source series' files,
     when the image came from DICOM) ``<stem>_structures.seg.dcm`` (DICOM SEG) and
     ``<stem>_structures.rtstruct.dcm`` (RTSTRUCT) referencing it; with ``meshes`` one surface
-    per structure, ``<stem>_NN_<name>.vtk``. Returns the paths written."""
+    per structure, ``<stem>_NN_<name>.vtk``. Returns the paths written. ``progress(fraction,
+    message)`` (``core.runtime.progress``) is called before each file; cancelling through it
+    stops before the next file."""
     from core.io import save_volume
     from core.io.nrrd import Segment, write_segmentation
 
+    report = progress or (lambda fraction, message="": None)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     if volume is not None:
+        report(0.0, "label map of every structure")
         label_map = multi_label_map(structures, volume)
+        report(0.5, "3D Slicer segmentation and NIfTI label map")
         segmentation = folder / f"{stem}_labels.seg.nrrd"
         write_segmentation(segmentation, label_map, volume.affine,
                            [Segment(i + 1, s.name, s.color) for i, s in enumerate(structures)])
@@ -382,10 +387,12 @@ def export_all_structures(folder: str | os.PathLike, structures: list[PlannedStr
         if dicom_series:
             from core.io.dicom_export import ExportStructure, export_structures_dicom
 
+            report(0.7, "DICOM SEG and RTSTRUCT")
             exports = [ExportStructure(s.name, s.color, s.vertices, s.faces) for s in structures]
             written += export_structures_dicom(folder, exports, label_map, volume.affine,
                                                list(dicom_series), stem=f"{stem}_structures")
     if meshes:
+        report(0.9, "surface meshes")
         for i, s in enumerate(structures, start=1):
             safe = "".join(c if c.isalnum() else "_" for c in s.name).strip("_") or f"structure{i}"
             path = folder / f"{stem}_{i:02d}_{safe}.vtk"
