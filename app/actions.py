@@ -78,87 +78,83 @@ def add_tools(w, tools: dict, shortcuts: list, insert_at: int | None = None) -> 
 
 def create_actions(w) -> None:
     """Create the ``act_*`` actions and ``tool_actions`` of main window ``w``."""
-    key, state = QKeySequence.StandardKey, w.state
+    key, state, a = QKeySequence.StandardKey, w.state, w.registry.add
 
-    def a(*args):
-        return _action(w, *args)
-
-    w.act_open_image = a("&Open image…", lambda: w.open_dialog("image"), key.Open,
+    w.act_open_image = a("open-image", "&Open image…", lambda: w.open_dialog("image"), key.Open,
                         "Open an image: NIfTI, NRRD, MetaImage, or one file of a DICOM series")
-    w.act_open_dicom = a("Open &DICOM folder…", w.open_dicom_dialog, None,
+    w.act_open_dicom = a("open-dicom", "Open &DICOM folder…", w.open_dicom_dialog, None,
                         "Open a DICOM series from its folder")
-    w.act_load_model = a("Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
+    w.act_load_model = a("load-model", "Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
                         "Load a shape model (.npz, or statismo/Scalismo .h5)")
-    w.act_open_session = a("Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
-    w.act_save_session = a("&Save session", w.save_session, key.Save)
-    w.act_save_session_as = a("Save session &as…", lambda: w.save_session(ask=True))
-    w.act_export = a("&Export all…", w.export_all_dialog, "Ctrl+E",
+    w.act_open_session = a("open-session", "Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
+    w.act_save_session = a("save-session", "&Save session", w.save_session, key.Save)
+    w.act_save_session_as = a("save-session-as", "Save session &as…", lambda: w.save_session(ask=True))
+    w.act_export = a("export-all", "&Export all…", w.export_all_dialog, "Ctrl+E",
                     "Export the label map (NIfTI), the surface mesh and the points")
-    w.act_export_labels = a("Export label map…", lambda: w.export_dialog("labels"))
-    w.act_export_mesh = a("Export surface mesh…", lambda: w.export_dialog("mesh"))
-    w.act_export_points = a("Export points…", lambda: w.export_dialog("points"))
-    w.act_import_points = a("Import points…", lambda: w.open_dialog("points"))
-    w.act_quit = a("&Quit", w.close, key.Quit)
-    w.act_undo = a("&Undo", w.undo, "Ctrl+Z")
-    w.act_redo = a("&Redo", w.redo, "Ctrl+Shift+Z")
-    w.act_delete = a("&Delete point", w.delete_point, key.Delete,
+    w.act_export_labels = a("export-labels", "Export label map…", lambda: w.export_dialog("labels"))
+    w.act_export_mesh = a("export-mesh", "Export surface mesh…", lambda: w.export_dialog("mesh"))
+    w.act_export_points = a("export-points", "Export points…", lambda: w.export_dialog("points"))
+    w.act_import_points = a("import-points", "Import points…", lambda: w.open_dialog("points"))
+    w.act_quit = a("quit", "&Quit", w.close, key.Quit)
+    w.act_undo = a("undo", "&Undo", w.undo, "Ctrl+Z")
+    w.act_redo = a("redo", "&Redo", w.redo, "Ctrl+Shift+Z")
+    w.act_delete = a("delete-point", "&Delete point", w.delete_point, key.Delete,
                     "Remove the point under the cursor, else the last one on this slice")
-    w.act_clear_slice = a("Clear &slice", w.clear_active_slice, None,
+    w.act_clear_slice = a("clear-slice", "Clear &slice", w.clear_active_slice, None,
                          "Remove the points of the active view's slice")
-    w.act_clear_points = a("Clear &all points", state.clear_points)
-    w.act_place = a("&Place model here", w.place_here, "P",
+    w.act_clear_points = a("clear-points", "Clear &all points", state.clear_points)
+    w.act_place = a("place-here", "&Place model here", w.place_here, "P",
                        "Move the model so that its centre is at the crosshair")
-    w.act_auto_place = a("Place models &automatically", w.place_automatically, "Ctrl+P",
+    w.act_auto_place = a("auto-place", "Place models &automatically", w.place_automatically, "Ctrl+P",
                          "Register the image to the models' template (affine, mutual "
                          "information) and place every structure through it")
-    w.act_reset_pose = a("Reset model pose", state.reset_placement, None,
+    w.act_reset_pose = a("reset-pose", "Reset model pose", state.reset_placement, None,
                         "Back to the model's stored position and mean shape")
-    w.act_next_slice = a("Next slice", lambda: state.step_slice(w.active_view, 1),
+    w.act_next_slice = a("next-slice", "Next slice", lambda: state.step_slice(w.active_view, 1),
                         QKeySequence(Qt.Key.Key_PageUp))
-    w.act_prev_slice = a("Previous slice", lambda: state.step_slice(w.active_view, -1),
+    w.act_prev_slice = a("previous-slice", "Previous slice", lambda: state.step_slice(w.active_view, -1),
                         QKeySequence(Qt.Key.Key_PageDown))
-    w.act_reset_views = a("&Reset views", w.reset_views, "R")
-    w.act_side_panel = a("Side &panel", lambda checked=False: None, "F9",
+    w.act_reset_views = a("reset-views", "&Reset views", w.reset_views, "R")
+    w.act_side_panel = a("side-panel", "Side &panel", lambda checked=False: None, "F9",
                          "Show or hide the side panel (more room for the views)")
     w.act_side_panel.setCheckable(True)
     w.act_side_panel.setChecked(True)
-    w.act_shortcuts = a("&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
-    w.act_about = a("&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
+    w.act_shortcuts = a("shortcuts", "&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
+    w.act_about = a("about", "&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
     w.tool_group = QActionGroup(w)
     w.tool_actions = {}
     for tool, text, shortcut in (("navigate", "Navigate", "N"), ("draw", "Draw contour", "D"),
                                  ("window", "Window/level", "W")):
-        action = a(text, lambda checked=False, t=tool: w.set_tool(t), shortcut)
-        action.setCheckable(True)
+        action = a(f"tool-{tool}", text, lambda checked=False, t=tool: w.set_tool(t), shortcut,
+                   checkable=True)
         w.tool_group.addAction(action)
         w.tool_actions[tool] = action
     w.tool_actions["navigate"].setChecked(True)
 
 
 def create_menus(w) -> None:
-    """The menu bar of main window ``w``."""
-    bar = w.menuBar()
+    """The menu bar of main window ``w``: menus ``file``, ``edit``, ``view`` and ``help`` (and
+    ``view.presets``) in its registry, their entries by action id."""
+    r = w.registry
     menus = {
-        "&File": (w.act_open_image, w.act_open_dicom, w.act_load_model, None, w.act_open_session,
-                  w.act_save_session, w.act_save_session_as, None,
-                  w.act_import_points, w.act_export, w.act_export_labels,
-                  w.act_export_mesh, w.act_export_points, None, w.act_quit),
-        "&Edit": (w.act_undo, w.act_redo, None, w.act_delete, w.act_clear_slice,
-                  w.act_clear_points, None, w.act_place, w.act_auto_place, w.act_reset_pose),
-        "&View": (*w.tool_actions.values(), None, w.act_next_slice,
-                  w.act_prev_slice, w.act_reset_views, w.act_side_panel),
+        ("file", "&File"): ("open-image", "open-dicom", "load-model", None, "open-session",
+                            "save-session", "save-session-as", None, "import-points",
+                            "export-all", "export-labels", "export-mesh", "export-points", None,
+                            "quit"),
+        ("edit", "&Edit"): ("undo", "redo", None, "delete-point", "clear-slice", "clear-points",
+                            None, "place-here", "auto-place", "reset-pose"),
+        ("view", "&View"): (*(f"tool-{t}" for t in w.tool_actions),),
+        ("help", "&Help"): ("shortcuts", "about"),
     }
-    for title, actions in menus.items():
-        menu = bar.addMenu(title)
-        for act in actions:
-            menu.addSeparator() if act is None else menu.addAction(act)
-        if title == "&View":
-            presets = menu.addMenu("Window/level preset")
-            for name in WINDOW_PRESETS:
-                presets.addAction(name, lambda n=name: w.apply_window_preset(n))
-    help_menu = bar.addMenu("&Help")
-    help_menu.addAction(w.act_shortcuts)
-    help_menu.addAction(w.act_about)
+    for (menu_id, title), entries in menus.items():
+        r.add_menu(menu_id, title)
+        r.place(menu_id, *entries)
+        if menu_id == "view":   # more tools go before this separator (app.panels.editing)
+            r.separator("view", "view.tools-end")
+            r.place("view", "next-slice", "previous-slice", "reset-views", "side-panel")
+    presets = r.add_menu("view.presets", "Window/level preset", parent="view")
+    for name in WINDOW_PRESETS:
+        presets.addAction(name, lambda n=name: w.apply_window_preset(n))
 
 
 def create_toolbar(w) -> QToolBar:

@@ -14,12 +14,12 @@ def install_segment_tools(window) -> None:
     from app.demo_tour import install_demo_tour            # Help > Demo tour
     from app.panels.editing import install_editing         # label map, brush, move model
     from app.panels.measurements import install_measurements   # ruler and angle
-    from app.panels.navigation import install_navigation   # zoom, layouts, colour maps...
+    from app.panels.navigation import Navigation   # zoom, layouts, colour maps...
     from app.panels.placement_nudge import install_nudge   # adjust automatic placement
     from app.panels.second_image import install_second_image   # T2/FLAIR/CT over the T1
 
     window.labels = install_editing(window)
-    install_navigation(window)
+    window.add_feature("navigation", Navigation(window))
     install_nudge(window)
     window.measurements = install_measurements(window)
     window.second_image = install_second_image(window)

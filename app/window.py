@@ -43,6 +43,7 @@ from app.panels.tools import WINDOW_PRESETS, ToolsPanel
 from app.plan_controller import install_planning
 from app.paint_gate import PaintGate
 from app.refit import RefitController
+from app.registry import ActionRegistry
 from app.state import WorkspaceState
 from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
@@ -86,6 +87,8 @@ class MainWindow(QMainWindow):
         self.recovery_enabled = recovery
         self.unsaved = False
 
+        self.registry = ActionRegistry(self)   # every action and menu, by id
+        self.features: dict[str, object] = {}   # the Segment tab's tools, by name
         create_actions(self)
         self.workspace = SegmentWorkspace(self.state, with_3d=with_3d, defer_3d=defer_3d)
         self.fit_panel = FitPanel(self.state)
@@ -147,6 +150,12 @@ class MainWindow(QMainWindow):
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
         install_segment_tools(self)  # labels, measurements, second_image, navigation, tour
+
+    def add_feature(self, name: str, feature: object) -> None:
+        """Compose a feature (it has registered its actions and menus in ``self.registry``)."""
+        if name in self.features:
+            raise ValueError(f"feature {name!r} is already installed")
+        self.features[name] = feature
 
     @property
     def runner(self):

@@ -218,7 +218,7 @@ def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path
 
     s = window.state.active
     vertices = s.surface_vertices()
-    window.act_zoom_structure.trigger()
+    window.registry["zoom-structure"].trigger()
     for view in window.workspace.views.values():
         xy = view.world_to_screen(vertices)
         span = xy.max(axis=0) - xy.min(axis=0)
@@ -230,17 +230,17 @@ def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path
     np.testing.assert_allclose(window.state.crosshair, vertices.mean(axis=0), atol=1.0)
     # one view maximised (F) and back
     window.active_view = "coronal"
-    window.act_maximise.trigger()
+    window.registry["maximise"].trigger()
     views = window.workspace.views
     assert views["coronal"].isVisible() and not views["axial"].isVisible()
-    window.act_maximise.trigger()
+    window.registry["maximise"].trigger()
     assert all(v.isVisible() for v in views.values())
-    nav.set_layout(window, "sagittal")
+    window.features["navigation"].set_layout("sagittal")
     assert views["sagittal"].isVisible() and not views["coronal"].isVisible()
-    nav.set_layout(window, "2 x 2")
+    window.features["navigation"].set_layout("2 x 2")
     # colour maps: the pixels follow the lookup table of the windowed grey value
     view = views["axial"]
-    nav.set_colormap(window, "hot")
+    window.features["navigation"].set_colormap("hot")
     lut = nav.colormap_lut("hot")
     assert lut.shape == (256, 3) and lut[0].tolist() != lut[-1].tolist()
     from core.geometry.planes import window_to_uint8
@@ -248,7 +248,7 @@ def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path
     grey = window_to_uint8(view._slice.data, window.state.window, window.state.level)
     r, c = grey.shape[0] // 2, grey.shape[1] // 2
     assert view._qimage.pixelColor(c, r).getRgb()[:3] == tuple(lut[grey[r, c]])
-    nav.set_colormap(window, "inverted grey")
+    window.features["navigation"].set_colormap("inverted grey")
     assert view._qimage.pixelColor(c, r).red() == 255 - grey[r, c]
     with pytest.raises(ValueError, match="colour map must be one of"):
         nav.colormap_lut("rainbow")
@@ -268,8 +268,9 @@ def test_recent_files_and_screenshot(window, tmp_path):
     nav.remember(demo.demo_image())
     assert nav.recent_files()[0] == str(demo.demo_image().resolve())
     assert len(set(nav.recent_files())) == len(nav.recent_files())  # no duplicates
-    nav._fill_recent(window, window.recent_menu)
-    assert [a.text() for a in window.recent_menu.actions()][0] == demo.demo_image().name
+    recent_menu = window.registry.menu("file.recent")
+    window.features["navigation"].fill_recent()
+    assert [a.text() for a in recent_menu.actions()][0] == demo.demo_image().name
     path = tmp_path / "shot.png"
     window.save_screenshot(path)
     from PySide6.QtGui import QImage
@@ -300,15 +301,15 @@ def test_3d_view_has_a_labelled_orientation_cube_and_plane_and_point_toggles(qtb
         win.state.add_point(win.state.crosshair, "axial", win.workspace.views["axial"].depth)
         view.flush()
         assert view._plane_actors and view._points_actor is not None
-        win.act_show_planes.trigger()            # off
+        win.registry["show-planes"].trigger()            # off
         assert not any(a.GetVisibility() for a in view._plane_actors.values())
-        win.act_show_points.trigger()
+        win.registry["show-points"].trigger()
         assert not view._points_actor.GetVisibility()
         win.state.add_point(win.state.crosshair + [1, 0, 0], "axial",
                             win.workspace.views["axial"].depth)
         view.flush()                             # redraws keep the choice
         assert not view._points_actor.GetVisibility()
-        win.act_show_planes.trigger()            # on again
+        win.registry["show-planes"].trigger()            # on again
         assert all(a.GetVisibility() for a in view._plane_actors.values())
     finally:
         win.runner.cancel()
