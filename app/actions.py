@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from PySide6.QtCore import Qt
-from PySide6.QtGui import QAction, QActionGroup, QKeySequence
-from PySide6.QtWidgets import QMainWindow, QMessageBox, QToolBar
+from PySide6.QtGui import QKeySequence
+from PySide6.QtWidgets import QMessageBox, QToolBar
 
 from app import formats
 from app.panels.tools import WINDOW_PRESETS
@@ -41,43 +41,8 @@ def show_shortcuts(parent) -> None:
     QMessageBox.information(parent, "Keyboard and mouse", f"<table>{rows}</table>")
 
 
-def _action(window: QMainWindow, text: str, slot, shortcut=None, tip: str = "") -> QAction:
-    action = QAction(text, window)
-    if shortcut is not None:
-        action.setShortcut(QKeySequence(shortcut))
-    if tip:
-        action.setToolTip(tip)
-        action.setStatusTip(tip)
-    action.triggered.connect(slot)
-    window.addAction(action)
-    return action
-
-
-def add_tools(w, tools: dict, shortcuts: list, insert_at: int | None = None) -> None:
-    """Register extra slice-view tools on main window ``w``: per tool ``(text, key, hint)`` a
-    checkable action in the tool group and the View menu (appended, or before entry
-    ``insert_at``), its hint; ``shortcuts`` rows join the Help list."""
-    from app import window as window_module
-
-    SHORTCUTS.extend(row for row in shortcuts if row not in SHORTCUTS)
-    view_menu = next((a.menu() for a in w.menuBar().actions() if a.text() == "&View"), None)
-    for tool, (text, key, hint) in tools.items():
-        action = _action(w, text, lambda checked=False, t=tool: w.set_tool(t), key, hint)
-        action.setCheckable(True)
-        w.tool_group.addAction(action)
-        w.tool_actions[tool] = action
-        window_module.TOOL_HINTS[tool] = hint
-        if view_menu is None:
-            continue
-        entries = view_menu.actions()
-        if insert_at is not None and len(entries) > insert_at:
-            view_menu.insertAction(entries[insert_at], action)
-        else:
-            view_menu.addAction(action)
-
-
 def create_actions(w) -> None:
-    """Create the ``act_*`` actions and ``tool_actions`` of main window ``w``."""
+    """Create the ``act_*`` actions of main window ``w``."""
     key, state, a = QKeySequence.StandardKey, w.state, w.registry.add
 
     w.act_open_image = a("open-image", "&Open image…", lambda: w.open_dialog("image"), key.Open,
@@ -121,15 +86,6 @@ def create_actions(w) -> None:
     w.act_side_panel.setChecked(True)
     w.act_shortcuts = a("shortcuts", "&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
     w.act_about = a("about", "&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
-    w.tool_group = QActionGroup(w)
-    w.tool_actions = {}
-    for tool, text, shortcut in (("navigate", "Navigate", "N"), ("draw", "Draw contour", "D"),
-                                 ("window", "Window/level", "W")):
-        action = a(f"tool-{tool}", text, lambda checked=False, t=tool: w.set_tool(t), shortcut,
-                   checkable=True)
-        w.tool_group.addAction(action)
-        w.tool_actions[tool] = action
-    w.tool_actions["navigate"].setChecked(True)
 
 
 def create_menus(w) -> None:

@@ -135,7 +135,7 @@ class DemoTour(QObject):
             zoom_to_structure(w)
         elif kind == "slice":
             w.state.set_crosshair(step[2])
-            w.active_view = step[1]
+            w.set_active_view(step[1])
         elif kind == "point":
             _, xyz, name, depth, first = step
             w.state.add_point(xyz, name, depth, checkpoint=first)
@@ -166,18 +166,18 @@ def start_tour(window, record: str | Path | None = None, interval_ms: int = 120,
     out = Path(record) / "export" if record is not None else \
         Path(tempfile.mkdtemp(prefix="ssm-studio-demo-"))
     tour = DemoTour(window, tour_steps(window, truth, out, spacing=spacing), interval_ms, record)
-    window.demo_tour = tour
     if quit_at_end:     # a recording has nobody to answer "save before closing?"
         tour.finished.connect(lambda completed: window.close_unattended())
     tour.start()
     return tour
 
 
-def install_demo_tour(window) -> None:
-    """Help > Demo tour."""
-    help_menu = next((a.menu() for a in window.menuBar().actions() if a.text() == "&Help"), None)
-    if help_menu is not None:
-        action = help_menu.addAction("Demo tour")
-        action.setToolTip("Play a scripted session on the demo data (any key stops it)")
-        action.triggered.connect(lambda: start_tour(window))
-        window.act_demo_tour = action
+class DemoTourFeature:
+    """The window's feature ``"demo-tour"``: *Help > Demo tour* plays :func:`start_tour`
+    (the tour is a child of the window: it lives as long as it plays)."""
+
+    def __init__(self, window):
+        self.action = window.registry.add(
+            "demo-tour", "Demo tour", lambda: start_tour(window),
+            tip="Play a scripted session on the demo data (any key stops it)")
+        window.registry.place("help", "demo-tour")

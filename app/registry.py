@@ -79,6 +79,9 @@ class ActionRegistry:
         self._menus[menu_id] = menu
         return menu
 
+    def has_menu(self, menu_id: str) -> bool:
+        return menu_id in self._menus
+
     def menu(self, menu_id: str) -> QMenu:
         try:
             return self._menus[menu_id]
@@ -86,11 +89,18 @@ class ActionRegistry:
             raise KeyError(f"no menu {menu_id!r} (registered: "
                            f"{', '.join(sorted(self._menus))})") from None
 
-    def place(self, menu_id: str, *items: str | QAction | None, before: str | None = None) -> None:
-        """Put entries (action ids, actions, or None for a separator) into menu ``menu_id``,
-        appended or before the entry ``before``."""
+    def place(self, menu_id: str, *items: str | QAction | None, before: str | None = None,
+              after: str | None = None) -> None:
+        """Put entries (action ids, actions, or None for a separator) into menu ``menu_id``:
+        appended, or before the entry ``before``, or right after the entry ``after``."""
         menu = self.menu(menu_id)
         anchor = None if before is None else self._entry(before)
+        if after is not None:
+            target, entries = self._entry(after), iter(menu.actions())
+            for entry in entries:
+                if entry is target:
+                    anchor = next(entries, None)   # the entry after it (None: the last one)
+                    break
         for item in items:
             if item is None:
                 menu.insertSeparator(anchor) if anchor is not None else menu.addSeparator()

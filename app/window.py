@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtGui import QAction, QActionGroup
 from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
 from app import demo, formats
@@ -54,10 +55,11 @@ from core.io.model_library import list_library
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "OPEN_DIALOGS", "run_gui"]
 
-TOOL_HINTS = {"navigate": "Navigate: click to move the crosshair",
-              "draw": "Draw: click or drag on the structure's outline to add contour points; "
-                      "Ctrl+click deletes a point",
-              "window": "Window/level: drag left-right for width, up-down for level"}
+BASE_TOOLS = {"navigate": ("Navigate", "N", "Navigate: click to move the crosshair"),
+              "draw": ("Draw contour", "D", "Draw: click or drag on the structure's outline to "
+                                            "add contour points; Ctrl+click deletes a point"),
+              "window": ("Window/level", "W",
+                         "Window/level: drag left-right for width, up-down for level")}
 
 
 class MainWindow(QMainWindow):
@@ -89,6 +91,11 @@ class MainWindow(QMainWindow):
 
         self.registry = ActionRegistry(self)   # every action and menu, by id
         self.features: dict[str, object] = {}   # the Segment tab's tools, by name
+        self.tool_group = QActionGroup(self)    # the slice views' tools: one at a time
+        self.tool_actions: dict[str, QAction] = {}
+        self.tool_hints: dict[str, str] = {}
+        self.add_tools(BASE_TOOLS, tips=False)
+        self.tool_actions["navigate"].setChecked(True)
         create_actions(self)
         self.workspace = SegmentWorkspace(self.state, with_3d=with_3d, defer_3d=defer_3d)
         self.fit_panel = FitPanel(self.state)
@@ -136,7 +143,7 @@ class MainWindow(QMainWindow):
 
         for view in self.workspace.views.values():
             view.hovered.connect(self.cursor_label.on_hover)
-            view.activated.connect(self._on_view_activated)
+            view.activated.connect(self.set_active_view)
             view.message.connect(self.show_message)
         events = self.state.events
         events.points.connect(self._update_actions)
@@ -150,6 +157,23 @@ class MainWindow(QMainWindow):
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
         install_segment_tools(self)  # labels, measurements, second_image, navigation, tour
+
+    def add_tools(self, tools: dict, shortcuts: list = (), menu_before: str | None = None,
+                  tips: bool = True) -> None:
+        """Register slice-view tools: per tool ``(text, key, hint)`` a checkable action
+        ``tool-<name>`` in the tool group, placed in the View menu (appended, or before the
+        entry ``menu_before``) once it exists; the hint shows when the tool is chosen;
+        ``shortcuts`` rows join Help > Keyboard shortcuts."""
+        SHORTCUTS.extend(row for row in shortcuts if row not in SHORTCUTS)
+        for tool, (text, key, hint) in tools.items():
+            action = self.registry.add(f"tool-{tool}", text,
+                                       lambda checked=False, t=tool: self.set_tool(t), key,
+                                       hint if tips else "", checkable=True)
+            self.tool_group.addAction(action)
+            self.tool_actions[tool] = action
+            self.tool_hints[tool] = hint
+            if self.registry.has_menu("view"):
+                self.registry.place("view", action, before=menu_before)
 
     def add_feature(self, name: str, feature: object) -> None:
         """Compose a feature (it has registered its actions and menus in ``self.registry``)."""
@@ -244,7 +268,7 @@ class MainWindow(QMainWindow):
     def load_second_image(self, path: str | os.PathLike, transform=None) -> bool:
         """Show a second image over the first: read, registered rigidly when the grids differ
         and resampled in a worker (progress, Cancel); False if it could not start."""
-        return self.second_image.load(path, transform, show_dialog=not self._quiet_errors())
+        return self.features["second-image"].controller.load(path, transform, show_dialog=not self._quiet_errors())
 
     def load_demo(self) -> None:
         """The demo image and model (raises DataFileError when resources/ is incomplete)."""
@@ -354,9 +378,10 @@ class MainWindow(QMainWindow):
         for view in self.workspace.views.values():
             view.set_tool(tool)
         self.tool_actions[tool].setChecked(True)
-        self.show_message(TOOL_HINTS[tool])
+        self.show_message(self.tool_hints[tool])
 
-    def _on_view_activated(self, name: str) -> None:
+    def set_active_view(self, name: str) -> None:
+        """The slice view that Page Up/Down, F and Delete act on (the last one clicked)."""
         self.active_view = name
 
     def undo(self) -> None:
@@ -485,7 +510,7 @@ class MainWindow(QMainWindow):
         self._autosave_timer.stop()
         self.refit.cancel()
         self.refit.wait(5000)
-        for task in (self.auto_place, self.second_image):
+        for task in (self.auto_place, self.features["second-image"].controller):
             task.cancel()
             task.wait(10000)
         if self.recovery_enabled:

@@ -139,9 +139,7 @@ def test_new_patient_offers_placement_then_nudge_with_undo(make_window, moved_ca
     assert len(asked) == 1
 
     # nudge: shift 2 mm to the right, then turn 5 degrees about S/I, all structures together
-    from app.panels.placement_nudge import show_nudge
-
-    dialog = show_nudge(window)
+    dialog = window.features["placement-nudge"].show()
     dialog.shift_step.setValue(2.0)
     dialog.buttons[("shift", 0, 1)].click()
     for p, s in zip(placed, structures):
