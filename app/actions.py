@@ -36,6 +36,11 @@ ABOUT = (f"<b>SSM Studio {__version__}</b><br>Shape-model-based interactive segm
          "convention (patient right on screen left).")
 
 
+def add_help_shortcuts(rows: list[tuple[str, str]]) -> None:
+    """Rows ``(keys, what they do)`` a feature adds to Help > Keyboard shortcuts."""
+    SHORTCUTS.extend(row for row in rows if row not in SHORTCUTS)
+
+
 def show_shortcuts(parent) -> None:
     rows = "".join(f"<tr><td><b>{k}</b></td><td>&nbsp;&nbsp;{v}</td></tr>" for k, v in SHORTCUTS)
     QMessageBox.information(parent, "Keyboard and mouse", f"<table>{rows}</table>")
@@ -99,7 +104,7 @@ def create_menus(w) -> None:
                             "quit"),
         ("edit", "&Edit"): ("undo", "redo", None, "delete-point", "clear-slice", "clear-points",
                             None, "place-here", "auto-place", "reset-pose"),
-        ("view", "&View"): (*(f"tool-{t}" for t in w.tool_actions),),
+        ("view", "&View"): (*(f"tool-{t}" for t in w.tools.actions),),
         ("help", "&Help"): ("shortcuts", "about"),
     }
     for (menu_id, title), entries in menus.items():
@@ -119,7 +124,7 @@ def create_toolbar(w) -> QToolBar:
     bar.setObjectName("main-toolbar")
     bar.setMovable(False)
     for act in (w.act_open_image, w.act_load_model, w.act_save_session, w.act_export,
-                None, *w.tool_actions.values(), None, w.act_undo, w.act_redo,
+                None, *w.tools.actions.values(), None, w.act_undo, w.act_redo,
                 w.act_place, w.act_reset_views):
         bar.addSeparator() if act is None else bar.addAction(act)
     w.addToolBar(Qt.ToolBarArea.TopToolBarArea, bar)
@@ -159,6 +164,6 @@ def show_segment_controls(w, visible: bool) -> None:
     w.plan_dock.setVisible(shown)
     w.cursor_label.setVisible(visible)
     w.fit_label.setVisible(visible)
-    for act in (*w.tool_actions.values(), w.act_undo, w.act_redo, w.act_place,
+    for act in (*w.tools.actions.values(), w.act_undo, w.act_redo, w.act_place,
                 w.act_reset_views):
         act.setVisible(visible)

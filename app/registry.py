@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import QMenu, QWidget
 
 
@@ -123,3 +123,30 @@ class ActionRegistry:
         if entry_id in self._menus:
             return self._menus[entry_id].menuAction()
         return self[entry_id]
+
+
+class SliceTools:
+    """The slice views' tools, one at a time (navigate, draw, brush, ruler, ...): per tool a
+    checkable action ``tool-<name>`` in ``registry``, its hint for the status bar. ``choose``
+    is called with the tool's name when its action is triggered."""
+
+    def __init__(self, registry: ActionRegistry, choose: Callable[[str], None]):
+        self._registry = registry
+        self._choose = choose
+        self.group = QActionGroup(registry._window)
+        self.actions: dict[str, QAction] = {}
+        self.hints: dict[str, str] = {}
+
+    def add(self, tools: dict[str, tuple[str, str, str]], menu_before: str | None = None,
+            tips: bool = True) -> None:
+        """Per tool ``name: (text, key, hint)`` its action, placed in the View menu (appended,
+        or before the entry ``menu_before``) once that menu exists."""
+        for tool, (text, key, hint) in tools.items():
+            action = self._registry.add(f"tool-{tool}", text,
+                                        lambda checked=False, t=tool: self._choose(t), key,
+                                        hint if tips else "", checkable=True)
+            self.group.addAction(action)
+            self.actions[tool] = action
+            self.hints[tool] = hint
+            if self._registry.has_menu("view"):
+                self._registry.place("view", action, before=menu_before)

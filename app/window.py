@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import Qt, QTimer, Signal
-from PySide6.QtGui import QAction, QActionGroup
 from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
 from app import demo, formats
@@ -44,7 +43,7 @@ from app.panels.tools import WINDOW_PRESETS, ToolsPanel
 from app.plan_controller import install_planning
 from app.paint_gate import PaintGate
 from app.refit import RefitController
-from app.registry import ActionRegistry
+from app.registry import ActionRegistry, SliceTools
 from app.state import WorkspaceState
 from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
@@ -91,11 +90,9 @@ class MainWindow(QMainWindow):
 
         self.registry = ActionRegistry(self)   # every action and menu, by id
         self.features: dict[str, object] = {}   # the Segment tab's tools, by name
-        self.tool_group = QActionGroup(self)    # the slice views' tools: one at a time
-        self.tool_actions: dict[str, QAction] = {}
-        self.tool_hints: dict[str, str] = {}
-        self.add_tools(BASE_TOOLS, tips=False)
-        self.tool_actions["navigate"].setChecked(True)
+        self.tools = SliceTools(self.registry, self.set_tool)   # one at a time
+        self.tools.add(BASE_TOOLS, tips=False)
+        self.tools.actions["navigate"].setChecked(True)
         create_actions(self)
         self.workspace = SegmentWorkspace(self.state, with_3d=with_3d, defer_3d=defer_3d)
         self.fit_panel = FitPanel(self.state)
@@ -157,23 +154,6 @@ class MainWindow(QMainWindow):
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
         install_segment_tools(self)  # labels, measurements, second_image, navigation, tour
-
-    def add_tools(self, tools: dict, shortcuts: list = (), menu_before: str | None = None,
-                  tips: bool = True) -> None:
-        """Register slice-view tools: per tool ``(text, key, hint)`` a checkable action
-        ``tool-<name>`` in the tool group, placed in the View menu (appended, or before the
-        entry ``menu_before``) once it exists; the hint shows when the tool is chosen;
-        ``shortcuts`` rows join Help > Keyboard shortcuts."""
-        SHORTCUTS.extend(row for row in shortcuts if row not in SHORTCUTS)
-        for tool, (text, key, hint) in tools.items():
-            action = self.registry.add(f"tool-{tool}", text,
-                                       lambda checked=False, t=tool: self.set_tool(t), key,
-                                       hint if tips else "", checkable=True)
-            self.tool_group.addAction(action)
-            self.tool_actions[tool] = action
-            self.tool_hints[tool] = hint
-            if self.registry.has_menu("view"):
-                self.registry.place("view", action, before=menu_before)
 
     def add_feature(self, name: str, feature: object) -> None:
         """Compose a feature (it has registered its actions and menus in ``self.registry``)."""
@@ -377,8 +357,8 @@ class MainWindow(QMainWindow):
     def set_tool(self, tool: str) -> None:
         for view in self.workspace.views.values():
             view.set_tool(tool)
-        self.tool_actions[tool].setChecked(True)
-        self.show_message(self.tool_hints[tool])
+        self.tools.actions[tool].setChecked(True)
+        self.show_message(self.tools.hints[tool])
 
     def set_active_view(self, name: str) -> None:
         """The slice view that Page Up/Down, F and Delete act on (the last one clicked)."""

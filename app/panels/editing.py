@@ -26,6 +26,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.actions import add_help_shortcuts
 from app.views.edit_tools import BrushTool, MoveTool
 from app.views.label_overlay import LabelOverlay
 
@@ -107,7 +108,7 @@ class LabelPanel(QWidget):
         row = QHBoxLayout()
         self.tool_buttons = {}
         for tool in TOOLS:
-            action = window.tool_actions[tool]
+            action = window.tools.actions[tool]
             button = QPushButton(action.text())
             button.setCheckable(True)
             button.setToolTip(action.toolTip())
@@ -171,7 +172,8 @@ class Editing:
         for view in window.workspace.views.values():
             view.layers.append(overlay)
             view.tool_handlers.update(handlers)
-        window.add_tools(TOOLS, SHORTCUTS, menu_before="view.tools-end")
+        window.tools.add(TOOLS, menu_before="view.tools-end")
+        add_help_shortcuts(SHORTCUTS)
         self.panel = LabelPanel(window, overlay, brush, eraser)
         box = QGroupBox("Label map")
         box_layout = QVBoxLayout(box)

@@ -12,6 +12,7 @@ import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QPainter, QPen
 
+from app.actions import add_help_shortcuts
 from core.planning.measure import (
     Measurement,
     measurements_from_json,
@@ -138,7 +139,8 @@ class MeasurementTools:
         for view in views:
             view.tool_handlers.update(handlers)
             view.overlays.append(painter)
-        window.add_tools(TOOLS, SHORTCUTS)
+        window.tools.add(TOOLS)
+        add_help_shortcuts(SHORTCUTS)
         self.clear = window.registry.add("clear-measurements", "Clear measurements", store.clear,
                                          None, "Remove every ruler and angle")
         window.registry.place("view", "clear-measurements")

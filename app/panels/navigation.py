@@ -25,6 +25,8 @@ import numpy as np
 from PySide6.QtGui import QAction, QActionGroup
 from PySide6.QtWidgets import QDialog, QDialogButtonBox, QDoubleSpinBox, QFileDialog, QFormLayout
 
+from app.actions import add_help_shortcuts
+
 LAYOUTS = ("2 x 2", "axial", "sagittal", "coronal", "3D")
 COLORMAPS = ("grey", "inverted grey", "hot", "bone", "viridis")
 RECENT_MAX = 10
@@ -157,9 +159,7 @@ class Navigation:
     docstring), registered in ``window.registry``; the current layout and colour map."""
 
     def __init__(self, window):
-        from app.actions import SHORTCUTS as HELP_SHORTCUTS
-
-        HELP_SHORTCUTS.extend(row for row in SHORTCUTS if row not in HELP_SHORTCUTS)
+        add_help_shortcuts(SHORTCUTS)
         self.window = window
         self.layout, self.colormap = "2 x 2", "grey"
         r = window.registry

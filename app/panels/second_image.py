@@ -24,6 +24,7 @@ from PySide6.QtCore import QObject, Qt, Signal
 from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QGroupBox, QHBoxLayout, QLabel,
                                QPushButton, QSlider, QVBoxLayout, QWidget)
 
+from app.actions import add_help_shortcuts
 from app.second_image import SecondImage
 from app.views.second_image_layer import SecondImageLayer
 from app.workers import DialogTask
@@ -222,13 +223,11 @@ class SecondImageFeature:
     swap), side-panel box (``panel``), status-bar value and session hooks."""
 
     def __init__(self, window):
-        from app.actions import SHORTCUTS as HELP_SHORTCUTS
-
         self.controller = controller = SecondImageController(window)
         model = controller.model
         controller.message.connect(window.show_message)
         controller.error.connect(window.show_error)
-        HELP_SHORTCUTS.extend(row for row in SHORTCUTS if row not in HELP_SHORTCUTS)
+        add_help_shortcuts(SHORTCUTS)
 
         def toggle_mode() -> None:
             if model.loaded:

@@ -24,7 +24,7 @@ class ToolsPanel(QWidget):
         row = QHBoxLayout()
         self.tool_buttons = {}
         for tool in TOOLS:
-            action = window.tool_actions[tool]
+            action = window.tools.actions[tool]
             button = QPushButton(action.text().replace("&", ""))
             button.setCheckable(True)
             button.setChecked(action.isChecked())
