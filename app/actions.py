@@ -47,50 +47,47 @@ def show_shortcuts(parent) -> None:
 
 
 def create_actions(w) -> None:
-    """Create the ``act_*`` actions of main window ``w``."""
+    """Register the actions of main window ``w``'s own menus (File, Edit, View, Help) by id."""
     key, state, a = QKeySequence.StandardKey, w.state, w.registry.add
-
-    w.act_open_image = a("open-image", "&Open image…", lambda: w.open_dialog("image"), key.Open,
-                        "Open an image: NIfTI, NRRD, MetaImage, or one file of a DICOM series")
-    w.act_open_dicom = a("open-dicom", "Open &DICOM folder…", w.open_dicom_dialog, None,
-                        "Open a DICOM series from its folder")
-    w.act_load_model = a("load-model", "Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
-                        "Load a shape model (.npz, or statismo/Scalismo .h5)")
-    w.act_open_session = a("open-session", "Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
-    w.act_save_session = a("save-session", "&Save session", w.save_session, key.Save)
-    w.act_save_session_as = a("save-session-as", "Save session &as…", lambda: w.save_session(ask=True))
-    w.act_export = a("export-all", "&Export all…", w.export_all_dialog, "Ctrl+E",
-                    "Export the label map (NIfTI), the surface mesh and the points")
-    w.act_export_labels = a("export-labels", "Export label map…", lambda: w.export_dialog("labels"))
-    w.act_export_mesh = a("export-mesh", "Export surface mesh…", lambda: w.export_dialog("mesh"))
-    w.act_export_points = a("export-points", "Export points…", lambda: w.export_dialog("points"))
-    w.act_import_points = a("import-points", "Import points…", lambda: w.open_dialog("points"))
-    w.act_quit = a("quit", "&Quit", w.close, key.Quit)
-    w.act_undo = a("undo", "&Undo", w.undo, "Ctrl+Z")
-    w.act_redo = a("redo", "&Redo", w.redo, "Ctrl+Shift+Z")
-    w.act_delete = a("delete-point", "&Delete point", w.delete_point, key.Delete,
-                    "Remove the point under the cursor, else the last one on this slice")
-    w.act_clear_slice = a("clear-slice", "Clear &slice", w.clear_active_slice, None,
-                         "Remove the points of the active view's slice")
-    w.act_clear_points = a("clear-points", "Clear &all points", state.clear_points)
-    w.act_place = a("place-here", "&Place model here", w.place_here, "P",
-                       "Move the model so that its centre is at the crosshair")
-    w.act_auto_place = a("auto-place", "Place models &automatically", w.place_automatically, "Ctrl+P",
-                         "Register the image to the models' template (affine, mutual "
-                         "information) and place every structure through it")
-    w.act_reset_pose = a("reset-pose", "Reset model pose", state.reset_placement, None,
-                        "Back to the model's stored position and mean shape")
-    w.act_next_slice = a("next-slice", "Next slice", lambda: state.step_slice(w.active_view, 1),
-                        QKeySequence(Qt.Key.Key_PageUp))
-    w.act_prev_slice = a("previous-slice", "Previous slice", lambda: state.step_slice(w.active_view, -1),
-                        QKeySequence(Qt.Key.Key_PageDown))
-    w.act_reset_views = a("reset-views", "&Reset views", w.reset_views, "R")
-    w.act_side_panel = a("side-panel", "Side &panel", lambda checked=False: None, "F9",
-                         "Show or hide the side panel (more room for the views)")
-    w.act_side_panel.setCheckable(True)
-    w.act_side_panel.setChecked(True)
-    w.act_shortcuts = a("shortcuts", "&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
-    w.act_about = a("about", "&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
+    a("open-image", "&Open image…", lambda: w.open_dialog("image"), key.Open,
+      "Open an image: NIfTI, NRRD, MetaImage, or one file of a DICOM series")
+    a("open-dicom", "Open &DICOM folder…", w.open_dicom_dialog, None,
+      "Open a DICOM series from its folder")
+    a("load-model", "Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
+      "Load a shape model (.npz, or statismo/Scalismo .h5)")
+    a("open-session", "Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
+    a("save-session", "&Save session", w.save_session, key.Save)
+    a("save-session-as", "Save session &as…", lambda: w.save_session(ask=True))
+    a("export-all", "&Export all…", w.export_all_dialog, "Ctrl+E",
+      "Export the label map (NIfTI), the surface mesh and the points")
+    a("export-labels", "Export label map…", lambda: w.export_dialog("labels"))
+    a("export-mesh", "Export surface mesh…", lambda: w.export_dialog("mesh"))
+    a("export-points", "Export points…", lambda: w.export_dialog("points"))
+    a("import-points", "Import points…", lambda: w.open_dialog("points"))
+    a("quit", "&Quit", w.close, key.Quit)
+    a("undo", "&Undo", w.undo, "Ctrl+Z")
+    a("redo", "&Redo", w.redo, "Ctrl+Shift+Z")
+    a("delete-point", "&Delete point", w.delete_point, key.Delete,
+      "Remove the point under the cursor, else the last one on this slice")
+    a("clear-slice", "Clear &slice", w.clear_active_slice, None,
+      "Remove the points of the active view's slice")
+    a("clear-points", "Clear &all points", state.clear_points)
+    a("place-here", "&Place model here", w.place_here, "P",
+      "Move the model so that its centre is at the crosshair")
+    a("auto-place", "Place models &automatically", w.place_automatically, "Ctrl+P",
+      "Register the image to the models' template (affine, mutual information) and place "
+      "every structure through it")
+    a("reset-pose", "Reset model pose", state.reset_placement, None,
+      "Back to the model's stored position and mean shape")
+    a("next-slice", "Next slice", lambda: state.step_slice(w.active_view, 1),
+      QKeySequence(Qt.Key.Key_PageUp))
+    a("previous-slice", "Previous slice", lambda: state.step_slice(w.active_view, -1),
+      QKeySequence(Qt.Key.Key_PageDown))
+    a("reset-views", "&Reset views", w.reset_views, "R")
+    a("side-panel", "Side &panel", lambda checked=False: None, "F9",
+      "Show or hide the side panel (more room for the views)", checkable=True, checked=True)
+    a("shortcuts", "&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
+    a("about", "&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
 
 
 def create_menus(w) -> None:
@@ -123,9 +120,10 @@ def create_toolbar(w) -> QToolBar:
     bar = QToolBar("Main")
     bar.setObjectName("main-toolbar")
     bar.setMovable(False)
-    for act in (w.act_open_image, w.act_load_model, w.act_save_session, w.act_export,
-                None, *w.tools.actions.values(), None, w.act_undo, w.act_redo,
-                w.act_place, w.act_reset_views):
+    r = w.registry
+    for act in (r["open-image"], r["load-model"], r["save-session"], r["export-all"], None,
+                *w.tools.actions.values(), None, r["undo"], r["redo"], r["place-here"],
+                r["reset-views"]):
         bar.addSeparator() if act is None else bar.addAction(act)
     w.addToolBar(Qt.ToolBarArea.TopToolBarArea, bar)
     return bar
@@ -133,16 +131,15 @@ def create_toolbar(w) -> QToolBar:
 
 def update_actions(w) -> None:
     """Enable the actions of main window ``w`` that have something to act on."""
-    state = w.state
+    state, r = w.state, w.registry
+    r["undo"].setEnabled(state.can_undo())
+    r["redo"].setEnabled(state.can_redo())
     has_model = state.model is not None
-    w.act_undo.setEnabled(state.can_undo())
-    w.act_redo.setEnabled(state.can_redo())
-    for act in (w.act_place, w.act_auto_place, w.act_reset_pose, w.act_export_labels,
-                w.act_export_mesh):
-        act.setEnabled(has_model)
+    for act in ("place-here", "auto-place", "reset-pose", "export-labels", "export-mesh"):
+        r[act].setEnabled(has_model)
     has_points = len(state.points) > 0
-    for act in (w.act_delete, w.act_clear_slice, w.act_clear_points, w.act_export_points):
-        act.setEnabled(has_points)
+    for act in ("delete-point", "clear-slice", "clear-points", "export-points"):
+        r[act].setEnabled(has_points)
 
 
 def update_title(w) -> None:
@@ -159,11 +156,12 @@ def update_title(w) -> None:
 def show_segment_controls(w, visible: bool) -> None:
     """The side panel, the toolbar and the drawing tools belong to the Segment tab only."""
     w.toolbar.setVisible(visible)  # the Build tab has its own buttons (issue 17, 8)
-    shown = visible and w.act_side_panel.isChecked()     # F9 hides the side docks
+    r = w.registry
+    shown = visible and r["side-panel"].isChecked()     # F9 hides the side docks
     w.side_dock.setVisible(shown)
     w.plan_dock.setVisible(shown)
     w.cursor_label.setVisible(visible)
     w.fit_label.setVisible(visible)
-    for act in (*w.tools.actions.values(), w.act_undo, w.act_redo, w.act_place,
-                w.act_reset_views):
+    for act in (*w.tools.actions.values(), r["undo"], r["redo"], r["place-here"],
+                r["reset-views"]):
         act.setVisible(visible)

@@ -110,14 +110,14 @@ class MainWindow(QMainWindow):
         create_menus(self)
         self.toolbar = create_toolbar(self)
         self.drawing_bar = DrawingBar(self.tools_panel.count, self.fit_panel.result,
-                                      self.act_undo, self.act_redo)
+                                      self.registry["undo"], self.registry["redo"])
         self.side_dock = SidePanel([("Structures", self.structures_panel, 0),
                                     ("Tools", self.tools_panel, 0), ("Fit", self.fit_panel, 0),
                                     ("Deformation factors", self.factors_panel, 1)], self,
                                    footer=self.drawing_bar)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.side_dock)
         self.resizeDocks([self.side_dock], [340], Qt.Orientation.Horizontal)
-        self.act_side_panel.toggled.connect(lambda on: self._show_segment_controls(
+        self.registry["side-panel"].toggled.connect(lambda on: self._show_segment_controls(
             self.tabs.currentWidget() is self.workspace if hasattr(self, "tabs") else True))
         install_planning(self)      # planning, planning_panel, plan_dock, plan
 

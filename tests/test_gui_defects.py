@@ -216,16 +216,15 @@ def test_small_window_keeps_titles_off_the_letters_and_the_side_panel_can_go(mak
         assert not title.intersects(top), name
         assert layout["window"][0].left() > layout["bottom"][0].right() or \
             not layout["window"][0].intersects(layout["bottom"][0]), name
-    view_menu = [m for m in window.menuBar().actions() if m.text() == "&View"][0].menu()
-    assert window.act_side_panel in view_menu.actions()
+    assert window.registry["side-panel"] in window.registry.menu("view").actions()
     width = window.workspace.views["axial"].width()
-    window.act_side_panel.trigger()
+    window.registry["side-panel"].trigger()
     qtbot.waitUntil(lambda: window.workspace.views["axial"].width() > width + 80, timeout=3000)
     assert not window.side_dock.isVisible()
     window.tabs.setCurrentIndex(1) if window.tabs.count() > 1 else None
     window.tabs.setCurrentIndex(0)
     assert not window.side_dock.isVisible()          # stays hidden across tab switches
-    window.act_side_panel.trigger()
+    window.registry["side-panel"].trigger()
     assert window.side_dock.isVisible()
 
 

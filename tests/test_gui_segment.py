@@ -387,12 +387,12 @@ def test_shortcuts_are_listed_in_help(window):
     from app.window import SHORTCUTS
 
     listed = " ".join(key for key, _ in SHORTCUTS)
-    for action in (window.act_open_image, window.act_load_model, window.act_save_session,
-                   window.act_undo, window.act_redo, window.act_export, window.act_place):
+    for action_id in ("open-image", "load-model", "save-session", "undo", "redo", "export-all",
+                      "place-here"):
+        action = window.registry[action_id]
         key = action.shortcut().toString()
         assert key and key in listed, action.text()
-    help_menu = [m for m in window.menuBar().actions() if m.text() == "&Help"][0].menu()
-    assert window.act_shortcuts in help_menu.actions()
+    assert window.registry["shortcuts"] in window.registry.menu("help").actions()
 
 
 def test_dropping_a_model_file_loads_it(window, tmp_path):
