@@ -159,7 +159,7 @@ def show_segment_controls(w, visible: bool) -> None:
     r = w.registry
     shown = visible and r["side-panel"].isChecked()     # F9 hides the side docks
     w.side_dock.setVisible(shown)
-    w.plan_dock.setVisible(shown)
+    w.plan.dock.setVisible(shown)
     w.cursor_label.setVisible(visible)
     w.fit_label.setVisible(visible)
     for act in (*w.tools.actions.values(), r["undo"], r["redo"], r["place-here"],

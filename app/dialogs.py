@@ -111,8 +111,7 @@ class SessionActions:
         message = []
         if not w._guarded(lambda: message.append(w.sessions.save(target, w.fit_panel.settings))):
             return False
-        w.session_path = target
-        w._mark_saved()
+        w.set_session(target)
         w.show_message(message[0])
         return True
 
@@ -129,7 +128,7 @@ class SessionActions:
                                          fit.get("prior_weight"), fit.get("pose_spread"))
             finally:
                 w.fit_panel.blockSignals(was_blocked)
-        w.planning.apply_document(session.info.get("planning"))
+        w.plan.planning.apply_document(session.info.get("planning"))
         w._update_actions()
 
     def confirm_close(self) -> bool:
@@ -171,8 +170,7 @@ class SessionActions:
         if not w._guarded(lambda: w.apply_session(session)):
             return False
         saved_as = (session.info or {}).get(RECOVERED_PATH_KEY)
-        w.session_path = Path(saved_as) if saved_as else None
-        w.unsaved = True                      # recovered work is not saved anywhere yet
-        w._update_title()
+        # recovered work is not saved anywhere yet
+        w.set_session(Path(saved_as) if saved_as else None, unsaved=True)
         w.show_message("Recovered the unsaved session")
         return True

@@ -119,7 +119,7 @@ class MainWindow(QMainWindow):
         self.resizeDocks([self.side_dock], [340], Qt.Orientation.Horizontal)
         self.registry["side-panel"].toggled.connect(lambda on: self._show_segment_controls(
             self.tabs.currentWidget() is self.workspace if hasattr(self, "tabs") else True))
-        install_planning(self)      # planning, planning_panel, plan_dock, plan
+        self.plan = install_planning(self)    # .planning, .panel, .dock, the Plan menu
 
         self.workspace.volume_view_created.connect(self._wire_volume_view)
         if self.workspace.volume_view is not None:
@@ -134,7 +134,7 @@ class MainWindow(QMainWindow):
         self.cursor_label = CursorReadout(self.state)
         self.fit_label = FitReadout(self.state, self.refit)
         self.cursor_label.extra = self.plan.acpc_text
-        self.planning.events.landmarks.connect(self.cursor_label.refresh)
+        self.plan.planning.events.landmarks.connect(self.cursor_label.refresh)
         self.statusBar().addPermanentWidget(self.cursor_label, 1)
         self.statusBar().addPermanentWidget(self.fit_label)
 
@@ -328,8 +328,7 @@ class MainWindow(QMainWindow):
 
     def open_session(self, path: str | os.PathLike) -> None:
         self.apply_session(self.sessions.read(path))
-        self.session_path = Path(path)
-        self._mark_saved()
+        self.set_session(Path(path))
         self.show_message(f"Opened session {Path(path).name}")
 
     def save_session(self, ask: bool = False, path: str | os.PathLike | None = None) -> bool:
@@ -349,8 +348,10 @@ class MainWindow(QMainWindow):
         if self.recovery_enabled and not self._closing:
             self._autosave_timer.start()
 
-    def _mark_saved(self) -> None:
-        self.unsaved = False
+    def set_session(self, path: Path | None, unsaved: bool = False) -> None:
+        """The session file the work is saved to, and whether the work has changed since."""
+        self.session_path = path
+        self.unsaved = unsaved
         self._update_title()
 
     # -- tools and editing ----------------------------------------------------------------------

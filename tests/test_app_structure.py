@@ -22,7 +22,7 @@ APP = Path(__file__).resolve().parents[1] / "app"
 # names the main window goes by outside its class
 WINDOW_NAMES = {"window", "w", "win", "main_window"}
 
-PENDING_ATTRIBUTES = {"app/dialogs.py", "app/plan_controller.py"}
+PENDING_ATTRIBUTES: set[str] = set()
 PENDING_MENU_LOOKUPS: set[str] = set()
 
 
