@@ -71,13 +71,13 @@ def create_actions(w) -> None:
       "Remove the point under the cursor, else the last one on this slice")
     a("clear-slice", "Clear &slice", w.clear_active_slice, None,
       "Remove the points of the active view's slice")
-    a("clear-points", "Clear &all points", state.clear_points)
+    a("clear-points", "Clear &all points", state.active.clear_points)
     a("place-here", "&Place model here", w.place_here, "P",
       "Move the model so that its centre is at the crosshair")
     a("auto-place", "Place models &automatically", w.place_automatically, "Ctrl+P",
       "Register the image to the models' template (affine, mutual information) and place "
       "every structure through it")
-    a("reset-pose", "Reset model pose", state.reset_placement, None,
+    a("reset-pose", "Reset model pose", state.active.reset_placement, None,
       "Back to the model's stored position and mean shape")
     a("next-slice", "Next slice", lambda: state.step_slice(w.active_view, 1),
       QKeySequence(Qt.Key.Key_PageUp))
@@ -132,12 +132,12 @@ def create_toolbar(w) -> QToolBar:
 def update_actions(w) -> None:
     """Enable the actions of main window ``w`` that have something to act on."""
     state, r = w.state, w.registry
-    r["undo"].setEnabled(state.can_undo())
-    r["redo"].setEnabled(state.can_redo())
-    has_model = state.model is not None
+    r["undo"].setEnabled(state.active.can_undo())
+    r["redo"].setEnabled(state.active.can_redo())
+    has_model = state.active.model is not None
     for act in ("place-here", "auto-place", "reset-pose", "export-labels", "export-mesh"):
         r[act].setEnabled(has_model)
-    has_points = len(state.points) > 0
+    has_points = len(state.active.points) > 0
     for act in ("delete-point", "clear-slice", "clear-points", "export-points"):
         r[act].setEnabled(has_points)
 
@@ -146,7 +146,7 @@ def update_title(w) -> None:
     """Window title: session, image and model names, '*' when there is unsaved work."""
     state = w.state
     parts = [formats.display_name(state.image_path)] if state.image_path else []
-    parts += [state.model_path.name] if state.model_path is not None else []
+    parts += [state.active.model_path.name] if state.active.model_path is not None else []
     if w.session_path is not None:
         parts.insert(0, w.session_path.name)
     title = "SSM Studio" + (" — " + " + ".join(parts) if parts else "")

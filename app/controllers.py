@@ -83,7 +83,7 @@ class SessionController:
         return ""
 
     def center_on_model(self) -> None:
-        vertices = self.state.surface_vertices()
+        vertices = self.state.active.surface_vertices()
         if vertices is not None and self.state.volume is not None:
             self.state.set_crosshair(vertices.mean(axis=0))
 
@@ -326,11 +326,11 @@ class ExportController:
         state = self.state
         if state.volume is None and what in ("labels", "all"):
             return "nothing to export: open an image first"
-        if state.model is None and what in ("labels", "mesh"):
+        if state.active.model is None and what in ("labels", "mesh"):
             return "nothing to export: load a model first"
-        if what == "points" and len(state.points) == 0:
+        if what == "points" and len(state.active.points) == 0:
             return "no contour points to export"
-        if what == "all" and state.model is None and len(state.points) == 0:
+        if what == "all" and state.active.model is None and len(state.active.points) == 0:
             return "nothing to export: load a model or draw contour points first"
         return ""
 
@@ -338,9 +338,9 @@ class ExportController:
         """The files :meth:`export_all` writes into ``folder``."""
         folder = Path(folder)
         names = []
-        if self.state.model is not None and self.state.volume is not None:
+        if self.state.active.model is not None and self.state.volume is not None:
             names += ["segmentation.nii.gz", "surface.vtk"]
-        if len(self.state.points):
+        if len(self.state.active.points):
             names += ["points.csv", "points.mrk.json"]
         return [folder / name for name in names]
 
@@ -352,14 +352,14 @@ class ExportController:
         """Label map, mesh and points (CSV and Slicer markups) into ``folder``."""
         folder = Path(folder)
         written = []
-        if self.state.model is not None and self.state.volume is not None:
+        if self.state.active.model is not None and self.state.volume is not None:
             written.append(folder / "segmentation.nii.gz")
             self.export_labels(written[-1])
             if self._edits(self.state.active):
                 written.append(edits_path(written[-1]))
             written.append(folder / "surface.vtk")
             self.export_mesh(written[-1])
-        if len(self.state.points):
+        if len(self.state.active.points):
             for name in ("points.csv", "points.mrk.json"):
                 written.append(folder / name)
                 self.export_points(written[-1])
@@ -392,7 +392,7 @@ class ExportController:
             depths[members] = float(np.mean(FRAMES[name].depth(xyz[members])))
         given = np.full_like(xyz, np.nan) if pset.normals is None else np.asarray(pset.normals, float)
         imported = Points(xyz, frames, depths, labels, np.ones(len(xyz), dtype=bool), given)
-        self.state.set_points(self.state.points.extend(imported), checkpoint=True)
+        self.state.active.set_points(self.state.active.points.extend(imported), checkpoint=True)
         planes = len(normals)
         note = f", {tilted} oblique" if tilted else ""
         kept = ", normals kept" if pset.normals is not None else ""

@@ -138,7 +138,7 @@ class DemoTour(QObject):
             w.set_active_view(step[1])
         elif kind == "point":
             _, xyz, name, depth, first = step
-            w.state.add_point(xyz, name, depth, checkpoint=first)
+            w.state.active.add_point(xyz, name, depth, checkpoint=first)
         elif kind == "factor":
             w.factors_panel.set_factor_sd(step[1], step[2])
             w._show_factor_region(step[1])
@@ -161,7 +161,7 @@ def start_tour(window, record: str | Path | None = None, interval_ms: int = 120,
     if truth is None or demo.demo_model() is None:
         window.show_message("Demo tour unavailable: resources/demo is incomplete")
         return None
-    if window.state.volume is None or window.state.model is None:
+    if window.state.volume is None or window.state.active.model is None:
         window.load_demo()
     out = Path(record) / "export" if record is not None else \
         Path(tempfile.mkdtemp(prefix="ssm-studio-demo-"))

@@ -38,7 +38,7 @@ class ExportActions:
     def confirm_fit(self) -> bool:
         """Exporting a fit flagged as implausible needs an explicit yes."""
         w = self.w
-        warnings = w.state.fit_info.warnings
+        warnings = w.state.active.fit_info.warnings
         return not warnings or w.ask("The fit looks implausible: " + "; ".join(warnings)
                                      + ". Export it anyway?")
 

@@ -242,7 +242,7 @@ class MainWindow(QMainWindow):
         message = self.sessions.open_model(path, coef=coef, pose=pose)   # raises: nothing changed
         self.refit.cancel(self.state.active)      # a fit of the previous model is dropped
         self.show_message(message)
-        if len(self.state.points) and not self.refit.is_suspended:
+        if len(self.state.active.points) and not self.refit.is_suspended:
             self.schedule_refit()
 
     def load_second_image(self, path: str | os.PathLike, transform=None) -> bool:
@@ -366,11 +366,11 @@ class MainWindow(QMainWindow):
         self.active_view = name
 
     def undo(self) -> None:
-        if self.state.undo():
+        if self.state.active.undo():
             self.show_message("Undone")
 
     def redo(self) -> None:
-        if self.state.redo():
+        if self.state.active.redo():
             self.show_message("Redone")
 
     def delete_point(self) -> None:
@@ -389,7 +389,7 @@ class MainWindow(QMainWindow):
 
     def _on_auto_placed(self, message: str) -> None:
         self.show_message(message + "; nudge it with Edit > Adjust automatic placement…", 10000)
-        if len(self.state.points):
+        if len(self.state.active.points):
             self.schedule_refit()
 
     def reset_views(self) -> None:
@@ -405,7 +405,7 @@ class MainWindow(QMainWindow):
 
     def _show_factor_region(self, index: int) -> None:
         """Colour the 3D surface by the touched factor's displacement for a few seconds."""
-        if index >= 0 and self.state.model is not None:
+        if index >= 0 and self.state.active.model is not None:
             self._factor_timer.start()
             self.show_message(self.factors_panel.describe(index), 4000)
         if self.workspace.volume_view is not None:

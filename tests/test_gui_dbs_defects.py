@@ -32,7 +32,7 @@ def _ring(window, n=8, radius=5.0):
     c = window.state.crosshair.copy()
     for k in range(n):
         t = 2 * np.pi * k / n
-        window.state.add_point(c + [radius * np.cos(t), 1.5 * radius * np.sin(t), 0.0],
+        window.state.active.add_point(c + [radius * np.cos(t), 1.5 * radius * np.sin(t), 0.0],
                                "axial", float(c[2]), checkpoint=k == 0)
 
 

@@ -158,10 +158,10 @@ def test_new_patient_offers_placement_then_nudge_with_undo(make_window, moved_ca
     # the contour points' distance to the surfaces is in the read-out
     c = structures[0].surface_vertices().mean(axis=0)
     window.state.set_active(structures[0])
-    window.state.add_point(c + [3, 0, 0], "axial", float(c[2]))
+    window.state.active.add_point(c + [3, 0, 0], "axial", float(c[2]))
     dialog.refresh()
     assert "1 contour point(s)" in dialog.readout.text()
-    window.state.remove_point(0)
+    window.state.active.remove_point(0)
     # undo of a nudge: the dialog's Undo (every structure), or Ctrl+Z (the active one)
     dialog.undo_button.click()
     for a, s in zip(shifted, structures):

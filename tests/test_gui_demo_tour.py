@@ -42,7 +42,7 @@ def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
     with qtbot.waitSignal(tour.finished, timeout=120000) as done:
         pass
     assert done.args == [True]
-    pts = window.state.points
+    pts = window.state.active.points
     assert pts.n_slices() == 3 and len(pts) > 8
     assert set(pts.frame.tolist()) == {0, 1, 2}          # axial, coronal, sagittal
     # the live refit followed the contours: the fit is closer to the drawn structure
@@ -62,12 +62,12 @@ def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
 
 def test_any_key_stops_the_tour_and_leaves_the_session_editable(window, qtbot):
     tour = demo_tour.start_tour(window, interval_ms=5)
-    qtbot.waitUntil(lambda: len(window.state.points) >= 3, timeout=20000)
+    qtbot.waitUntil(lambda: len(window.state.active.points) >= 3, timeout=20000)
     with qtbot.waitSignal(tour.finished, timeout=5000) as done:
         QTest.keyClick(window, Qt.Key.Key_Space)
     assert done.args == [False] and not tour.running
-    n = len(window.state.points)
+    n = len(window.state.active.points)
     qtbot.wait(100)
-    assert len(window.state.points) == n                # nothing more is drawn
+    assert len(window.state.active.points) == n                # nothing more is drawn
     window.undo()                                       # and the user can go on
-    assert len(window.state.points) < n
+    assert len(window.state.active.points) < n

@@ -48,8 +48,8 @@ def test_trajectory_readouts_crossings_and_probe_view(window):
     for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
         _set_at(window, name, xyz)
     target = planning.target_of(state.active)      # the model's default: its centroid
-    np.testing.assert_allclose(target, volume_centroid(state.surface_vertices(),
-                                                       state.model.faces), atol=1e-6)
+    np.testing.assert_allclose(target, volume_centroid(state.active.surface_vertices(),
+                                                       state.active.model.faces), atol=1e-6)
     entry = target + np.array([-20.0, 25.0, 55.0])
     state.set_crosshair(entry)
     panel.set_entry_here()
@@ -110,12 +110,12 @@ def test_uncertainty_and_next_slice(window):
     window.plan.suggest_next_slice()
     assert not np.allclose(before, state.crosshair)
     # three contours make the surface more certain than the prior alone
-    user = simulate_user(state.surface_vertices(), state.model.faces, 3,
+    user = simulate_user(state.active.surface_vertices(), state.active.model.faces, 3,
                          rng=np.random.default_rng(0), noise=0.1)
     axis = np.argmax(np.abs([n for _, n in user.planes]), axis=1)[user.contour]
     frames = np.array([FRAME_NAMES.index(("sagittal", "coronal", "axial")[a]) for a in axis])
     depths = user.points[np.arange(len(axis)), axis]
-    state.set_points(Points(user.points, frames, depths))
+    state.active.set_points(Points(user.points, frames, depths))
     assert window.plan.posterior().vertex_sd().mean() < sd_prior
 
 

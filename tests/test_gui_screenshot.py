@@ -83,7 +83,7 @@ def test_window_screenshot_shows_contours_in_each_slice_view(qtbot, tmp_path, mo
     assert _tinted(crop3d, _demo_color()).sum() > 100
     # touching a factor slider colours the 3D surface by that factor's displacement
     view3d = window.workspace.volume_view
-    model = window.state.model
+    model = window.state.active.model
     window.factors_panel.set_factor_sd(2, 1.0)
     view3d.flush()
     shown = view3d._surface_mesh["factor displacement (mm per SD)"]

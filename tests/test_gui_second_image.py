@@ -85,7 +85,7 @@ def test_second_image_blends_checkers_and_drawing_works_on_either(window, qtbot,
     x, y = view.world_to_screen(centre)
     QTest.mouseClick(view, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
                      QPoint(int(round(x)), int(round(y))))
-    on_first = state.points.xyz[-1].copy()
+    on_first = state.active.points.xyz[-1].copy()
     first_window = (state.window, state.level)
     window.registry["second-swap-base"].trigger()
     assert model.base == "second"
@@ -94,8 +94,8 @@ def test_second_image_blends_checkers_and_drawing_works_on_either(window, qtbot,
     np.testing.assert_array_equal(layer.composite(view), np.where(mask, second, first))
     QTest.mouseClick(view, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
                      QPoint(int(round(x)), int(round(y))))
-    assert len(state.points) == 2
-    np.testing.assert_allclose(state.points.xyz[-1], on_first, atol=1e-9)
+    assert len(state.active.points) == 2
+    np.testing.assert_allclose(state.active.points.xyz[-1], on_first, atol=1e-9)
 
 
 def test_second_image_is_kept_with_the_session(window, qtbot, second_path, tmp_path):

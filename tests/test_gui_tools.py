@@ -298,14 +298,14 @@ def test_3d_view_has_a_labelled_orientation_cube_and_plane_and_point_toggles(qtb
         assert [cube.GetXPlusFaceText(), cube.GetXMinusFaceText(), cube.GetYPlusFaceText(),
                 cube.GetYMinusFaceText(), cube.GetZPlusFaceText(), cube.GetZMinusFaceText()] \
             == list(FACES.values()) == ["R", "L", "A", "P", "S", "I"]
-        win.state.add_point(win.state.crosshair, "axial", win.workspace.views["axial"].depth)
+        win.state.active.add_point(win.state.crosshair, "axial", win.workspace.views["axial"].depth)
         view.flush()
         assert view._plane_actors and view._points_actor is not None
         win.registry["show-planes"].trigger()            # off
         assert not any(a.GetVisibility() for a in view._plane_actors.values())
         win.registry["show-points"].trigger()
         assert not view._points_actor.GetVisibility()
-        win.state.add_point(win.state.crosshair + [1, 0, 0], "axial",
+        win.state.active.add_point(win.state.crosshair + [1, 0, 0], "axial",
                             win.workspace.views["axial"].depth)
         view.flush()                             # redraws keep the choice
         assert not view._points_actor.GetVisibility()

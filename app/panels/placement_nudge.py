@@ -81,7 +81,7 @@ class PlacementNudgeDialog(QDialog):
             done = self.placement.nudge(rotation_deg=vector)
         if done:
             self.window.show_message(self.placement.readout())
-            if len(self.window.state.points):
+            if len(self.window.state.active.points):
                 self.window.schedule_refit()
         return done
 

@@ -43,4 +43,4 @@ class FitReadout(QLabel):
 
     def _on_applied(self, result) -> None:
         self.setText(f"residual {result.residual_mm:.2f} mm, {result.n_iter} it, "
-                     f"{1000 * self.state.fit_info.seconds:.0f} ms")
+                     f"{1000 * self.state.active.fit_info.seconds:.0f} ms")

@@ -59,5 +59,5 @@ class ToolsPanel(QWidget):
         self._count()
 
     def _count(self) -> None:
-        pts = self.state.points
+        pts = self.state.active.points
         self.count.setText(f"{len(pts)} contour point(s) on {pts.n_slices()} slice(s)")

@@ -122,7 +122,7 @@ class VolumeView(QWidget):
         self._mark("surface", "points")
 
     def _on_fit_info(self) -> None:
-        warnings = self.state.fit_info.warnings
+        warnings = self.state.active.fit_info.warnings
         self._set_note("plausibility", "Implausible fit: " + "; ".join(warnings) if warnings else "",
                        "lower_right")
 
@@ -373,7 +373,7 @@ class VolumeView(QWidget):
         return actor, mesh, style
 
     def _update_points(self) -> None:
-        pts = self.state.points
+        pts = self.state.active.points
         if len(pts) == 0 or not self.state.active.visible:
             if self._points_actor is not None:
                 self.plotter.remove_actor(self._points_actor, render=False)
