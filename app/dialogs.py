@@ -1,6 +1,6 @@
 """The window's file dialogs and questions around exports, sessions and crash recovery.
 
-What happens is in the controllers (:mod:`app.controllers`); these only ask the user (file
+What happens is in the controllers (:mod:`app.model.controllers`); these only ask the user (file
 dialogs, yes/no questions through the window's ``ask``, which tests replace) and report in
 the window's status bar. The window delegates its ``export_*`` and session methods here.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 from PySide6.QtWidgets import QFileDialog, QMessageBox
 
 from app import formats
-from app.controllers import RECOVERED_PATH_KEY
+from app.model.controllers import RECOVERED_PATH_KEY
 from app.workers import error_message
 
 EXPORTS = {"labels": ("label map", formats.LABEL_FILTER, "segmentation.nii.gz"),

@@ -1,7 +1,7 @@
 """Edit-menu commands of the main window that act on the active slice view or structure.
 
 Each reads which view is active and where the cursor is from the window and changes the
-Qt-free :class:`app.state.WorkspaceState`; the window's ``delete_point``,
+Qt-free :class:`app.model.state.WorkspaceState`; the window's ``delete_point``,
 ``clear_active_slice`` and ``place_here`` delegate here.
 """
 

@@ -1,6 +1,6 @@
 """Wiring of the planning tools: overlays in every view, uncertainty, next slice, plan export.
 
-Slicer's Logic/Widget split: the planning model is :class:`app.planning.PlanningState`, the
+Slicer's Logic/Widget split: the planning model is :class:`app.model.planning.PlanningState`, the
 widget :class:`app.panels.planning.PlanningPanel`; this controller connects them to the views
 and calls the engine (``core.reconstruction.uncertainty`` for the posterior, ``core.planning.report`` for the
 files). The posterior of a 2,000-vertex model with a few dozen factors takes a few ms, so it is
@@ -16,8 +16,8 @@ from PySide6.QtCore import QObject, Qt
 from PySide6.QtWidgets import QDockWidget, QFileDialog, QScrollArea
 
 from app.panels.planning import PlanningPanel
-from app.planning import PlanningState
-from app.state import FRAME_NAMES
+from app.model.planning import PlanningState
+from app.model.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
 from core.geometry.planes import PLANE_AXIS
 from core.planning.report import export_plan

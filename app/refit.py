@@ -16,7 +16,7 @@ from contextlib import contextmanager
 import numpy as np
 from PySide6.QtCore import QObject, Signal
 
-from app.state import FitInfo, Structure, WorkspaceState
+from app.model.state import FitInfo, Structure, WorkspaceState
 from app.workers import LatestWinsRunner
 
 

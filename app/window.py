@@ -7,11 +7,11 @@ deformation factor; a status bar with the world position, voxel index and intens
 the cursor.
 
 Wiring (3D Slicer's Widget/Logic split): the state is the Qt-free
-:class:`app.state.WorkspaceState`; views and panels subscribe to its events. The logic is in
+:class:`app.model.state.WorkspaceState`; views and panels subscribe to its events. The logic is in
 controllers: :class:`app.refit.RefitController` refits the edited structure in a worker
 thread (newest edit wins, warm-started from the current fit),
-:class:`app.controllers.SessionController` opens images, models and sessions and writes the
-crash-recovery file after each edit, :class:`app.controllers.ExportController` writes label
+:class:`app.model.controllers.SessionController` opens images, models and sessions and writes the
+crash-recovery file after each edit, :class:`app.model.controllers.ExportController` writes label
 maps, meshes and points. This module only builds the window and turns actions into calls.
 """
 
@@ -29,7 +29,7 @@ from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 from app import demo, formats
 from app.actions import (SHORTCUTS, create_actions, create_menus, create_toolbar,
                          show_segment_controls, update_actions, update_title)
-from app.controllers import ExportController, SessionController
+from app.model.controllers import ExportController, SessionController
 from app.dialogs import ExportActions, SessionActions
 from app.edit_commands import EditCommands
 from app.file_actions import OPEN_DIALOGS, FileActions
@@ -44,7 +44,7 @@ from app.plan_controller import install_planning
 from app.paint_gate import PaintGate
 from app.refit import RefitController
 from app.registry import ActionRegistry, SliceTools
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
 from app.tools_install import install_segment_tools

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("PySide6")
 pytestmark = pytest.mark.gui
 
-from app.state import FRAME_NAMES, Points  # noqa: E402
+from app.model.state import FRAME_NAMES, Points  # noqa: E402
 from core.planning.frames import ACPCFrame, volume_centroid  # noqa: E402
 from core.evaluation.simulated_user import simulate_user  # noqa: E402
 
@@ -151,7 +151,7 @@ def test_plan_cli_gives_the_gui_report_from_the_saved_session(window, tmp_path, 
 
 def test_two_structures_plan_in_gui_and_headless(window, tmp_path, resources_dir):
     """Two library structures, a trajectory each: the saved session plans both headless."""
-    from app.state import Structure
+    from app.model.state import Structure
     from core.cli import main as cli_main
 
     planning, panel, state = window.plan.planning, window.plan.panel, window.state

@@ -14,7 +14,7 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QGridLayout, QLabel, QPushButton, QScrollArea, QSlider,
                                QVBoxLayout, QWidget)
 
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 
 STEPS_PER_SD = 100
 MAX_SD = 3.0

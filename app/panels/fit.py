@@ -8,7 +8,7 @@ from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout,
                                QLabel, QPushButton, QVBoxLayout, QWidget)
 
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 
 METHODS = (("gmm-aniso", "GMM, anisotropic (slides along surface)"),
            ("gmm-iso", "GMM, isotropic"),

@@ -25,7 +25,7 @@ from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QGroupBox, QHBoxLayout
                                QPushButton, QSlider, QVBoxLayout, QWidget)
 
 from app.actions import add_help_shortcuts
-from app.second_image import SecondImage
+from app.model.second_image import SecondImage
 from app.views.second_image_layer import SecondImageLayer
 from app.workers import DialogTask
 from core.geometry.planes import window_to_uint8

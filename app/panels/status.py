@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtWidgets import QLabel
 
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 
 
 class CursorReadout(QLabel):

@@ -22,7 +22,7 @@ from PySide6.QtWidgets import QVBoxLayout, QWidget
 from pyvistaqt import QtInteractor
 
 from app.convert import face_camera_to, points_polydata, surface_polydata
-from app.state import FRAME_NAMES, Structure, WorkspaceState
+from app.model.state import FRAME_NAMES, Structure, WorkspaceState
 from core.geometry.planes import FRAMES, window_to_uint8
 
 PLANE_OPACITY = 0.75  # slice planes in 3D: the image stays readable, the surface shows through

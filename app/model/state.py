@@ -7,7 +7,7 @@ points, last fit read-out and undo history. One structure is *active*: drawing, 
 sliders, the refit and undo act on it.
 
 Every setter validates, changes the data and emits one event from :attr:`WorkspaceState.events`
-(see :mod:`app.events`); views and panels subscribe and redraw, and never change each other.
+(see :mod:`app.model.events`); views and panels subscribe and redraw, and never change each other.
 Events about "the" model, points, surface, fit and history are those of the active
 structure (so a view written for one structure keeps working); ``structure_changed(structure,
 what)`` reports a change of any structure, and ``structures`` / ``active`` a change of the
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.events import EmitterGroup
-from app.history import UndoHistory
+from app.model.events import EmitterGroup
+from app.model.history import UndoHistory
 from core.io import Volume
 from core.io.model_library import structure_info
 from core.reconstruction.plausibility import plausibility_warnings

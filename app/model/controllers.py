@@ -1,7 +1,7 @@
 """Session and export logic of the segmentation workspace (3D Slicer's *Logic*; no Qt).
 
 The window's actions call these with file paths; they read and write through ``core`` and
-change the :class:`app.state.WorkspaceState`, raise ``ValueError``/``OSError`` (a
+change the :class:`app.model.state.WorkspaceState`, raise ``ValueError``/``OSError`` (a
 ``core.io.DataFileError`` names the file) for the window to show, and return the one-line
 message for the status bar. The refit, which needs a worker thread, is in
 :mod:`app.refit`.
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from app.state import FRAME_NAMES, STRUCTURE_COLORS, FitInfo, Points, Structure, WorkspaceState
+from app.model.state import FRAME_NAMES, STRUCTURE_COLORS, FitInfo, Points, Structure, WorkspaceState
 from core.geometry.planes import PLANE_NAMES
 from core.io import DataFileError, load_model, load_volume, save_mesh, save_points, save_volume
 from core.io.registry import split_member  # a FILE.h5#GROUP model path names FILE
@@ -89,7 +89,7 @@ class SessionController:
 
     def add_structure(self, path: str | os.PathLike) -> tuple[Structure, str]:
         """A new active structure with the model file ``path`` (name, side and colour from its
-        header, :meth:`app.state.Structure.set_model`), at the model's stored placement; its
+        header, :meth:`app.model.state.Structure.set_model`), at the model's stored placement; its
         first undo step removes it again."""
         model = load_model(path)
         structure = Structure()
