@@ -3,7 +3,7 @@
 Every feature of the window (navigation, file actions, editing, ...) creates its actions and
 menus here and finds the others' by their id: never by a menu's visible text ("&View") or by
 an entry's position (``menu.actions()[2]``), so that renaming or reordering a menu entry
-cannot silently move another feature's entries. Menus ids are short words (``"file"``,
+cannot silently move another feature's entries. Menu ids are short words (``"file"``,
 ``"view"``); an entry's place is given relative to another id (``before="quit"``).
 
 The window holds it as ``window.registry`` (``QWidget.actions()`` is already Qt's).
