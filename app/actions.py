@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from PySide6.QtCore import Qt
-from PySide6.QtGui import QAction, QActionGroup, QKeySequence
-from PySide6.QtWidgets import QMainWindow, QMessageBox, QToolBar
+from PySide6.QtGui import QKeySequence
+from PySide6.QtWidgets import QMessageBox, QToolBar
 
 from app import formats
 from app.panels.tools import WINDOW_PRESETS
@@ -40,129 +40,83 @@ ABOUT = (f"<b>SSM Studio {__version__}</b><br>Shape-model-based interactive segm
          "Data 2018, doi:10.1038/sdata.2018.63; CC BY 4.0).")
 
 
+def add_help_shortcuts(rows: list[tuple[str, str]]) -> None:
+    """Rows ``(keys, what they do)`` a feature adds to Help > Keyboard shortcuts."""
+    SHORTCUTS.extend(row for row in rows if row not in SHORTCUTS)
+
+
 def show_shortcuts(parent) -> None:
     rows = "".join(f"<tr><td><b>{k}</b></td><td>&nbsp;&nbsp;{v}</td></tr>" for k, v in SHORTCUTS)
     QMessageBox.information(parent, "Keyboard and mouse", f"<table>{rows}</table>")
 
 
-def _action(window: QMainWindow, text: str, slot, shortcut=None, tip: str = "") -> QAction:
-    action = QAction(text, window)
-    if shortcut is not None:
-        action.setShortcut(QKeySequence(shortcut))
-    if tip:
-        action.setToolTip(tip)
-        action.setStatusTip(tip)
-    action.triggered.connect(slot)
-    window.addAction(action)
-    return action
-
-
-def add_tools(w, tools: dict, shortcuts: list, insert_at: int | None = None) -> None:
-    """Register extra slice-view tools on main window ``w``: per tool ``(text, key, hint)`` a
-    checkable action in the tool group and the View menu (appended, or before entry
-    ``insert_at``), its hint; ``shortcuts`` rows join the Help list."""
-    from app import window as window_module
-
-    SHORTCUTS.extend(row for row in shortcuts if row not in SHORTCUTS)
-    view_menu = next((a.menu() for a in w.menuBar().actions() if a.text() == "&View"), None)
-    for tool, (text, key, hint) in tools.items():
-        action = _action(w, text, lambda checked=False, t=tool: w.set_tool(t), key, hint)
-        action.setCheckable(True)
-        w.tool_group.addAction(action)
-        w.tool_actions[tool] = action
-        window_module.TOOL_HINTS[tool] = hint
-        if view_menu is None:
-            continue
-        entries = view_menu.actions()
-        if insert_at is not None and len(entries) > insert_at:
-            view_menu.insertAction(entries[insert_at], action)
-        else:
-            view_menu.addAction(action)
-
-
 def create_actions(w) -> None:
-    """Create the ``act_*`` actions and ``tool_actions`` of main window ``w``."""
-    key, state = QKeySequence.StandardKey, w.state
-
-    def a(*args):
-        return _action(w, *args)
-
-    w.act_open_image = a("&Open image…", lambda: w.open_dialog("image"), key.Open,
-                        "Open an image: NIfTI, NRRD, MetaImage, or one file of a DICOM series")
-    w.act_open_dicom = a("Open &DICOM folder…", w.open_dicom_dialog, None,
-                        "Open a DICOM series from its folder")
-    w.act_load_model = a("Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
-                        "Load a shape model (.npz, or statismo/Scalismo .h5)")
-    w.act_open_session = a("Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
-    w.act_save_session = a("&Save session", w.save_session, key.Save)
-    w.act_save_session_as = a("Save session &as…", lambda: w.save_session(ask=True))
-    w.act_export = a("&Export all…", w.export_all_dialog, "Ctrl+E",
-                    "Export the label map (NIfTI), the surface mesh and the points")
-    w.act_export_labels = a("Export label map…", lambda: w.export_dialog("labels"))
-    w.act_export_mesh = a("Export surface mesh…", lambda: w.export_dialog("mesh"))
-    w.act_export_points = a("Export points…", lambda: w.export_dialog("points"))
-    w.act_import_points = a("Import points…", lambda: w.open_dialog("points"))
-    w.act_quit = a("&Quit", w.close, key.Quit)
-    w.act_undo = a("&Undo", w.undo, "Ctrl+Z")
-    w.act_redo = a("&Redo", w.redo, "Ctrl+Shift+Z")
-    w.act_delete = a("&Delete point", w.delete_point, key.Delete,
-                    "Remove the point under the cursor, else the last one on this slice")
-    w.act_clear_slice = a("Clear &slice", w.clear_active_slice, None,
-                         "Remove the points of the active view's slice")
-    w.act_clear_points = a("Clear &all points", state.clear_points)
-    w.act_place = a("&Place model here", w.place_here, "P",
-                       "Move the model so that its centre is at the crosshair")
-    w.act_auto_place = a("Place models &automatically", w.place_automatically, "Ctrl+P",
-                         "Register the image to the models' template (affine, mutual "
-                         "information) and place every structure through it")
-    w.act_reset_pose = a("Reset model pose", state.reset_placement, None,
-                        "Back to the model's stored position and mean shape")
-    w.act_next_slice = a("Next slice", lambda: state.step_slice(w.active_view, 1),
-                        QKeySequence(Qt.Key.Key_PageUp))
-    w.act_prev_slice = a("Previous slice", lambda: state.step_slice(w.active_view, -1),
-                        QKeySequence(Qt.Key.Key_PageDown))
-    w.act_reset_views = a("&Reset views", w.reset_views, "R")
-    w.act_side_panel = a("Side &panel", lambda checked=False: None, "F9",
-                         "Show or hide the side panel (more room for the views)")
-    w.act_side_panel.setCheckable(True)
-    w.act_side_panel.setChecked(True)
-    w.act_shortcuts = a("&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
-    w.act_about = a("&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
-    w.tool_group = QActionGroup(w)
-    w.tool_actions = {}
-    for tool, text, shortcut in (("navigate", "Navigate", "N"), ("draw", "Draw contour", "D"),
-                                 ("window", "Window/level", "W")):
-        action = a(text, lambda checked=False, t=tool: w.set_tool(t), shortcut)
-        action.setCheckable(True)
-        w.tool_group.addAction(action)
-        w.tool_actions[tool] = action
-    w.tool_actions["navigate"].setChecked(True)
+    """Register the actions of main window ``w``'s own menus (File, Edit, View, Help) by id."""
+    key, state, a = QKeySequence.StandardKey, w.state, w.registry.add
+    a("open-image", "&Open image…", lambda: w.open_dialog("image"), key.Open,
+      "Open an image: NIfTI, NRRD, MetaImage, or one file of a DICOM series")
+    a("open-dicom", "Open &DICOM folder…", w.open_dicom_dialog, None,
+      "Open a DICOM series from its folder")
+    a("load-model", "Load &model…", lambda: w.open_dialog("model"), "Ctrl+M",
+      "Load a shape model (.npz, or statismo/Scalismo .h5)")
+    a("open-session", "Open &session…", lambda: w.open_dialog("session"), "Ctrl+Shift+O")
+    a("save-session", "&Save session", w.save_session, key.Save)
+    a("save-session-as", "Save session &as…", lambda: w.save_session(ask=True))
+    a("export-all", "&Export all…", w.export_all_dialog, "Ctrl+E",
+      "Export the label map (NIfTI), the surface mesh and the points")
+    a("export-labels", "Export label map…", lambda: w.export_dialog("labels"))
+    a("export-mesh", "Export surface mesh…", lambda: w.export_dialog("mesh"))
+    a("export-points", "Export points…", lambda: w.export_dialog("points"))
+    a("import-points", "Import points…", lambda: w.open_dialog("points"))
+    a("quit", "&Quit", w.close, key.Quit)
+    a("undo", "&Undo", w.undo, "Ctrl+Z")
+    a("redo", "&Redo", w.redo, "Ctrl+Shift+Z")
+    a("delete-point", "&Delete point", w.delete_point, key.Delete,
+      "Remove the point under the cursor, else the last one on this slice")
+    a("clear-slice", "Clear &slice", w.clear_active_slice, None,
+      "Remove the points of the active view's slice")
+    a("clear-points", "Clear &all points", state.active.clear_points)
+    a("place-here", "&Place model here", w.place_here, "P",
+      "Move the model so that its centre is at the crosshair")
+    a("auto-place", "Place models &automatically", w.place_automatically, "Ctrl+P",
+      "Register the image to the models' template (affine, mutual information) and place "
+      "every structure through it")
+    a("reset-pose", "Reset model pose", state.active.reset_placement, None,
+      "Back to the model's stored position and mean shape")
+    a("next-slice", "Next slice", lambda: state.step_slice(w.active_view, 1),
+      QKeySequence(Qt.Key.Key_PageUp))
+    a("previous-slice", "Previous slice", lambda: state.step_slice(w.active_view, -1),
+      QKeySequence(Qt.Key.Key_PageDown))
+    a("reset-views", "&Reset views", w.reset_views, "R")
+    a("side-panel", "Side &panel", lambda checked=False: None, "F9",
+      "Show or hide the side panel (more room for the views)", checkable=True, checked=True)
+    a("shortcuts", "&Keyboard shortcuts", lambda: show_shortcuts(w), key.HelpContents)
+    a("about", "&About SSM Studio", lambda: QMessageBox.about(w, "About SSM Studio", ABOUT))
 
 
 def create_menus(w) -> None:
-    """The menu bar of main window ``w``."""
-    bar = w.menuBar()
+    """The menu bar of main window ``w``: menus ``file``, ``edit``, ``view`` and ``help`` (and
+    ``view.presets``) in its registry, their entries by action id."""
+    r = w.registry
     menus = {
-        "&File": (w.act_open_image, w.act_open_dicom, w.act_load_model, None, w.act_open_session,
-                  w.act_save_session, w.act_save_session_as, None,
-                  w.act_import_points, w.act_export, w.act_export_labels,
-                  w.act_export_mesh, w.act_export_points, None, w.act_quit),
-        "&Edit": (w.act_undo, w.act_redo, None, w.act_delete, w.act_clear_slice,
-                  w.act_clear_points, None, w.act_place, w.act_auto_place, w.act_reset_pose),
-        "&View": (*w.tool_actions.values(), None, w.act_next_slice,
-                  w.act_prev_slice, w.act_reset_views, w.act_side_panel),
+        ("file", "&File"): ("open-image", "open-dicom", "load-model", None, "open-session",
+                            "save-session", "save-session-as", None, "import-points",
+                            "export-all", "export-labels", "export-mesh", "export-points", None,
+                            "quit"),
+        ("edit", "&Edit"): ("undo", "redo", None, "delete-point", "clear-slice", "clear-points",
+                            None, "place-here", "auto-place", "reset-pose"),
+        ("view", "&View"): (*(f"tool-{t}" for t in w.tools.actions),),
+        ("help", "&Help"): ("shortcuts", "about"),
     }
-    for title, actions in menus.items():
-        menu = bar.addMenu(title)
-        for act in actions:
-            menu.addSeparator() if act is None else menu.addAction(act)
-        if title == "&View":
-            presets = menu.addMenu("Window/level preset")
-            for name in WINDOW_PRESETS:
-                presets.addAction(name, lambda n=name: w.apply_window_preset(n))
-    help_menu = bar.addMenu("&Help")
-    help_menu.addAction(w.act_shortcuts)
-    help_menu.addAction(w.act_about)
+    for (menu_id, title), entries in menus.items():
+        r.add_menu(menu_id, title)
+        r.place(menu_id, *entries)
+        if menu_id == "view":   # more tools go before this separator (app.panels.editing)
+            r.separator("view", "view.tools-end")
+            r.place("view", "next-slice", "previous-slice", "reset-views", "side-panel")
+    presets = r.add_menu("view.presets", "Window/level preset", parent="view")
+    for name in WINDOW_PRESETS:
+        presets.addAction(name, lambda n=name: w.apply_window_preset(n))
 
 
 def create_toolbar(w) -> QToolBar:
@@ -170,9 +124,10 @@ def create_toolbar(w) -> QToolBar:
     bar = QToolBar("Main")
     bar.setObjectName("main-toolbar")
     bar.setMovable(False)
-    for act in (w.act_open_image, w.act_load_model, w.act_save_session, w.act_export,
-                None, *w.tool_actions.values(), None, w.act_undo, w.act_redo,
-                w.act_place, w.act_reset_views):
+    r = w.registry
+    for act in (r["open-image"], r["load-model"], r["save-session"], r["export-all"], None,
+                *w.tools.actions.values(), None, r["undo"], r["redo"], r["place-here"],
+                r["reset-views"]):
         bar.addSeparator() if act is None else bar.addAction(act)
     w.addToolBar(Qt.ToolBarArea.TopToolBarArea, bar)
     return bar
@@ -180,23 +135,22 @@ def create_toolbar(w) -> QToolBar:
 
 def update_actions(w) -> None:
     """Enable the actions of main window ``w`` that have something to act on."""
-    state = w.state
-    has_model = state.model is not None
-    w.act_undo.setEnabled(state.can_undo())
-    w.act_redo.setEnabled(state.can_redo())
-    for act in (w.act_place, w.act_auto_place, w.act_reset_pose, w.act_export_labels,
-                w.act_export_mesh):
-        act.setEnabled(has_model)
-    has_points = len(state.points) > 0
-    for act in (w.act_delete, w.act_clear_slice, w.act_clear_points, w.act_export_points):
-        act.setEnabled(has_points)
+    state, r = w.state, w.registry
+    r["undo"].setEnabled(state.active.can_undo())
+    r["redo"].setEnabled(state.active.can_redo())
+    has_model = state.active.model is not None
+    for act in ("place-here", "auto-place", "reset-pose", "export-labels", "export-mesh"):
+        r[act].setEnabled(has_model)
+    has_points = len(state.active.points) > 0
+    for act in ("delete-point", "clear-slice", "clear-points", "export-points"):
+        r[act].setEnabled(has_points)
 
 
 def update_title(w) -> None:
     """Window title: session, image and model names, '*' when there is unsaved work."""
     state = w.state
     parts = [formats.display_name(state.image_path)] if state.image_path else []
-    parts += [state.model_path.name] if state.model_path is not None else []
+    parts += [state.active.model_path.name] if state.active.model_path is not None else []
     if w.session_path is not None:
         parts.insert(0, w.session_path.name)
     title = "SSM Studio" + (" — " + " + ".join(parts) if parts else "")
@@ -206,11 +160,12 @@ def update_title(w) -> None:
 def show_segment_controls(w, visible: bool) -> None:
     """The side panel, the toolbar and the drawing tools belong to the Segment tab only."""
     w.toolbar.setVisible(visible)  # the Build tab has its own buttons (issue 17, 8)
-    shown = visible and w.act_side_panel.isChecked()     # F9 hides the side docks
+    r = w.registry
+    shown = visible and r["side-panel"].isChecked()     # F9 hides the side docks
     w.side_dock.setVisible(shown)
-    w.plan_dock.setVisible(shown)
+    w.plan.dock.setVisible(shown)
     w.cursor_label.setVisible(visible)
     w.fit_label.setVisible(visible)
-    for act in (*w.tool_actions.values(), w.act_undo, w.act_redo, w.act_place,
-                w.act_reset_views):
+    for act in (*w.tools.actions.values(), r["undo"], r["redo"], r["place-here"],
+                r["reset-views"]):
         act.setVisible(visible)

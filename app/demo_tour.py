@@ -187,10 +187,10 @@ class DemoTour(QObject):
             zoom_to_structure(w)
         elif kind == "slice":
             w.state.set_crosshair(step[2])
-            w.active_view = step[1]
+            w.set_active_view(step[1])
         elif kind == "point":
             _, xyz, name, depth, first = step
-            w.state.add_point(xyz, name, depth, checkpoint=first)
+            w.state.active.add_point(xyz, name, depth, checkpoint=first)
         elif kind == "factor":
             w.factors_panel.set_factor_sd(step[1], step[2])
             w._show_factor_region(step[1])
@@ -228,23 +228,23 @@ def start_tour(window, record: str | Path | None = None, interval_ms: int = 120,
     if truth is None or demo.demo_model() is None:
         window.show_message("Demo tour unavailable: resources/demo is incomplete")
         return None
-    if window.state.volume is None or window.state.model is None:
+    if window.state.volume is None or window.state.active.model is None:
         window.load_demo()
     out = Path(record) / "export" if record is not None else \
         Path(tempfile.mkdtemp(prefix="ssm-studio-demo-"))
     tour = DemoTour(window, tour_steps(window, truth, out, spacing=spacing), interval_ms, record)
-    window.demo_tour = tour
     if quit_at_end:     # a recording has nobody to answer "save before closing?"
         tour.finished.connect(lambda completed: window.close_unattended())
     tour.start()
     return tour
 
 
-def install_demo_tour(window) -> None:
-    """Help > Demo tour."""
-    help_menu = next((a.menu() for a in window.menuBar().actions() if a.text() == "&Help"), None)
-    if help_menu is not None:
-        action = help_menu.addAction("Demo tour")
-        action.setToolTip("Play a scripted session on the demo data (any key stops it)")
-        action.triggered.connect(lambda: start_tour(window))
-        window.act_demo_tour = action
+class DemoTourFeature:
+    """The window's feature ``"demo-tour"``: *Help > Demo tour* plays :func:`start_tour`
+    (the tour is a child of the window: it lives as long as it plays)."""
+
+    def __init__(self, window):
+        self.action = window.registry.add(
+            "demo-tour", "Demo tour", lambda: start_tour(window),
+            tip="Play a scripted session on the demo data (any key stops it)")
+        window.registry.place("help", "demo-tour")

@@ -1,6 +1,6 @@
 """The window's file dialogs and questions around exports, sessions and crash recovery.
 
-What happens is in the controllers (:mod:`app.controllers`); these only ask the user (file
+What happens is in the controllers (:mod:`app.model.controllers`); these only ask the user (file
 dialogs, yes/no questions through the window's ``ask``, which tests replace) and report in
 the window's status bar. The window delegates its ``export_*`` and session methods here.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 from PySide6.QtWidgets import QFileDialog, QMessageBox
 
 from app import formats
-from app.controllers import RECOVERED_PATH_KEY
+from app.model.controllers import RECOVERED_PATH_KEY
 from app.workers import error_message
 
 EXPORTS = {"labels": ("label map", formats.LABEL_FILTER, "segmentation.nii.gz"),
@@ -38,7 +38,7 @@ class ExportActions:
     def confirm_fit(self) -> bool:
         """Exporting a fit flagged as implausible needs an explicit yes."""
         w = self.w
-        warnings = w.state.fit_info.warnings
+        warnings = w.state.active.fit_info.warnings
         return not warnings or w.ask("The fit looks implausible: " + "; ".join(warnings)
                                      + ". Export it anyway?")
 
@@ -111,8 +111,7 @@ class SessionActions:
         message = []
         if not w._guarded(lambda: message.append(w.sessions.save(target, w.fit_panel.settings))):
             return False
-        w.session_path = target
-        w._mark_saved()
+        w.set_session(target)
         w.show_message(message[0])
         return True
 
@@ -129,7 +128,7 @@ class SessionActions:
                                          fit.get("prior_weight"), fit.get("pose_spread"))
             finally:
                 w.fit_panel.blockSignals(was_blocked)
-        w.planning.apply_document(session.info.get("planning"))
+        w.plan.planning.apply_document(session.info.get("planning"))
         w._update_actions()
 
     def confirm_close(self) -> bool:
@@ -171,8 +170,7 @@ class SessionActions:
         if not w._guarded(lambda: w.apply_session(session)):
             return False
         saved_as = (session.info or {}).get(RECOVERED_PATH_KEY)
-        w.session_path = Path(saved_as) if saved_as else None
-        w.unsaved = True                      # recovered work is not saved anywhere yet
-        w._update_title()
+        # recovered work is not saved anywhere yet
+        w.set_session(Path(saved_as) if saved_as else None, unsaved=True)
         w.show_message("Recovered the unsaved session")
         return True

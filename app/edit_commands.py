@@ -1,7 +1,7 @@
 """Edit-menu commands of the main window that act on the active slice view or structure.
 
 Each reads which view is active and where the cursor is from the window and changes the
-Qt-free :class:`app.state.WorkspaceState`; the window's ``delete_point``,
+Qt-free :class:`app.model.state.WorkspaceState`; the window's ``delete_point``,
 ``clear_active_slice`` and ``place_here`` delegate here.
 """
 
@@ -24,7 +24,7 @@ class EditCommands:
                 return
         here = view.points_here()
         if len(here) and not state.active.locked:
-            state.remove_point(int(here[-1]))
+            state.active.remove_point(int(here[-1]))
         else:
             w.show_message(f"No point to delete on this {w.active_view} slice")
 
@@ -37,10 +37,10 @@ class EditCommands:
     def place_here(self) -> None:
         """Move the active structure's model centre to the crosshair (then refit)."""
         w, state = self.w, self.w.state
-        if state.model is None:
+        if state.active.model is None:
             w.show_message("Load a model first (File > Load model)")
             return
         w.refit.cancel(state.active)
-        state.place_at(state.crosshair)
-        if len(state.points):
+        state.active.place_at(state.crosshair)
+        if len(state.active.points):
             w.schedule_refit()

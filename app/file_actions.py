@@ -1,7 +1,7 @@
 """Opening files from the main window: the open dialogs, DICOM series choice, drag and drop.
 
 What is opened is decided by the file's type (:mod:`app.formats`); reading and checking is
-the :class:`app.controllers.SessionController`'s job. This only asks (file dialogs, the
+the :class:`app.model.controllers.SessionController`'s job. This only asks (file dialogs, the
 series chooser) and routes a path to the window's ``load_image`` / ``load_model`` /
 ``import_points`` / ``open_session``. The window delegates its ``open_*`` methods here.
 """

@@ -22,7 +22,7 @@ import numpy as np
 from PySide6.QtCore import QObject, Signal
 from PySide6.QtWidgets import QWidget
 
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 from app.workers import DialogTask
 
 

@@ -1,6 +1,6 @@
 """Wiring of the planning tools: overlays in every view, uncertainty, next slice, plan export.
 
-Slicer's Logic/Widget split: the planning model is :class:`app.planning.PlanningState`, the
+Slicer's Logic/Widget split: the planning model is :class:`app.model.planning.PlanningState`, the
 widget :class:`app.panels.planning.PlanningPanel`; this controller connects them to the views
 and calls the engine (``core.reconstruction.uncertainty`` for the posterior, ``core.planning.report`` for the
 files). The posterior of a 2,000-vertex model with a few dozen factors takes a few ms, so it is
@@ -17,8 +17,8 @@ from PySide6.QtGui import QKeySequence
 from PySide6.QtWidgets import QDockWidget, QFileDialog, QScrollArea
 
 from app.panels.planning import PlanningPanel
-from app.planning import PlanningState
-from app.state import FRAME_NAMES
+from app.model.planning import PlanningState
+from app.model.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
 from app.workers import DialogTask
 from core.geometry.planes import PLANE_AXIS
@@ -28,31 +28,16 @@ from core.reconstruction.uncertainty import ellipsoid, fit_posterior, suggest_sl
 
 
 def install_planning(window) -> PlanController:
-    """The Planning dock (tabbed with the segmentation dock ``window.side_dock``), its state and
-    controller; sets ``window.planning``, ``planning_panel``, ``plan_dock`` and ``plan``, and
-    keeps the plan with the session (``info.planning``)."""
-    window.planning = PlanningState(window.state)
-    window.planning_panel = PlanningPanel(window.planning)
-    scroll = QScrollArea()
-    scroll.setWidgetResizable(True)
-    scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-    scroll.setWidget(window.planning_panel)
-    # as wide as the panel wants: no coordinate, button or contact row is cut at 1280 x 800
-    scroll.setMinimumWidth(window.planning_panel.minimumSizeHint().width()
-                           + scroll.verticalScrollBar().sizeHint().width() + 6)
-    dock = window.plan_dock = QDockWidget("Planning", window)
-    dock.setObjectName("planning-dock")
-    dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)
-    dock.setWidget(scroll)
-    window.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
-    window.tabifyDockWidget(window.side_dock, dock)
-    window.side_dock.raise_()
-    window.plan = PlanController(window, window.planning, window.planning_panel)
-    window.sessions.info_providers["planning"] = window.planning.to_document
+    """The window's planning feature: its state (``.planning``), side panel (``.panel``) in
+    the Planning dock (``.dock``, tabbed with the segmentation dock ``window.side_dock``), the
+    Plan menu, and the plan kept with the session (``info.planning``)."""
+    planning = PlanningState(window.state)
+    controller = PlanController(window, planning, PlanningPanel(planning))
+    window.sessions.info_providers["planning"] = planning.to_document
     # Export all: every structure (label map with names and colours, DICOM SEG + RTSTRUCT
     # when the image came from DICOM), not only the active one
-    window.exports.extra_exports.append(window.plan.export_structures)
-    return window.plan
+    window.exports.extra_exports.append(controller.export_structures)
+    return controller
 
 
 class PlanController(QObject):
@@ -64,6 +49,7 @@ class PlanController(QObject):
         self.planning = planning
         self.panel = panel
         self.workspace = planning.workspace
+        self.dock = self._create_dock()
         self.volume_overlay: VolumePlanOverlay | None = None
         self.show_uncertainty = False
         self.last_sd: np.ndarray | None = None
@@ -89,35 +75,47 @@ class PlanController(QObject):
             w._guarded(lambda: w.show_message(
                 f"Exported the plan: {len(self.export(folder))} file(s) in {folder}"))
 
+    def _create_dock(self) -> QDockWidget:
+        w = self.window
+        scroll = QScrollArea()
+        scroll.setWidgetResizable(True)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        scroll.setWidget(self.panel)
+        # as wide as the panel wants: no coordinate, button or contact row is cut at 1280 x 800
+        scroll.setMinimumWidth(self.panel.minimumSizeHint().width()
+                               + scroll.verticalScrollBar().sizeHint().width() + 6)
+        dock = QDockWidget("Planning", w)
+        dock.setObjectName("planning-dock")
+        dock.setFeatures(QDockWidget.DockWidgetFeature.DockWidgetMovable)
+        dock.setWidget(scroll)
+        w.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
+        w.tabifyDockWidget(w.side_dock, dock)
+        w.side_dock.raise_()
+        return dock
+
     def _create_menu(self) -> None:
         """The Plan menu: landmarks, target and entry at the crosshair, export (with keys)."""
         w, panel = self.window, self.panel
-        menu = w.menuBar().addMenu("P&lan")
-        entries = [("Set &AC at crosshair", lambda: panel.set_landmark("ac"), "Alt+A"),
-                   ("Set &PC at crosshair", lambda: panel.set_landmark("pc"), "Alt+P"),
-                   ("Set &midline point at crosshair", lambda: panel.set_landmark("midline"), "Alt+M"),
+        entries = [("plan-set-ac", "Set &AC at crosshair", lambda: panel.set_landmark("ac"), "Alt+A"),
+                   ("plan-set-pc", "Set &PC at crosshair", lambda: panel.set_landmark("pc"), "Alt+P"),
+                   ("plan-set-midline", "Set &midline point at crosshair",
+                    lambda: panel.set_landmark("midline"), "Alt+M"),
                    None,
-                   ("Set &target at crosshair", panel.set_target_here, "T"),
-                   ("Use the &model's target", lambda: self.planning.set_target(self.workspace.active, None), None),
-                   ("Set &entry at crosshair", panel.set_entry_here, "E"),
+                   ("plan-set-target", "Set &target at crosshair", panel.set_target_here, "T"),
+                   ("plan-model-target", "Use the &model's target",
+                    lambda: self.planning.set_target(self.workspace.active, None), None),
+                   ("plan-set-entry", "Set &entry at crosshair", panel.set_entry_here, "E"),
                    None,
-                   ("Undo plan edit", self.planning.undo, "Alt+Z"),
-                   ("Redo plan edit", self.planning.redo, "Alt+Shift+Z"),
-                   ("Suggest next slice", self.suggest_next_slice, "S"),
+                   ("plan-undo", "Undo plan edit", self.planning.undo, "Alt+Z"),
+                   ("plan-redo", "Redo plan edit", self.planning.redo, "Alt+Shift+Z"),
+                   ("plan-suggest-slice", "Suggest next slice", self.suggest_next_slice, "S"),
                    None,
-                   ("E&xport plan…", self.export_dialog, None)]
-        self.actions = {}
+                   ("plan-export", "E&xport plan…", self.export_dialog, None)]
+        w.registry.add_menu("plan", "P&lan")
         for entry in entries:
-            if entry is None:
-                menu.addSeparator()
-                continue
-            text, slot, key = entry
-            action = menu.addAction(text)
-            action.triggered.connect(slot)
-            if key:
-                action.setShortcut(QKeySequence(key))
-            w.addAction(action)
-            self.actions[text.replace("&", "")] = action
+            if entry is not None:
+                w.registry.add(*entry)
+            w.registry.place("plan", None if entry is None else entry[0])
 
     def attach_volume_view(self, volume_view) -> None:
         self.volume_overlay = VolumePlanOverlay(self.planning, volume_view)

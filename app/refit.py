@@ -16,7 +16,7 @@ from contextlib import contextmanager
 import numpy as np
 from PySide6.QtCore import QObject, Signal
 
-from app.state import FitInfo, Structure, WorkspaceState
+from app.model.state import FitInfo, Structure, WorkspaceState
 from app.workers import LatestWinsRunner
 
 
@@ -56,7 +56,7 @@ class RefitController(QObject):
             return
         if self.auto():
             self.schedule()
-        elif self.state.model is not None and len(self.state.points):
+        elif self.state.active.model is not None and len(self.state.active.points):
             from dataclasses import replace
 
             s = self.state.active
@@ -66,7 +66,7 @@ class RefitController(QObject):
         """Another method or prior: no warm start from the old fits; refit the active one."""
         for s in self.state.structures:
             s.last_fit = None
-        if self.auto() and len(self.state.points):
+        if self.auto() and len(self.state.active.points):
             self.schedule()
 
     @contextmanager

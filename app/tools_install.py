@@ -9,18 +9,19 @@ from __future__ import annotations
 
 
 def install_segment_tools(window) -> None:
-    """Label map and hand edits (``window.labels``), navigation, ruler and angle
-    (``window.measurements``), the second image (``window.second_image``), the demo tour."""
-    from app.demo_tour import install_demo_tour            # Help > Demo tour
-    from app.panels.editing import install_editing         # label map, brush, move model
-    from app.panels.measurements import install_measurements   # ruler and angle
-    from app.panels.navigation import install_navigation   # zoom, layouts, colour maps...
-    from app.panels.placement_nudge import install_nudge   # adjust automatic placement
-    from app.panels.second_image import install_second_image   # T2/FLAIR/CT over the T1
+    """Compose the features (``window.features[name]``): label map and hand edits
+    (``"editing"``), ``"navigation"``, ``"placement-nudge"``, ruler and angle
+    (``"measurements"``), ``"second-image"``, ``"demo-tour"``."""
+    from app.demo_tour import DemoTourFeature            # Help > Demo tour
+    from app.panels.editing import Editing         # label map, brush, move model
+    from app.panels.measurements import MeasurementTools   # ruler and angle
+    from app.panels.navigation import Navigation   # zoom, layouts, colour maps...
+    from app.panels.placement_nudge import PlacementNudge   # adjust automatic placement
+    from app.panels.second_image import SecondImageFeature   # T2/FLAIR/CT over the T1
 
-    window.labels = install_editing(window)
-    install_navigation(window)
-    install_nudge(window)
-    window.measurements = install_measurements(window)
-    window.second_image = install_second_image(window)
-    install_demo_tour(window)
+    window.add_feature("editing", Editing(window))
+    window.add_feature("navigation", Navigation(window))
+    window.add_feature("placement-nudge", PlacementNudge(window))
+    window.add_feature("measurements", MeasurementTools(window))
+    window.add_feature("second-image", SecondImageFeature(window))
+    window.add_feature("demo-tour", DemoTourFeature(window))

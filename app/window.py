@@ -7,11 +7,11 @@ deformation factor; a status bar with the world position, voxel index and intens
 the cursor.
 
 Wiring (3D Slicer's Widget/Logic split): the state is the Qt-free
-:class:`app.state.WorkspaceState`; views and panels subscribe to its events. The logic is in
+:class:`app.model.state.WorkspaceState`; views and panels subscribe to its events. The logic is in
 controllers: :class:`app.refit.RefitController` refits the edited structure in a worker
 thread (newest edit wins, warm-started from the current fit),
-:class:`app.controllers.SessionController` opens images, models and sessions and writes the
-crash-recovery file after each edit, :class:`app.controllers.ExportController` writes label
+:class:`app.model.controllers.SessionController` opens images, models and sessions and writes the
+crash-recovery file after each edit, :class:`app.model.controllers.ExportController` writes label
 maps, meshes and points. This module only builds the window and turns actions into calls.
 """
 
@@ -29,7 +29,7 @@ from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 from app import demo, formats
 from app.actions import (SHORTCUTS, create_actions, create_menus, create_toolbar,
                          show_segment_controls, update_actions, update_title)
-from app.controllers import ExportController, SessionController
+from app.model.controllers import ExportController, SessionController
 from app.dialogs import ExportActions, SessionActions
 from app.edit_commands import EditCommands
 from app.file_actions import OPEN_DIALOGS, FileActions
@@ -43,7 +43,8 @@ from app.panels.tools import WINDOW_PRESETS, ToolsPanel
 from app.plan_controller import install_planning
 from app.paint_gate import PaintGate
 from app.refit import RefitController
-from app.state import WorkspaceState
+from app.registry import ActionRegistry, SliceTools
+from app.model.state import WorkspaceState
 from app.tabs import WorkspaceTabs
 from app.views.grid import SegmentWorkspace
 from app.tools_install import install_segment_tools
@@ -53,10 +54,11 @@ from core.io.model_library import list_library
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "OPEN_DIALOGS", "run_gui"]
 
-TOOL_HINTS = {"navigate": "Navigate: click to move the crosshair",
-              "draw": "Draw: click or drag on the structure's outline to add contour points; "
-                      "Ctrl+click deletes a point",
-              "window": "Window/level: drag left-right for width, up-down for level"}
+BASE_TOOLS = {"navigate": ("Navigate", "N", "Navigate: click to move the crosshair"),
+              "draw": ("Draw contour", "D", "Draw: click or drag on the structure's outline to "
+                                            "add contour points; Ctrl+click deletes a point"),
+              "window": ("Window/level", "W",
+                         "Window/level: drag left-right for width, up-down for level")}
 
 
 class MainWindow(QMainWindow):
@@ -86,6 +88,11 @@ class MainWindow(QMainWindow):
         self.recovery_enabled = recovery
         self.unsaved = False
 
+        self.registry = ActionRegistry(self)   # every action and menu, by id
+        self.features: dict[str, object] = {}   # the Segment tab's tools, by name
+        self.tools = SliceTools(self.registry, self.set_tool)   # one at a time
+        self.tools.add(BASE_TOOLS, tips=False)
+        self.tools.actions["navigate"].setChecked(True)
         create_actions(self)
         self.workspace = SegmentWorkspace(self.state, with_3d=with_3d, defer_3d=defer_3d)
         self.fit_panel = FitPanel(self.state)
@@ -103,16 +110,16 @@ class MainWindow(QMainWindow):
         create_menus(self)
         self.toolbar = create_toolbar(self)
         self.drawing_bar = DrawingBar(self.tools_panel.count, self.fit_panel.result,
-                                      self.act_undo, self.act_redo)
+                                      self.registry["undo"], self.registry["redo"])
         self.side_dock = SidePanel([("Structures", self.structures_panel, 0),
                                     ("Tools", self.tools_panel, 0), ("Fit", self.fit_panel, 0),
                                     ("Deformation factors", self.factors_panel, 1)], self,
                                    footer=self.drawing_bar)
         self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, self.side_dock)
         self.resizeDocks([self.side_dock], [340], Qt.Orientation.Horizontal)
-        self.act_side_panel.toggled.connect(lambda on: self._show_segment_controls(
+        self.registry["side-panel"].toggled.connect(lambda on: self._show_segment_controls(
             self.tabs.currentWidget() is self.workspace if hasattr(self, "tabs") else True))
-        install_planning(self)      # planning, planning_panel, plan_dock, plan
+        self.plan = install_planning(self)    # .planning, .panel, .dock, the Plan menu
 
         self.workspace.volume_view_created.connect(self._wire_volume_view)
         if self.workspace.volume_view is not None:
@@ -127,13 +134,13 @@ class MainWindow(QMainWindow):
         self.cursor_label = CursorReadout(self.state)
         self.fit_label = FitReadout(self.state, self.refit)
         self.cursor_label.extra = self.plan.acpc_text
-        self.planning.events.landmarks.connect(self.cursor_label.refresh)
+        self.plan.planning.events.landmarks.connect(self.cursor_label.refresh)
         self.statusBar().addPermanentWidget(self.cursor_label, 1)
         self.statusBar().addPermanentWidget(self.fit_label)
 
         for view in self.workspace.views.values():
             view.hovered.connect(self.cursor_label.on_hover)
-            view.activated.connect(self._on_view_activated)
+            view.activated.connect(self.set_active_view)
             view.message.connect(self.show_message)
         events = self.state.events
         events.points.connect(self._update_actions)
@@ -147,6 +154,12 @@ class MainWindow(QMainWindow):
         self._autosave_timer = self._timer(250, self.write_recovery)
         self._update_actions()
         install_segment_tools(self)  # labels, measurements, second_image, navigation, tour
+
+    def add_feature(self, name: str, feature: object) -> None:
+        """Compose a feature (it has registered its actions and menus in ``self.registry``)."""
+        if name in self.features:
+            raise ValueError(f"feature {name!r} is already installed")
+        self.features[name] = feature
 
     @property
     def runner(self):
@@ -229,13 +242,13 @@ class MainWindow(QMainWindow):
         message = self.sessions.open_model(path, coef=coef, pose=pose)   # raises: nothing changed
         self.refit.cancel(self.state.active)      # a fit of the previous model is dropped
         self.show_message(message)
-        if len(self.state.points) and not self.refit.is_suspended:
+        if len(self.state.active.points) and not self.refit.is_suspended:
             self.schedule_refit()
 
     def load_second_image(self, path: str | os.PathLike, transform=None) -> bool:
         """Show a second image over the first: read, registered rigidly when the grids differ
         and resampled in a worker (progress, Cancel); False if it could not start."""
-        return self.second_image.load(path, transform, show_dialog=not self._quiet_errors())
+        return self.features["second-image"].controller.load(path, transform, show_dialog=not self._quiet_errors())
 
     def load_demo(self) -> None:
         """The demo image and model (raises DataFileError when resources/ is incomplete)."""
@@ -315,8 +328,7 @@ class MainWindow(QMainWindow):
 
     def open_session(self, path: str | os.PathLike) -> None:
         self.apply_session(self.sessions.read(path))
-        self.session_path = Path(path)
-        self._mark_saved()
+        self.set_session(Path(path))
         self.show_message(f"Opened session {Path(path).name}")
 
     def save_session(self, ask: bool = False, path: str | os.PathLike | None = None) -> bool:
@@ -336,26 +348,29 @@ class MainWindow(QMainWindow):
         if self.recovery_enabled and not self._closing:
             self._autosave_timer.start()
 
-    def _mark_saved(self) -> None:
-        self.unsaved = False
+    def set_session(self, path: Path | None, unsaved: bool = False) -> None:
+        """The session file the work is saved to, and whether the work has changed since."""
+        self.session_path = path
+        self.unsaved = unsaved
         self._update_title()
 
     # -- tools and editing ----------------------------------------------------------------------
     def set_tool(self, tool: str) -> None:
         for view in self.workspace.views.values():
             view.set_tool(tool)
-        self.tool_actions[tool].setChecked(True)
-        self.show_message(TOOL_HINTS[tool])
+        self.tools.actions[tool].setChecked(True)
+        self.show_message(self.tools.hints[tool])
 
-    def _on_view_activated(self, name: str) -> None:
+    def set_active_view(self, name: str) -> None:
+        """The slice view that Page Up/Down, F and Delete act on (the last one clicked)."""
         self.active_view = name
 
     def undo(self) -> None:
-        if self.state.undo():
+        if self.state.active.undo():
             self.show_message("Undone")
 
     def redo(self) -> None:
-        if self.state.redo():
+        if self.state.active.redo():
             self.show_message("Redone")
 
     def delete_point(self) -> None:
@@ -374,7 +389,7 @@ class MainWindow(QMainWindow):
 
     def _on_auto_placed(self, message: str) -> None:
         self.show_message(message + "; nudge it with Edit > Adjust automatic placement…", 10000)
-        if len(self.state.points):
+        if len(self.state.active.points):
             self.schedule_refit()
 
     def reset_views(self) -> None:
@@ -390,7 +405,7 @@ class MainWindow(QMainWindow):
 
     def _show_factor_region(self, index: int) -> None:
         """Colour the 3D surface by the touched factor's displacement for a few seconds."""
-        if index >= 0 and self.state.model is not None:
+        if index >= 0 and self.state.active.model is not None:
             self._factor_timer.start()
             self.show_message(self.factors_panel.describe(index), 4000)
         if self.workspace.volume_view is not None:
@@ -476,7 +491,7 @@ class MainWindow(QMainWindow):
         self._autosave_timer.stop()
         self.refit.cancel()
         self.refit.wait(5000)
-        for task in (self.auto_place, self.second_image):
+        for task in (self.auto_place, self.features["second-image"].controller):
             task.cancel()
             task.wait(10000)
         if self.recovery_enabled:

@@ -31,7 +31,7 @@ def _ring(window, n=8, radius=5.0):
     c = window.state.crosshair.copy()
     for k in range(n):
         t = 2 * np.pi * k / n
-        window.state.add_point(c + [radius * np.cos(t), 1.5 * radius * np.sin(t), 0.0],
+        window.state.active.add_point(c + [radius * np.cos(t), 1.5 * radius * np.sin(t), 0.0],
                                "axial", float(c[2]), checkpoint=k == 0)
 
 
@@ -237,10 +237,10 @@ def test_side_panel_shows_names_coordinates_undo_count_and_fit(make_window, qtbo
     # the Planning panel: whole AC/PC/midline coordinates
     for name, xyz in (("ac", [24.5, -18.25, -10.75]), ("pc", [-100.0, -118.5, 7.25]),
                       ("midline", [0.5, -10.0, 40.2])):
-        window.planning.set_landmark(name, xyz)
-    window.plan_dock.raise_()
+        window.plan.planning.set_landmark(name, xyz)
+    window.plan.dock.raise_()
     qtbot.wait(50)
-    for field in window.planning_panel.landmark_labels.values():
+    for field in window.plan.panel.landmark_labels.values():
         assert _fully_visible(field)
         assert field.width() >= field.fontMetrics().horizontalAdvance(field.text()) + 4, field.text()
 

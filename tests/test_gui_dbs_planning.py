@@ -61,12 +61,12 @@ def test_plan_points_sit_where_clicked_not_on_voxel_centres(make_window, anisotr
     view.center = view.frame.to_plane((ac_true + pc_true) / 2)[:2]
     view.zoom = 5.0
     view.update()
-    panel = window.planning_panel
+    panel = window.plan.panel
     clicked_ac = _click(view, ac_true)
     panel.set_landmark("ac")
     clicked_pc = _click(view, pc_true)
     panel.set_landmark("pc")
-    ac, pc = window.planning.landmarks["ac"], window.planning.landmarks["pc"]
+    ac, pc = window.plan.planning.landmarks["ac"], window.plan.planning.landmarks["pc"]
     assert np.allclose(ac, clicked_ac) and np.allclose(pc, clicked_pc)
     true_distance = float(np.linalg.norm(ac_true - pc_true))            # 27.0 mm
     measured = float(np.linalg.norm(ac - pc))
@@ -78,13 +78,13 @@ def test_plan_points_sit_where_clicked_not_on_voxel_centres(make_window, anisotr
     # target and entry go where clicked too
     target_click = _click(view, centre + [2.3, 1.7, 0.0])
     panel.set_target_here()
-    assert np.allclose(window.planning.target_of(window.state.active), target_click)
+    assert np.allclose(window.plan.planning.target_of(window.state.active), target_click)
 
 
 def test_plan_points_are_editable_by_typing_coordinates(make_window, anisotropic_scan):
     window = make_window(load_demo=False)
     window.load_image(anisotropic_scan)
-    panel, planning = window.planning_panel, window.planning
+    panel, planning = window.plan.panel, window.plan.planning
     messages = []
     panel.message.connect(messages.append)
     field = panel.landmark_labels["ac"]
@@ -105,7 +105,7 @@ def test_plan_points_are_editable_by_typing_coordinates(make_window, anisotropic
     assert np.allclose(planning.entry_of(window.state.active), [10, 20, 60])
     # the fields show the whole coordinates at the narrowest dock
     window.resize(1280, 800)
-    window.plan_dock.raise_()
+    window.plan.dock.raise_()
     QTest.qWait(50)
     for f in [*panel.landmark_labels.values(), panel.entry_field]:
         assert f.width() >= f.fontMetrics().horizontalAdvance(f.text()) + 4, f.objectName()
@@ -139,9 +139,7 @@ def test_new_patient_offers_placement_then_nudge_with_undo(make_window, moved_ca
     assert len(asked) == 1
 
     # nudge: shift 2 mm to the right, then turn 5 degrees about S/I, all structures together
-    from app.panels.placement_nudge import show_nudge
-
-    dialog = show_nudge(window)
+    dialog = window.features["placement-nudge"].show()
     dialog.shift_step.setValue(2.0)
     dialog.buttons[("shift", 0, 1)].click()
     for p, s in zip(placed, structures):
@@ -160,10 +158,10 @@ def test_new_patient_offers_placement_then_nudge_with_undo(make_window, moved_ca
     # the contour points' distance to the surfaces is in the read-out
     c = structures[0].surface_vertices().mean(axis=0)
     window.state.set_active(structures[0])
-    window.state.add_point(c + [3, 0, 0], "axial", float(c[2]))
+    window.state.active.add_point(c + [3, 0, 0], "axial", float(c[2]))
     dialog.refresh()
     assert "1 contour point(s)" in dialog.readout.text()
-    window.state.remove_point(0)
+    window.state.active.remove_point(0)
     # undo of a nudge: the dialog's Undo (every structure), or Ctrl+Z (the active one)
     dialog.undo_button.click()
     for a, s in zip(shifted, structures):
@@ -181,9 +179,9 @@ def test_3d_view_frames_the_structures_and_the_whole_trajectory(make_window, qtb
     view = window.workspace.volume_view
     qtbot.waitUntil(lambda: view is not None and view._camera_set, timeout=20000)
     caudate = window.state.active
-    target = window.planning.target_of(caudate)
+    target = window.plan.planning.target_of(caudate)
     entry = target + np.array([-25.0, 20.0, 62.0])          # a frontal entry, 70 mm away
-    window.planning.set_entry(caudate, entry)
+    window.plan.planning.set_entry(caudate, entry)
     view.flush()
     renderer = view.plotter.renderer
     width, height = renderer.GetSize()

@@ -30,14 +30,14 @@ def test_too_few_points_for_the_pose_is_a_hint_not_an_error(make_window):
     view = window.workspace.views["axial"]
     click(view, window.state.crosshair)
     window.wait_for_refit()
-    info = window.state.fit_info
+    info = window.state.active.fit_info
     assert info.level == "info" and "2 more point" in info.message
     assert "#c0392b" not in window.fit_panel.result.text()          # not shown in red
     assert window.runner.n_started == 0                               # no fit was tried
     click(view, window.state.crosshair + [4.0, 0, 0])
     click(view, window.state.crosshair + [0, 5.0, 0])
     window.wait_for_refit(20000)
-    assert window.state.fit_info.n_iter > 0 and not window.state.fit_info.message
+    assert window.state.active.fit_info.n_iter > 0 and not window.state.active.fit_info.message
 
 
 def test_save_and_export_without_an_image_say_so_before_any_dialog(make_window, monkeypatch):
@@ -63,7 +63,7 @@ def test_export_all_asks_before_overwriting_an_earlier_export(make_window, tmp_p
     window.export_all_dialog()
     first = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
     assert set(first) == {"segmentation.nii.gz", "surface.vtk"}
-    window.state.place_at(window.state.crosshair + [3.0, 0, 0])      # a different result
+    window.state.active.place_at(window.state.crosshair + [3.0, 0, 0])      # a different result
     questions = []
     window.ask = lambda text: questions.append(text) or False
     window.export_all_dialog()
@@ -98,12 +98,12 @@ def test_delete_without_a_point_under_the_cursor_stays_on_the_slice(make_window)
     window.active_view = "axial"
     window.cursor_label.on_hover(None)
     window.delete_point()
-    assert len(window.state.points) == 2                 # nothing removed from the other slice
+    assert len(window.state.active.points) == 2                 # nothing removed from the other slice
     assert "No point to delete" in window.statusBar().currentMessage()
     window.state.step_slice("axial", -3)
     window.delete_point()                                # back on it: its last point goes
-    assert len(window.state.points) == 1
-    assert window.state.points.xyz[0] == pytest.approx(c, abs=1.0)
+    assert len(window.state.active.points) == 1
+    assert window.state.active.points.xyz[0] == pytest.approx(c, abs=1.0)
     window.wait_for_refit()
 
 
@@ -125,17 +125,17 @@ def test_slider_edit_updates_the_residual_and_the_next_refit_says_it_refitted(ma
     window = make_window()
     _draw_ring(window)
     window.wait_for_refit(20000)
-    fitted = window.state.fit_info.residual_mm
+    fitted = window.state.active.fit_info.residual_mm
     window.factors_panel.set_factor_sd(0, 2.5)
-    info = window.state.fit_info
+    info = window.state.active.fit_info
     state = window.state
-    expected = np.mean(surface_distance(state.points.xyz, state.surface_vertices(), state.model.faces))
+    expected = np.mean(surface_distance(state.active.points.xyz, state.active.surface_vertices(), state.active.model.faces))
     assert info.residual_mm == pytest.approx(expected) and info.residual_mm != pytest.approx(fitted)
     assert "after your edit" in window.fit_panel.result.text()
     click(window.workspace.views["axial"], window.state.crosshair + [0.0, -9.5, 0.0])
     window.wait_for_refit(20000)
-    assert "slider values" in window.state.fit_info.message        # not silently undone
-    assert window.state.fit_info.n_iter > 0
+    assert "slider values" in window.state.active.fit_info.message        # not silently undone
+    assert window.state.active.fit_info.n_iter > 0
 
 
 def test_without_automatic_refit_the_fit_is_marked_out_of_date(make_window):
@@ -144,25 +144,25 @@ def test_without_automatic_refit_the_fit_is_marked_out_of_date(make_window):
     window.wait_for_refit(20000)
     window.fit_panel.auto.setChecked(False)
     click(window.workspace.views["axial"], window.state.crosshair + [0.0, -9.5, 0.0])
-    assert window.state.fit_info.out_of_date
+    assert window.state.active.fit_info.out_of_date
     assert "Out of date" in window.fit_panel.result.text()
     window.fit_panel.refit_button.click()
     window.wait_for_refit(20000)
-    assert not window.state.fit_info.out_of_date and "Out of date" not in window.fit_panel.result.text()
+    assert not window.state.active.fit_info.out_of_date and "Out of date" not in window.fit_panel.result.text()
 
 
 def test_reopened_session_reads_out_its_fit(make_window, tmp_path):
     window = make_window()
     _draw_ring(window)
     window.wait_for_refit(20000)
-    residual = window.state.fit_info.residual_mm
+    residual = window.state.active.fit_info.residual_mm
     path = tmp_path / "s.json"
     assert window.save_session(path=path)
     other = make_window(load_demo=False)
     other.open_session(path)
     assert "No fit yet" not in other.fit_panel.result.text()
     assert "restored" in other.fit_panel.result.text()
-    assert other.state.fit_info.residual_mm == pytest.approx(residual, abs=0.05)
+    assert other.state.active.fit_info.residual_mm == pytest.approx(residual, abs=0.05)
 
 
 # -- defect 8: strokes and the small-window layout ---------------------------------------------
@@ -186,7 +186,7 @@ def test_separate_strokes_on_one_slice_are_not_joined(make_window):
     c = window.state.crosshair
     _drag(view, c + [-14.0, -8.0, 0], c + [-14.0, 8.0, 0])      # left side, downwards
     _drag(view, c + [14.0, 8.0, 0], c + [14.0, -8.0, 0])        # right side, upwards
-    pts = window.state.points
+    pts = window.state.active.points
     first = pts.stroke[0]
     assert len(np.unique(pts.stroke)) == 2 and np.sum(pts.stroke == first) >= 5
     # nothing painted on the straight line that used to join the end of one to the other
@@ -203,7 +203,7 @@ def test_separate_strokes_on_one_slice_are_not_joined(make_window):
     window.undo()
     for d in ([0, 5.0, 0], [5.0, 0, 0], [0, -5.0, 0]):
         click(view, c + d)
-    assert len(np.unique(window.state.points.stroke)) == 1
+    assert len(np.unique(window.state.active.points.stroke)) == 1
     window.wait_for_refit(20000)
 
 
@@ -216,16 +216,15 @@ def test_small_window_keeps_titles_off_the_letters_and_the_side_panel_can_go(mak
         assert not title.intersects(top), name
         assert layout["window"][0].left() > layout["bottom"][0].right() or \
             not layout["window"][0].intersects(layout["bottom"][0]), name
-    view_menu = [m for m in window.menuBar().actions() if m.text() == "&View"][0].menu()
-    assert window.act_side_panel in view_menu.actions()
+    assert window.registry["side-panel"] in window.registry.menu("view").actions()
     width = window.workspace.views["axial"].width()
-    window.act_side_panel.trigger()
+    window.registry["side-panel"].trigger()
     qtbot.waitUntil(lambda: window.workspace.views["axial"].width() > width + 80, timeout=3000)
     assert not window.side_dock.isVisible()
     window.tabs.setCurrentIndex(1) if window.tabs.count() > 1 else None
     window.tabs.setCurrentIndex(0)
     assert not window.side_dock.isVisible()          # stays hidden across tab switches
-    window.act_side_panel.trigger()
+    window.registry["side-panel"].trigger()
     assert window.side_dock.isVisible()
 
 
@@ -252,7 +251,7 @@ def test_image_without_sform_or_qform_is_marked_unknown_and_exports_ask(make_win
         layout = view.label_layout()
         assert {layout[edge][1] for edge in ("left", "right", "top", "bottom")} == {"?"}, name
         assert "orientation unknown" in layout["title"][1]
-    window.state.place_at(window.state.crosshair)
+    window.state.active.place_at(window.state.crosshair)
     questions = []
     window.ask = lambda text: questions.append(text) or False
     assert window.export_all(tmp_path / "out") == [] and not (tmp_path / "out").exists()
@@ -274,7 +273,7 @@ def test_imported_contours_are_grouped_by_plane_and_keep_their_normals(make_wind
         pytest.skip("demo contour points missing")
     pset = load_points(source)
     window.import_points(source)
-    pts = window.state.points
+    pts = window.state.active.points
     assert len(pts) == len(pset) and pts.n_slices() == 3                  # three contours
     assert window.tools_panel.count.text() == f"{len(pset)} contour point(s) on 3 slice(s)"
     assert np.allclose(window.state.active.point_normals(), pset.normals, atol=1e-6)
@@ -284,16 +283,16 @@ def test_imported_contours_are_grouped_by_plane_and_keep_their_normals(make_wind
     window.state.set_crosshair(np.r_[x, window.state.crosshair[1:]])
     window.active_view = "sagittal"
     window.clear_active_slice()
-    assert len(window.state.points) == len(pset) - int(sagittal.sum())
+    assert len(window.state.active.points) == len(pset) - int(sagittal.sum())
     # a tilted contour without normals: one group, normals perpendicular in its plane
     t = np.linspace(0, 2 * np.pi, 16, endpoint=False)
     tilt = np.radians(25)
     ring = np.stack([8 * np.cos(t), 6 * np.sin(t) * np.cos(tilt), 6 * np.sin(t) * np.sin(tilt)], 1)
     ring += window.state.crosshair
     save_points(tmp_path / "tilted.csv", ring)
-    window.state.clear_points()
+    window.state.active.clear_points()
     window.import_points(tmp_path / "tilted.csv")
-    assert window.state.points.n_slices() == 1
+    assert window.state.active.points.n_slices() == 1
     assert "1 oblique" in window.statusBar().currentMessage()
     window.wait_for_refit(20000)
 
@@ -309,7 +308,7 @@ def test_implausible_fit_is_flagged_and_export_asks(make_window, tmp_path):
     for t in np.linspace(0, 2 * np.pi, 10, endpoint=False):
         click(view, far + [6 * np.cos(t), 6 * np.sin(t), 0.0])
     window.wait_for_refit(30000)
-    info = window.state.fit_info
+    info = window.state.active.fit_info
     assert info.n_iter > 0 and info.warnings
     assert any("from the surface" in w for w in info.warnings)
     text = window.fit_panel.result.text()
@@ -318,16 +317,16 @@ def test_implausible_fit_is_flagged_and_export_asks(make_window, tmp_path):
     window.ask = lambda q: questions.append(q) or False
     assert window.export_all(tmp_path / "out") == [] and "implausible" in questions[0]
     # a good fit is not flagged
-    window.state.clear_points()
+    window.state.active.clear_points()
     window.fit_panel.set_settings(pose="similarity")
-    window.state.reset_placement()
-    centre = window.state.surface_vertices().mean(axis=0)
+    window.state.active.reset_placement()
+    centre = window.state.active.surface_vertices().mean(axis=0)
     from core.geometry.slicing import polylines
 
-    line = polylines(window.state.surface_vertices(), window.state.model.faces,
+    line = polylines(window.state.active.surface_vertices(), window.state.active.model.faces,
                      np.array([0, 0, window.state.crosshair[2]]), np.array([0, 0, 1.0]))[0]
     for p in line.points[:: max(1, len(line.points) // 10)]:
         click(view, p)
     window.wait_for_refit(30000)
-    assert window.state.fit_info.n_iter > 0 and window.state.fit_info.warnings == ()
+    assert window.state.active.fit_info.n_iter > 0 and window.state.active.fit_info.warnings == ()
     assert np.isfinite(centre).all()

@@ -62,7 +62,7 @@ def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
     # then the bilateral STN plan: both STN fitted to a few contours, a lead on each side
     stn = [s for s in window.state.structures if "subthalamic" in s.label.lower()]
     assert len(stn) == 2
-    planning = window.planning
+    planning = window.plan.planning
     assert planning.frame() is not None
     for s in stn:
         assert len(s.points) >= 6 and s.points.n_slices() == 2
@@ -80,12 +80,12 @@ def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
 
 def test_any_key_stops_the_tour_and_leaves_the_session_editable(window, qtbot):
     tour = demo_tour.start_tour(window, interval_ms=5)
-    qtbot.waitUntil(lambda: len(window.state.points) >= 3, timeout=20000)
+    qtbot.waitUntil(lambda: len(window.state.active.points) >= 3, timeout=20000)
     with qtbot.waitSignal(tour.finished, timeout=5000) as done:
         QTest.keyClick(window, Qt.Key.Key_Space)
     assert done.args == [False] and not tour.running
-    n = len(window.state.points)
+    n = len(window.state.active.points)
     qtbot.wait(100)
-    assert len(window.state.points) == n                # nothing more is drawn
+    assert len(window.state.active.points) == n                # nothing more is drawn
     window.undo()                                       # and the user can go on
-    assert len(window.state.points) < n
+    assert len(window.state.active.points) < n

@@ -132,8 +132,8 @@ def test_nrrd_image_h5_model_and_seg_nrrd_export(window, tmp_path):
     model.world_transform[:3, 3] = centre
     save_model(tmp_path / "putamen.h5", model)
     _drop(window, tmp_path / "putamen.h5")
-    assert window.state.model is not None and window.state.model.n_factors == 3
-    assert np.allclose(window.state.surface_vertices(), model.world_instance(), atol=1e-4)
+    assert window.state.active.model is not None and window.state.active.model.n_factors == 3
+    assert np.allclose(window.state.active.surface_vertices(), model.world_instance(), atol=1e-4)
     window.exports.export_labels(tmp_path / "out.seg.nrrd")
     (segment,) = segmentation_fields(tmp_path / "out.seg.nrrd")
     structure = window.state.active
@@ -187,7 +187,7 @@ def test_gui_model_loading_refuses_what_the_cli_refuses(window, tmp_path):
                           external=[("/etc/passwd", 0, 4 * n)])
     _drop(window, tmp_path / "m.h5")
     message = window.statusBar().currentMessage()
-    assert window.state.model is None
+    assert window.state.active.model is None
     assert str(tmp_path / "m.h5") in message and "another file" in message, message
     save_model(tmp_path / "face.h5", pca_model(shapes, faces, n_factors=3))
     with h5py.File(tmp_path / "face.h5", "a") as h5:
@@ -196,6 +196,6 @@ def test_gui_model_loading_refuses_what_the_cli_refuses(window, tmp_path):
         h5.create_dataset("catalog/MorphableModel.shape/modelPath", data=b"/shape")
         h5.create_dataset("catalog/MorphableModel.shape/modelType", data=b"POLYGON_MESH_MODEL")
     window.open_path(tmp_path / "face.h5")
-    assert window.state.model is None and "#shape" in window.statusBar().currentMessage()
+    assert window.state.active.model is None and "#shape" in window.statusBar().currentMessage()
     window.load_model(f"{tmp_path / 'face.h5'}#shape")
-    assert window.state.model is not None and window.state.model.n_vertices == shapes.shape[1]
+    assert window.state.active.model is not None and window.state.active.model.n_vertices == shapes.shape[1]

@@ -21,7 +21,7 @@ AC, PC, MID = np.array([0.0, 2.0, -4.0]), np.array([0.0, -24.0, -2.0]), np.array
 
 def _plan(window, entry_offset=(0.0, 0.0, 60.0)):
     """AC, PC, midline and an entry above the demo structure's model target."""
-    planning, state = window.planning, window.state
+    planning, state = window.plan.planning, window.state
     for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
         planning.set_landmark(name, xyz)
     target = planning.target_of(state.active)
@@ -36,7 +36,7 @@ def _choose(panel, key, depth=0.0, rotation=0.0):
 
 
 def test_readout_lists_the_four_contacts_of_a_3389_with_their_structure(window):
-    planning, panel, state = window.planning, window.planning_panel, window.state
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
     target = _plan(window)
     _choose(panel, "medtronic-3389")
     assert planning.lead_of(state.active) == LeadChoice("medtronic-3389", 0.0, 0.0)
@@ -68,7 +68,7 @@ def test_readout_lists_the_four_contacts_of_a_3389_with_their_structure(window):
 
 
 def test_contact_bands_sit_at_the_contacts_world_positions_in_a_slice(window):
-    planning, panel, state = window.planning, window.planning_panel, window.state
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
     volume = state.volume
     # a target on a voxel centre and a vertical trajectory; tip 0.25 mm past the target puts
     # contact 1's centre (0.25 below + 1.5 + 0.75 + 2 mm above) on the slice 4 mm above
@@ -96,7 +96,7 @@ def test_contact_bands_sit_at_the_contacts_world_positions_in_a_slice(window):
 
 
 def test_warnings_in_red_when_the_target_lies_outside_its_structure(window):
-    planning, panel, state = window.planning, window.planning_panel, window.state
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
     _plan(window)
     assert panel.warnings_label.text() == ""
     outside = state.surface_vertices()[:, 0].max() + 6.0
@@ -113,7 +113,7 @@ def test_warnings_in_red_when_the_target_lies_outside_its_structure(window):
 
 
 def test_a_session_with_a_lead_round_trips(window, tmp_path):
-    planning, state = window.planning, window.state
+    planning, state = window.plan.planning, window.state
     _plan(window)
     planning.set_lead(state.active, LeadChoice("boston-cartesia-directional", -1.5, 60.0))
     session = tmp_path / "lead.json"
@@ -139,8 +139,8 @@ def test_a_session_with_a_lead_round_trips(window, tmp_path):
     del doc["info"]["planning"]["structures"][0]["lead"]
     session.write_text(json.dumps(doc))
     window.open_session(session)
-    assert window.planning.lead_of(window.state.active) is None
-    assert window.planning.trajectory_of(window.state.active) is not None
+    assert window.plan.planning.lead_of(window.state.active) is None
+    assert window.plan.planning.trajectory_of(window.state.active) is not None
 
 
 def test_export_all_writes_every_structure_as_dicom_seg_and_rtstruct(make_window, tmp_path):
@@ -189,7 +189,7 @@ def test_export_all_writes_every_structure_as_dicom_seg_and_rtstruct(make_window
             raise Cancelled()
 
     with pytest.raises(Cancelled):
-        export_all_structures(tmp_path / "cancelled", window.planning.planned_structures(),
+        export_all_structures(tmp_path / "cancelled", window.plan.planning.planned_structures(),
                               window.state.volume, stem="all", dicom_series=series,
                               meshes=False, progress=stop_at_dicom)
     assert len(seen) == 3

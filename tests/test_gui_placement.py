@@ -30,31 +30,31 @@ def test_place_models_automatically_recovers_a_known_shift(window, moved_case, q
     template, patient, shift = moved_case
     window.load_image(patient)
     window.load_model(demo.demo_model())
-    before = window.state.surface_vertices().mean(axis=0)
+    before = window.state.active.surface_vertices().mean(axis=0)
     done = []
     window.auto_place.finished.connect(done.append)
     assert window.place_automatically(template, levels_mm=(8.0,), polish=False)
     assert window.auto_place.is_running
     qtbot.waitUntil(lambda: bool(done), timeout=60000)
-    after = window.state.surface_vertices().mean(axis=0)
+    after = window.state.active.surface_vertices().mean(axis=0)
     assert np.linalg.norm(after - (before + shift)) < 2.0, (after - before, shift)
-    assert np.allclose(window.state.active.placement, window.state.pose)
+    assert np.allclose(window.state.active.placement, window.state.active.pose)
     assert "Placed 1 structure" in window.statusBar().currentMessage()
     window.undo()                                    # one undo step puts it back
-    assert window.state.surface_vertices().mean(axis=0) == pytest.approx(before, abs=1e-6)
+    assert window.state.active.surface_vertices().mean(axis=0) == pytest.approx(before, abs=1e-6)
 
 
 def test_cancelled_placement_moves_nothing(window, moved_case, qtbot):
     template, patient, _ = moved_case
     window.load_image(patient)
     window.load_model(demo.demo_model())
-    pose = window.state.pose.copy()
+    pose = window.state.active.pose.copy()
     failed = []
     window.auto_place.failed.connect(failed.append)
     window.place_automatically(template, levels_mm=(8.0, 4.0))
     window.auto_place.cancel()
     qtbot.waitUntil(lambda: bool(failed), timeout=60000)
-    assert "cancelled" in failed[0] and np.array_equal(window.state.pose, pose)
+    assert "cancelled" in failed[0] and np.array_equal(window.state.active.pose, pose)
     assert not window.auto_place.is_running
 
 

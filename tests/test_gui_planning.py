@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("PySide6")
 pytestmark = pytest.mark.gui
 
-from app.state import FRAME_NAMES, Points  # noqa: E402
+from app.model.state import FRAME_NAMES, Points  # noqa: E402
 from core.planning.frames import ACPCFrame, volume_centroid  # noqa: E402
 from core.evaluation.simulated_user import simulate_user  # noqa: E402
 
@@ -20,18 +20,18 @@ AC, PC, MID = np.array([0.0, 2.0, -4.0]), np.array([0.0, -24.0, -2.0]), np.array
 
 def _set_at(window, name, xyz):
     window.state.set_crosshair(xyz)
-    window.planning_panel.set_landmark(name)
+    window.plan.panel.set_landmark(name)
 
 
 def test_landmarks_give_acpc_readouts_and_are_undoable(window):
-    panel, planning = window.planning_panel, window.planning
+    panel, planning = window.plan.panel, window.plan.planning
     _set_at(window, "ac", AC)
     assert planning.frame() is None and "PC" in panel.frame_label.text()
     _set_at(window, "pc", AC)                      # AC = PC: refused, clearly
     _set_at(window, "midline", MID)
     assert planning.frame() is None
     assert "apart" in panel.frame_label.text()
-    assert window.planning.undo() and window.planning.undo()   # back to AC only
+    assert window.plan.planning.undo() and window.plan.planning.undo()   # back to AC only
     assert planning.landmarks["pc"] is None
     _set_at(window, "pc", PC)
     _set_at(window, "midline", MID)
@@ -44,12 +44,12 @@ def test_landmarks_give_acpc_readouts_and_are_undoable(window):
 
 
 def test_trajectory_readouts_crossings_and_probe_view(window):
-    planning, panel, state = window.planning, window.planning_panel, window.state
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
     for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
         _set_at(window, name, xyz)
     target = planning.target_of(state.active)      # the model's default: its centroid
-    np.testing.assert_allclose(target, volume_centroid(state.surface_vertices(),
-                                                       state.model.faces), atol=1e-6)
+    np.testing.assert_allclose(target, volume_centroid(state.active.surface_vertices(),
+                                                       state.active.model.faces), atol=1e-6)
     entry = target + np.array([-20.0, 25.0, 55.0])
     state.set_crosshair(entry)
     panel.set_entry_here()
@@ -73,7 +73,7 @@ def test_trajectory_readouts_crossings_and_probe_view(window):
 
 
 def test_plan_survives_save_and_reopen_and_exports(window, tmp_path, qtbot):
-    planning, panel, state = window.planning, window.planning_panel, window.state
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
     for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
         _set_at(window, name, xyz)
     target = planning.target_of(state.active)
@@ -83,7 +83,7 @@ def test_plan_survives_save_and_reopen_and_exports(window, tmp_path, qtbot):
     assert window.save_session(path=session)
     doc = json.loads(session.read_text())
     assert doc["info"]["planning"]["ac"] == pytest.approx(AC.tolist())
-    window.planning.apply_document(None)
+    window.plan.planning.apply_document(None)
     assert planning.frame() is None
     window.open_session(session)
     assert planning.frame() is not None
@@ -102,7 +102,7 @@ def test_plan_survives_save_and_reopen_and_exports(window, tmp_path, qtbot):
 
 
 def test_uncertainty_and_next_slice(window):
-    panel, state = window.planning_panel, window.state
+    panel, state = window.plan.panel, window.state
     panel.uncertainty_check.setChecked(True)
     assert "Surface SD" in panel.uncertainty_label.text()
     sd_prior = window.plan.last_sd.mean()
@@ -110,12 +110,12 @@ def test_uncertainty_and_next_slice(window):
     window.plan.suggest_next_slice()
     assert not np.allclose(before, state.crosshair)
     # three contours make the surface more certain than the prior alone
-    user = simulate_user(state.surface_vertices(), state.model.faces, 3,
+    user = simulate_user(state.active.surface_vertices(), state.active.model.faces, 3,
                          rng=np.random.default_rng(0), noise=0.1)
     axis = np.argmax(np.abs([n for _, n in user.planes]), axis=1)[user.contour]
     frames = np.array([FRAME_NAMES.index(("sagittal", "coronal", "axial")[a]) for a in axis])
     depths = user.points[np.arange(len(axis)), axis]
-    state.set_points(Points(user.points, frames, depths))
+    state.active.set_points(Points(user.points, frames, depths))
     assert window.plan.posterior().vertex_sd().mean() < sd_prior
 
 
@@ -123,7 +123,7 @@ def test_plan_cli_gives_the_gui_report_from_the_saved_session(window, tmp_path, 
     """``ssm-studio plan`` recomputes, headless, the report the GUI exports."""
     from core.cli import main as cli_main
 
-    planning, panel, state = window.planning, window.planning_panel, window.state
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
     for name, xyz in (("ac", AC), ("pc", PC), ("midline", MID)):
         _set_at(window, name, xyz)
     state.set_crosshair(planning.target_of(state.active) + [5.0, 20.0, 55.0])
@@ -151,10 +151,10 @@ def test_plan_cli_gives_the_gui_report_from_the_saved_session(window, tmp_path, 
 
 def test_two_structures_plan_in_gui_and_headless(window, tmp_path, resources_dir):
     """Two library structures, a trajectory each: the saved session plans both headless."""
-    from app.state import Structure
+    from app.model.state import Structure
     from core.cli import main as cli_main
 
-    planning, panel, state = window.planning, window.planning_panel, window.state
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
     right = state.add_structure(Structure())
     window.sessions.open_model(resources_dir / "models" / "right_caudate.npz", structure=right)
     assert state.active is right and right.side == "right"

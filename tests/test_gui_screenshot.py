@@ -83,7 +83,7 @@ def test_window_screenshot_shows_contours_in_each_slice_view(qtbot, tmp_path, mo
     assert _tinted(crop3d, _demo_color()).sum() > 100
     # touching a factor slider colours the 3D surface by that factor's displacement
     view3d = window.workspace.volume_view
-    model = window.state.model
+    model = window.state.active.model
     window.factors_panel.set_factor_sd(2, 1.0)
     view3d.flush()
     shown = view3d._surface_mesh["factor displacement (mm per SD)"]
@@ -174,8 +174,8 @@ def test_3d_planes_show_the_second_images_composite(qtbot, tmp_path, monkeypatch
     save_volume(path, (float(np.max(volume.data)) - np.asarray(volume.data)).astype(np.float32),
                 volume.affine)
     assert window.load_second_image(path)
-    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
-    model, layer = window.second_image.model, window.second_image.layer
+    qtbot.waitUntil(lambda: not window.features["second-image"].controller.is_running, timeout=30000)
+    model, layer = window.features["second-image"].controller.model, window.features["second-image"].controller.layer
     model.set_mode("checkerboard")
     vv = window.workspace.volume_view
     vv.flush()

@@ -29,8 +29,8 @@ def inverted(data: np.ndarray) -> np.ndarray:
 
 def _load(window, qtbot, path, transform=None):
     assert window.load_second_image(path, transform)
-    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
-    assert window.second_image.model.loaded
+    qtbot.waitUntil(lambda: not window.features["second-image"].controller.is_running, timeout=30000)
+    assert window.features["second-image"].controller.model.loaded
 
 
 def _pixels(view) -> np.ndarray:
@@ -51,10 +51,10 @@ def test_second_image_blends_checkers_and_drawing_works_on_either(window, qtbot,
     state, view = window.state, window.workspace.views["axial"]
     plain = _pixels(view)
     _load(window, qtbot, second_path)
-    model, layer = window.second_image.model, window.second_image.layer
+    model, layer = window.features["second-image"].controller.model, window.features["second-image"].controller.layer
     assert not model.coregistered.registered            # same grid: nothing to register
     np.testing.assert_array_equal(model.transform, np.eye(4))
-    assert "t2like" in window.second_image_panel.info.text()
+    assert "t2like" in window.features["second-image"].panel.info.text()
     voxel = np.rint(state.volume.world_to_voxel(state.crosshair)).astype(int)
     window.cursor_label.refresh()                      # both intensities in the status bar
     assert f"second {inverted(np.asarray(state.volume.data))[tuple(voxel)]:.4g}" in \
@@ -71,7 +71,7 @@ def test_second_image_blends_checkers_and_drawing_works_on_either(window, qtbot,
     qtbot.wait(50)
     blended = _pixels(view)
     # checkerboard: the first image on the mask's squares, the second on the others
-    window.act_checkerboard.trigger()
+    window.registry["second-checkerboard"].trigger()
     assert model.mode == "checkerboard"
     mask = checkerboard_mask(view._slice, model.checker_mm)
     np.testing.assert_array_equal(layer.composite(view), np.where(mask, first, second))
@@ -85,22 +85,22 @@ def test_second_image_blends_checkers_and_drawing_works_on_either(window, qtbot,
     x, y = view.world_to_screen(centre)
     QTest.mouseClick(view, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
                      QPoint(int(round(x)), int(round(y))))
-    on_first = state.points.xyz[-1].copy()
+    on_first = state.active.points.xyz[-1].copy()
     first_window = (state.window, state.level)
-    window.act_swap_base.trigger()
+    window.registry["second-swap-base"].trigger()
     assert model.base == "second"
     assert (state.window, state.level) == model.window_of("second") != first_window
     assert model.window_of("first") == first_window       # kept for when it is the base again
     np.testing.assert_array_equal(layer.composite(view), np.where(mask, second, first))
     QTest.mouseClick(view, Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
                      QPoint(int(round(x)), int(round(y))))
-    assert len(state.points) == 2
-    np.testing.assert_allclose(state.points.xyz[-1], on_first, atol=1e-9)
+    assert len(state.active.points) == 2
+    np.testing.assert_allclose(state.active.points.xyz[-1], on_first, atol=1e-9)
 
 
 def test_second_image_is_kept_with_the_session(window, qtbot, second_path, tmp_path):
     _load(window, qtbot, second_path)
-    model = window.second_image.model
+    model = window.features["second-image"].controller.model
     model.set_mode("checkerboard")
     model.set_checker_mm(6.0)
     model.set_base("second")
@@ -113,7 +113,7 @@ def test_second_image_is_kept_with_the_session(window, qtbot, second_path, tmp_p
     model.clear()
     assert not model.loaded
     window.open_session(session)
-    qtbot.waitUntil(lambda: model.loaded and not window.second_image.is_running, timeout=30000)
+    qtbot.waitUntil(lambda: model.loaded and not window.features["second-image"].controller.is_running, timeout=30000)
     assert (model.mode, model.checker_mm, model.base) == ("checkerboard", 6.0, "second")
     np.testing.assert_allclose(model.transform, np.eye(4))
     assert not window.unsaved                # restored from the file: nothing to save
@@ -140,11 +140,11 @@ def test_second_image_on_another_grid_is_registered_in_a_worker_and_can_be_cance
                        bias=0.1, scanner_offset_mm=(30.0, 0.0, 0.0))
     save_volume(second_path, moved.data, moved.affine)
     window.load_image(first_path)
-    model = window.second_image.model
+    model = window.features["second-image"].controller.model
     assert window.load_second_image(second_path)
-    assert window.second_image.is_running            # the GUI thread is free meanwhile
-    window.second_image.cancel()
-    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
+    assert window.features["second-image"].controller.is_running            # the GUI thread is free meanwhile
+    window.features["second-image"].controller.cancel()
+    qtbot.waitUntil(lambda: not window.features["second-image"].controller.is_running, timeout=30000)
     assert not model.loaded
     _load(window, qtbot, second_path)
     assert model.coregistered.registered
@@ -160,8 +160,8 @@ def test_second_image_shortcuts_are_in_help_and_the_readme(window):
 
     from app.actions import SHORTCUTS
 
-    keys = {window.act_open_second.shortcut().toString(), window.act_checkerboard.shortcut()
-            .toString(), window.act_swap_base.shortcut().toString()}
+    keys = {window.registry["open-second"].shortcut().toString(), window.registry["second-checkerboard"].shortcut()
+            .toString(), window.registry["second-swap-base"].shortcut().toString()}
     assert keys == {"Ctrl+Shift+I", "K", "Ctrl+B"}
     listed = {k for k, _ in SHORTCUTS}
     assert keys <= listed
@@ -174,10 +174,10 @@ def test_unreadable_second_image_is_a_one_line_error_naming_the_file(window, qtb
     bad = tmp_path / "broken_t2.nii.gz"
     bad.write_bytes(b"this is not an image")
     errors = []
-    window.second_image.error.connect(errors.append)
+    window.features["second-image"].controller.error.connect(errors.append)
     assert window.load_second_image(bad)
-    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
-    assert not window.second_image.model.loaded
+    qtbot.waitUntil(lambda: not window.features["second-image"].controller.is_running, timeout=30000)
+    assert not window.features["second-image"].controller.model.loaded
     assert len(errors) == 1 and "broken_t2.nii.gz" in errors[0] and "\n" not in errors[0]
     assert "Traceback" not in errors[0]
 
@@ -189,15 +189,15 @@ def test_session_drawn_on_the_second_image_reopens_with_the_first_images_window(
     state = window.state
     _load(window, qtbot, second_path)
     first_window = (state.window, state.level)
-    window.second_image.model.set_base("second")
+    window.features["second-image"].controller.model.set_base("second")
     assert (state.window, state.level) != first_window
     session = tmp_path / "s.json"
     assert window.save_session(path=session)
     second_path.unlink()
     errors = []
-    window.second_image.error.connect(errors.append)
+    window.features["second-image"].controller.error.connect(errors.append)
     window.open_session(session)
-    assert not window.second_image.model.loaded
+    assert not window.features["second-image"].controller.model.loaded
     assert errors and "t2like.nii.gz" in errors[0] and "not found" in errors[0]
     np.testing.assert_allclose((state.window, state.level), first_window)
 
@@ -205,9 +205,9 @@ def test_session_drawn_on_the_second_image_reopens_with_the_first_images_window(
 def test_a_second_load_while_one_runs_is_refused_and_the_first_one_completes(window, qtbot,
                                                                           second_path):
     errors = []
-    window.second_image.error.connect(errors.append)
+    window.features["second-image"].controller.error.connect(errors.append)
     assert window.load_second_image(second_path)
     assert not window.load_second_image(second_path.with_name("other.nii.gz"))
     assert errors and "still loading" in errors[0]
-    qtbot.waitUntil(lambda: not window.second_image.is_running, timeout=30000)
-    assert window.second_image.model.path.name == "t2like.nii.gz"
+    qtbot.waitUntil(lambda: not window.features["second-image"].controller.is_running, timeout=30000)
+    assert window.features["second-image"].controller.model.path.name == "t2like.nii.gz"

@@ -38,8 +38,8 @@ def click(view, xy, modifier=NO_MOD, button=LEFT):
 
 def test_demo_loads_image_and_model_at_crosshair(window):
     state = window.state
-    assert state.volume is not None and state.model is not None
-    centroid = state.surface_vertices().mean(axis=0)
+    assert state.volume is not None and state.active.model is not None
+    centroid = state.active.surface_vertices().mean(axis=0)
     # the crosshair starts on the model (snapped to the nearest voxel centre, 1 mm grid)
     assert np.all(np.abs(state.crosshair - centroid) <= 0.5 + 1e-9)
     for name, view in window.workspace.views.items():
@@ -66,15 +66,15 @@ def test_click_in_axial_view_lands_on_the_voxel_displayed_there(window, qtbot):
                                    window.state.level)[0]
         assert abs(int(grey) - int(expected)) <= 2
         click(view, (x, y))
-        assert len(window.state.points) == n
-        placed = window.state.points.xyz[-1]
+        assert len(window.state.active.points) == n
+        placed = window.state.active.points.xyz[-1]
         assert placed[2] == pytest.approx(world[2], abs=1e-9)      # on the slice
         assert np.linalg.norm(placed - world) <= 0.75 / scale + 1e-9  # within a pixel
     # radiological convention: screen left is patient right (+x), screen up is anterior (+y)
-    xs = view.world_to_screen(window.state.points.xyz)
+    xs = view.world_to_screen(window.state.active.points.xyz)
     order = np.argsort(xs[:, 0])
-    assert np.all(np.diff(window.state.points.xyz[order, 0]) < 0)
-    assert np.all(np.diff(window.state.points.xyz[np.argsort(xs[:, 1]), 1]) < 0)
+    assert np.all(np.diff(window.state.active.points.xyz[order, 0]) < 0)
+    assert np.all(np.diff(window.state.active.points.xyz[np.argsort(xs[:, 1]), 1]) < 0)
 
 
 def test_navigate_click_moves_the_other_views(window):
@@ -121,12 +121,12 @@ def _truth_points(model, coef, shift, frames=(("axial", 0.0), ("axial", 4.0), ("
 
 
 def test_refit_moves_the_surface_towards_clicked_points(window, qtbot):
-    model = window.state.model
+    model = window.state.active.model
     rng = np.random.default_rng(3)
     coef = 1.5 * rng.standard_normal(model.n_factors) * np.sqrt(model.coef_var)
     truth, slices = _truth_points(model, coef, shift=np.array([1.5, -2.0, 1.0]))
     faces = model.faces
-    before = surface_distance(truth, window.state.surface_vertices(), faces).mean()
+    before = surface_distance(truth, window.state.active.surface_vertices(), faces).mean()
     window.set_tool("draw")
     clicked = 0
     for name, depth, pts in slices:
@@ -137,16 +137,16 @@ def test_refit_moves_the_surface_towards_clicked_points(window, qtbot):
         for p in pts:
             click(view, view.world_to_screen(p))
             clicked += 1
-    assert len(window.state.points) == clicked
+    assert len(window.state.active.points) == clicked
     applied = []
     window.refit_applied.connect(applied.append)
     qtbot.waitUntil(lambda: bool(applied) and not window.runner.is_busy, timeout=20000)
     # distance from the true surface's vertices to the fitted surface (sliding along the
     # surface is free for a fit to contour points, so vertex-to-vertex distances are not used)
-    after = surface_distance(truth, window.state.surface_vertices(), faces).mean()
+    after = surface_distance(truth, window.state.active.surface_vertices(), faces).mean()
     assert after < 0.6 * before and after < 1.5, (before, after)
-    assert window.state.fit_info.residual_mm < 1.0
-    assert window.state.fit_info.n_iter > 0
+    assert window.state.active.fit_info.residual_mm < 1.0
+    assert window.state.active.fit_info.n_iter > 0
     # the contour overlay follows the fit: the axial cross-section is now near the truth's
     axial = window.workspace.views["axial"]
     seg = axial._segments_uv.reshape(-1, 2)
@@ -162,18 +162,18 @@ def test_undo_redo_with_keyboard_shortcuts(window, qtbot):
     c = window.state.crosshair
     for dx in (0.0, 4.0, 8.0):
         click(view, view.world_to_screen(c + [dx, 0, 0]))
-    assert len(window.state.points) == 3
+    assert len(window.state.active.points) == 3
     with qtbot.waitActive(window):
         window.activateWindow()
     view.setFocus()
     QTest.keyClick(view, Qt.Key.Key_Z, Qt.KeyboardModifier.ControlModifier)
-    assert len(window.state.points) == 2
+    assert len(window.state.active.points) == 2
     QTest.keyClick(view, Qt.Key.Key_Z, Qt.KeyboardModifier.ControlModifier)
-    assert len(window.state.points) == 1
+    assert len(window.state.active.points) == 1
     QTest.keyClick(view, Qt.Key.Key_Z,
                    Qt.KeyboardModifier.ControlModifier | Qt.KeyboardModifier.ShiftModifier)
-    assert len(window.state.points) == 2
-    assert window.state.points.xyz[-1] == pytest.approx(window.state.crosshair + [4, 0, 0], abs=1.0)
+    assert len(window.state.active.points) == 2
+    assert window.state.active.points.xyz[-1] == pytest.approx(window.state.crosshair + [4, 0, 0], abs=1.0)
     window.wait_for_refit()
 
 
@@ -188,14 +188,14 @@ def test_drag_adds_spaced_points_as_one_undo_step(window):
         xy = (1 - t) * start + t * end
         QTest.mouseMove(view, QPoint(*np.rint(xy).astype(int)))
     QTest.mouseRelease(view, LEFT, NO_MOD, QPoint(*np.rint(end).astype(int)))
-    n = len(window.state.points)
+    n = len(window.state.active.points)
     assert 6 <= n <= 10          # 12 mm at >= 1.5 mm spacing
-    gaps = np.linalg.norm(np.diff(window.state.points.xyz, axis=0), axis=1)
+    gaps = np.linalg.norm(np.diff(window.state.active.points.xyz, axis=0), axis=1)
     assert np.all(gaps >= 1.5 - 1e-9)
-    normals = window.state.points.normals()
+    normals = window.state.active.points.normals()
     assert np.allclose(np.abs(normals[:, 1]), 1.0, atol=0.05)   # perpendicular to a left-right stroke
     window.undo()
-    assert len(window.state.points) == 0
+    assert len(window.state.active.points) == 0
     window.wait_for_refit()
 
 
@@ -206,32 +206,32 @@ def test_delete_point_and_clear_slice(window):
     for dx in (0.0, 5.0, 10.0):
         click(view, view.world_to_screen(c + [dx, 0, 0]))
     click(view, view.world_to_screen(c + [5.0, 0, 0]), Qt.KeyboardModifier.ControlModifier)
-    assert len(window.state.points) == 2
-    assert not np.any(np.isclose(window.state.points.xyz[:, 0], c[0] + 5.0, atol=0.6))
+    assert len(window.state.active.points) == 2
+    assert not np.any(np.isclose(window.state.active.points.xyz[:, 0], c[0] + 5.0, atol=0.6))
     window.state.step_slice("axial", 2)
     click(view, view.world_to_screen(window.state.crosshair))
-    assert len(window.state.points) == 3
+    assert len(window.state.active.points) == 3
     window.active_view = "axial"
     window.clear_active_slice()
-    assert len(window.state.points) == 2
+    assert len(window.state.active.points) == 2
     window.state.step_slice("axial", -2)
     window.clear_active_slice()
-    assert len(window.state.points) == 0
+    assert len(window.state.active.points) == 0
     window.undo()
-    assert len(window.state.points) == 2
+    assert len(window.state.active.points) == 2
     window.wait_for_refit()
 
 
 def test_factor_slider_sets_coefficient_in_sd_units(window):
     panel = window.factors_panel
-    model = window.state.model
+    model = window.state.active.model
     assert len(panel.sliders) == model.n_factors
     panel.set_factor_sd(0, 2.0)
     expected = model.world_instance(np.r_[2.0 * np.sqrt(model.coef_var[0]), np.zeros(model.n_factors - 1)])
-    assert np.allclose(window.state.surface_vertices(), expected)
+    assert np.allclose(window.state.active.surface_vertices(), expected)
     assert panel.value_labels[0].text() == "+2.00"
     window.undo()
-    assert np.allclose(window.state.coef, 0.0)
+    assert np.allclose(window.state.active.coef, 0.0)
     assert panel.sliders[0].value() == 0
 
 
@@ -239,10 +239,10 @@ def test_place_here_moves_model_centre_to_crosshair(window):
     target = window.state.crosshair + np.array([20.0, -10.0, 5.0])
     window.state.set_crosshair(target)
     window.place_here()
-    assert window.state.surface_vertices().mean(axis=0) == pytest.approx(window.state.crosshair, abs=1e-6)
+    assert window.state.active.surface_vertices().mean(axis=0) == pytest.approx(window.state.crosshair, abs=1e-6)
     window.undo()
-    assert window.state.surface_vertices().mean(axis=0) == pytest.approx(
-        window.state.model.world_instance().mean(axis=0), abs=1e-6)
+    assert window.state.active.surface_vertices().mean(axis=0) == pytest.approx(
+        window.state.active.model.world_instance().mean(axis=0), abs=1e-6)
 
 
 def test_bad_model_file_is_reported_not_raised(window, tmp_path):
@@ -251,18 +251,18 @@ def test_bad_model_file_is_reported_not_raised(window, tmp_path):
     window.open_path(bad)
     message = window.statusBar().currentMessage()
     assert "broken.npz" in message and "Traceback" not in message
-    assert window.state.model is not None       # the previous model is kept
+    assert window.state.active.model is not None       # the previous model is kept
 
 
 def test_fit_error_keeps_the_surface_and_shows_the_message(window, qtbot):
-    before = window.state.surface_vertices().copy()
+    before = window.state.active.surface_vertices().copy()
     window.fit_panel.set_settings(pose="similarity")
     window.set_tool("draw")
     view = window.workspace.views["axial"]
     click(view, view.world_to_screen(window.state.crosshair))   # one point: too few for a similarity
     window.wait_for_refit()
-    assert window.state.fit_info.message
-    assert np.allclose(window.state.surface_vertices(), before)
+    assert window.state.active.fit_info.message
+    assert np.allclose(window.state.active.surface_vertices(), before)
 
 
 def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
@@ -274,7 +274,7 @@ def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
     path = tmp_path / "other.npz"
     save_model(path, model)
     window.load_model(path)
-    assert window.state.model.n_vertices == load_model(path).n_vertices
+    assert window.state.active.model.n_vertices == load_model(path).n_vertices
     assert len(window.factors_panel.sliders) == 3
 
 
@@ -292,7 +292,7 @@ def test_builder_tab_is_created_lazily_and_hands_over_its_model(window, qtbot, t
     save_model(path, pca_model(shapes + window.state.crosshair, faces, n_factors=2))
     window.builder.use_for_segmentation.emit(str(path))
     assert window.tabs.currentWidget() is window.workspace and window.side_dock.isVisible()
-    assert window.state.model_path == path and window.state.model.n_factors == 2
+    assert window.state.active.model_path == path and window.state.active.model.n_factors == 2
 
 
 def test_status_bar_reports_position_voxel_and_value_under_cursor(window):
@@ -331,13 +331,13 @@ def test_zoom_pan_keep_clicks_exact_and_window_drag_changes_contrast(window):
     window.set_tool("draw")
     target = window.state.crosshair + np.array([3.0, -4.0, 0.0])
     click(view, view.world_to_screen(target))
-    assert np.linalg.norm(window.state.points.xyz[-1] - target) <= 0.75 / view._base()[0] + 1e-9
+    assert np.linalg.norm(window.state.active.points.xyz[-1] - target) <= 0.75 / view._base()[0] + 1e-9
     w0, l0 = window.state.window, window.state.level
     QTest.mousePress(view, LEFT, Qt.KeyboardModifier.ShiftModifier, QPoint(100, 100))
     QTest.mouseMove(view, QPoint(160, 70))
     QTest.mouseRelease(view, LEFT, Qt.KeyboardModifier.ShiftModifier, QPoint(160, 70))
     assert window.state.window > w0 and window.state.level > l0
-    assert len(window.state.points) == 1          # shift-drag did not draw
+    assert len(window.state.active.points) == 1          # shift-drag did not draw
     window.wait_for_refit()
 
 
@@ -370,7 +370,7 @@ def test_oblique_image_clicks_and_display_agree(qtbot, tmp_path, monkeypatch):
         image = view.grab().toImage()
         x, y = view.world_to_screen(world + [4.0, 3.0, 0])       # off the crosshair lines
         click(view, (x, y))
-        placed = win.state.points.xyz[-1]
+        placed = win.state.active.points.xyz[-1]
         assert abs(placed[2] - world[2]) < 1e-9
         assert np.linalg.norm(placed - (world + [4.0, 3.0, 0])) <= 0.75 / view._base()[0] + 1e-9
         # the painted grey level is the trilinear intensity at that world point
@@ -387,12 +387,12 @@ def test_shortcuts_are_listed_in_help(window):
     from app.window import SHORTCUTS
 
     listed = " ".join(key for key, _ in SHORTCUTS)
-    for action in (window.act_open_image, window.act_load_model, window.act_save_session,
-                   window.act_undo, window.act_redo, window.act_export, window.act_place):
+    for action_id in ("open-image", "load-model", "save-session", "undo", "redo", "export-all",
+                      "place-here"):
+        action = window.registry[action_id]
         key = action.shortcut().toString()
         assert key and key in listed, action.text()
-    help_menu = [m for m in window.menuBar().actions() if m.text() == "&Help"][0].menu()
-    assert window.act_shortcuts in help_menu.actions()
+    assert window.registry["shortcuts"] in window.registry.menu("help").actions()
 
 
 def test_dropping_a_model_file_loads_it(window, tmp_path):
@@ -413,7 +413,7 @@ def test_dropping_a_model_file_loads_it(window, tmp_path):
     assert enter.isAccepted()
     event = QDropEvent(QPointF(50, 50), Qt.DropAction.CopyAction, mime, Qt.MouseButton.NoButton, NO_MOD)
     window.dropEvent(event)             # Qt routes a Drop only inside a real drag session
-    assert window.state.model_path == path and window.state.model.n_factors == 3
+    assert window.state.active.model_path == path and window.state.active.model.n_factors == 3
 
 
 def test_open_stroke_normals_point_out_of_the_model(window):
@@ -421,7 +421,7 @@ def test_open_stroke_normals_point_out_of_the_model(window):
     from core.geometry.toolkit import vertex_normals
 
     state = window.state
-    vertices, faces = state.surface_vertices(), state.model.faces
+    vertices, faces = state.active.surface_vertices(), state.active.model.faces
     normals = vertex_normals(vertices, faces)
     depth = state.crosshair[2]
     from core.geometry.slicing import polylines
@@ -429,8 +429,8 @@ def test_open_stroke_normals_point_out_of_the_model(window):
     line = polylines(vertices, faces, np.array([0, 0, depth]), np.array([0, 0, 1.0]))[0]
     stroke = line.points[: max(4, len(line.points) // 4)]      # a quarter of the outline
     for p in stroke:
-        state.add_point(p, "axial", depth, checkpoint=False)
-    got = state.points.normals((vertices, normals))
+        state.active.add_point(p, "axial", depth, checkpoint=False)
+    got = state.active.points.normals((vertices, normals))
     from scipy.spatial import cKDTree
 
     _, near = cKDTree(vertices).query(stroke)
@@ -489,7 +489,7 @@ def test_a_click_with_a_quick_refit_is_painted_once_with_its_new_contours(window
 
     window.set_tool("draw")
     view = window.workspace.views["axial"]
-    centre = window.state.surface_vertices().mean(axis=0)
+    centre = window.state.active.surface_vertices().mean(axis=0)
     cross = window.state.crosshair.copy()
     cross[2] = centre[2]
     window.state.set_crosshair(cross)

@@ -70,7 +70,7 @@ def test_export_label_map_mesh_and_points_reread(qtbot, tmp_path, state_dir):
     assert labels.shape == image.shape
     assert np.allclose(labels.affine, image.affine)
     assert set(np.unique(labels.data)) == {0, 1}
-    vertices, faces = window.state.surface_vertices(), window.state.model.faces
+    vertices, faces = window.state.active.surface_vertices(), window.state.active.model.faces
     inside_mm3 = float(labels.data.sum()) * abs(np.linalg.det(image.affine[:3, :3]))
     assert inside_mm3 == pytest.approx(mesh_volume(vertices, faces), rel=0.12)
     # points 1.5 mm inside / outside the surface along its normals are labelled 1 / 0
@@ -85,7 +85,7 @@ def test_export_label_map_mesh_and_points_reread(qtbot, tmp_path, state_dir):
 
     for name in ("points.csv", "points.mrk.json"):
         pset = load_points(tmp_path / "out" / name)
-        assert np.allclose(pset.points, window.state.points.xyz, atol=1e-5), name
+        assert np.allclose(pset.points, window.state.active.points.xyz, atol=1e-5), name
     window.close()
 
 
@@ -111,7 +111,7 @@ def test_session_round_trip_with_relative_paths(qtbot, tmp_path, state_dir):
     assert not window.windowTitle().endswith(" *") and "session.json" in window.windowTitle()
     doc = json.loads(session_file.read_text())
     assert doc["image"] == "data/t1.nii.gz" and doc["model"] == "data/model.npz"
-    points, coef, pose = window.state.points, window.state.coef.copy(), window.state.pose.copy()
+    points, coef, pose = window.state.active.points, window.state.active.coef.copy(), window.state.active.pose.copy()
     window.close()
 
     moved = tmp_path / "elsewhere"
@@ -119,9 +119,9 @@ def test_session_round_trip_with_relative_paths(qtbot, tmp_path, state_dir):
     other = _window(qtbot)
     other.open_session(moved / "session.json")
     assert other.state.image_path.resolve() == (moved / "data" / "t1.nii.gz").resolve()
-    assert np.allclose(other.state.points.xyz, points.xyz)
-    assert np.array_equal(other.state.points.frame, points.frame)
-    assert np.allclose(other.state.coef, coef) and np.allclose(other.state.pose, pose)
+    assert np.allclose(other.state.active.points.xyz, points.xyz)
+    assert np.array_equal(other.state.active.points.frame, points.frame)
+    assert np.allclose(other.state.active.coef, coef) and np.allclose(other.state.active.pose, pose)
     assert (other.state.window, other.state.level) == (300.0, 120.0)
     assert other.factors_panel.value_labels[1].text() == "+1.50"
     other.close()
@@ -138,8 +138,8 @@ def test_autosave_and_recovery_after_a_crash(qtbot, tmp_path, state_dir):
     qtbot.waitUntil(lambda: window.sessions.recovery.path.exists(), timeout=5000)
     window._autosave_timer.stop()
     window.write_recovery()                      # the autosave of the last edit
-    points = window.state.points.xyz.copy()
-    coef = window.state.coef.copy()
+    points = window.state.active.points.xyz.copy()
+    coef = window.state.active.coef.copy()
 
     # a run that autosaved the same work and then died without cleaning up
     crashing_run("r.write(s.load_session(sys.argv[1]))", str(window.sessions.recovery.path))
@@ -149,9 +149,9 @@ def test_autosave_and_recovery_after_a_crash(qtbot, tmp_path, state_dir):
     fresh = _window(qtbot, recovery=True)
     assert fresh.offer_recovery(ask=lambda text: asked.append(text) or True)
     assert "6 contour point" in asked[0]
-    assert np.allclose(fresh.state.points.xyz, points)
-    assert np.allclose(fresh.state.coef, coef)
-    assert fresh.state.volume is not None and fresh.state.model is not None
+    assert np.allclose(fresh.state.active.points.xyz, points)
+    assert np.allclose(fresh.state.active.coef, coef)
+    assert fresh.state.volume is not None and fresh.state.active.model is not None
     assert not fresh.offer_recovery(ask=lambda text: True)   # offered once
     fresh.close()
     assert not list(state_dir.glob("recovery-*"))

@@ -102,7 +102,7 @@ def test_two_structures_draw_undo_save_reopen(window, qtbot, tmp_path):
     assert np.allclose(b.coef, second.coef) and np.allclose(b.pose, second.pose)
     assert b.name == "caudate R" and b.side == "right" and b.color == (10, 200, 90)
     assert b.model_path.name == "right_caudate.npz"
-    assert not other.state.can_undo() and not b.can_undo()
+    assert not other.state.active.can_undo() and not b.can_undo()
     other.state.set_active(b)
     assert other.factors_panel.value_labels[0].text() == \
         f"{b.coef[0] / np.sqrt(b.model.coef_var[0]):+.2f}"

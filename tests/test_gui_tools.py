@@ -61,44 +61,44 @@ def test_label_overlay_is_the_exported_map_and_its_volume_is_shown(window, qtbot
     s = window.state.active
     labels = window.exports.label_map()
     # the overlay on this slice is the exported map's slice, voxel for voxel (axis-aligned demo)
-    mask = window.labels.slice_mask(s, view)
+    mask = window.features["editing"].overlay.slice_mask(s, view)
     assert mask.sum() > 20
     volume = window.state.volume
     ijk = np.rint(np.linalg.inv(volume.affine) @ np.append(window.state.crosshair, 1))[:3]
     assert mask.sum() == labels[:, :, int(ijk[2])].sum()
     # the volume read-out: voxel count x voxel volume, close to the surface's own volume
     voxel = abs(np.linalg.det(volume.affine[:3, :3]))
-    shown = window.labels.volume_mm3()
+    shown = window.features["editing"].overlay.volume_mm3()
     assert shown == pytest.approx(labels.sum() * voxel)
     truth = mesh_volume(s.surface_vertices(), s.model.faces)
     assert abs(shown / truth - 1) < 0.05
-    qtbot.waitUntil(lambda: f"{shown:,.0f} mm³" in window.volume_label.text(), timeout=2000)
+    qtbot.waitUntil(lambda: f"{shown:,.0f} mm³" in window.features["editing"].volume_label.text(), timeout=2000)
     # fill colours the pixels inside; opacity 0 leaves the image as it was
-    window.label_panel.outline.setChecked(False)
+    window.features["editing"].panel.outline.setChecked(False)
     x, y = view.world_to_screen(_inside_point(window, view)) + 3   # off the crosshair's lines
     filled = view.grab().toImage().pixelColor(int(x), int(y))
-    window.label_panel.opacity.setValue(0)
+    window.features["editing"].panel.opacity.setValue(0)
     plain = view.grab().toImage().pixelColor(int(x), int(y))
     assert _towards(filled, s.color) > _towards(plain, s.color) + 12  # the structure's tint
-    window.label_panel.opacity.setValue(60)
-    assert window.labels.opacity == pytest.approx(0.6)
+    window.features["editing"].panel.opacity.setValue(60)
+    assert window.features["editing"].overlay.opacity == pytest.approx(0.6)
     # outline and fill switch independently
     view.grab()
     assert not view.show_outline
-    window.label_panel.outline.setChecked(True)
+    window.features["editing"].panel.outline.setChecked(True)
     view.grab()
     assert view.show_outline
-    window.label_panel.fill.setChecked(False)
-    assert not window.labels.fill
-    window.labels.set_fill(True)
-    assert window.label_panel.fill.isChecked()  # the panel follows the model
+    window.features["editing"].panel.fill.setChecked(False)
+    assert not window.features["editing"].overlay.fill
+    window.features["editing"].overlay.set_fill(True)
+    assert window.features["editing"].panel.fill.isChecked()  # the panel follows the model
 
 
 def _inside_point(window, view):
     """A world point on the axial slice inside the label map (the first labelled voxel)."""
     from scipy.ndimage import distance_transform_edt
 
-    mask = window.labels.slice_mask(window.state.active, view)
+    mask = window.features["editing"].overlay.slice_mask(window.state.active, view)
     row, col = np.unravel_index(np.argmax(distance_transform_edt(mask)), mask.shape)
     u, v = view._slice.pixel_to_plane(col, row)  # the voxel deepest inside
     return view.frame.to_world(np.array([u, v, view.depth]))
@@ -110,7 +110,7 @@ def test_brush_and_eraser_edit_the_label_map_with_undo_session_and_export(window
     s = window.state.active
     before = int(window.exports.label_map().sum())
     window.set_tool("brush")
-    window.label_panel.radius.setValue(3.0)
+    window.features["editing"].panel.radius.setValue(3.0)
     # a stroke outside the structure, 6 mm long
     start = window.state.crosshair + [25.0, 0.0, 0.0]
     a, b = view.world_to_screen(start), view.world_to_screen(start + [6.0, 0, 0])
@@ -120,7 +120,7 @@ def test_brush_and_eraser_edit_the_label_map_with_undo_session_and_export(window
     # a 3 mm brush dragged 6 mm on 1 mm voxels: between the disc (29) and the swept area
     assert 29 <= added <= 29 + 7 * 6 + 10
     assert int(window.exports.label_map().sum()) == before + added
-    qtbot.waitUntil(lambda: f"+{added}/−0 by hand" in window.volume_label.text(), timeout=2000)
+    qtbot.waitUntil(lambda: f"+{added}/−0 by hand" in window.features["editing"].volume_label.text(), timeout=2000)
     # the eraser inside the structure removes voxels; Ctrl+brush erases too
     window.set_tool("eraser")
     inside = view.world_to_screen(_inside_point(window, view))
@@ -218,7 +218,7 @@ def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path
 
     s = window.state.active
     vertices = s.surface_vertices()
-    window.act_zoom_structure.trigger()
+    window.registry["zoom-structure"].trigger()
     for view in window.workspace.views.values():
         xy = view.world_to_screen(vertices)
         span = xy.max(axis=0) - xy.min(axis=0)
@@ -230,17 +230,17 @@ def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path
     np.testing.assert_allclose(window.state.crosshair, vertices.mean(axis=0), atol=1.0)
     # one view maximised (F) and back
     window.active_view = "coronal"
-    window.act_maximise.trigger()
+    window.registry["maximise"].trigger()
     views = window.workspace.views
     assert views["coronal"].isVisible() and not views["axial"].isVisible()
-    window.act_maximise.trigger()
+    window.registry["maximise"].trigger()
     assert all(v.isVisible() for v in views.values())
-    nav.set_layout(window, "sagittal")
+    window.features["navigation"].set_layout("sagittal")
     assert views["sagittal"].isVisible() and not views["coronal"].isVisible()
-    nav.set_layout(window, "2 x 2")
+    window.features["navigation"].set_layout("2 x 2")
     # colour maps: the pixels follow the lookup table of the windowed grey value
     view = views["axial"]
-    nav.set_colormap(window, "hot")
+    window.features["navigation"].set_colormap("hot")
     lut = nav.colormap_lut("hot")
     assert lut.shape == (256, 3) and lut[0].tolist() != lut[-1].tolist()
     from core.geometry.planes import window_to_uint8
@@ -248,7 +248,7 @@ def test_zoom_to_structure_layouts_colour_maps_and_typed_window(window, tmp_path
     grey = window_to_uint8(view._slice.data, window.state.window, window.state.level)
     r, c = grey.shape[0] // 2, grey.shape[1] // 2
     assert view._qimage.pixelColor(c, r).getRgb()[:3] == tuple(lut[grey[r, c]])
-    nav.set_colormap(window, "inverted grey")
+    window.features["navigation"].set_colormap("inverted grey")
     assert view._qimage.pixelColor(c, r).red() == 255 - grey[r, c]
     with pytest.raises(ValueError, match="colour map must be one of"):
         nav.colormap_lut("rainbow")
@@ -268,8 +268,9 @@ def test_recent_files_and_screenshot(window, tmp_path):
     nav.remember(demo.demo_image())
     assert nav.recent_files()[0] == str(demo.demo_image().resolve())
     assert len(set(nav.recent_files())) == len(nav.recent_files())  # no duplicates
-    nav._fill_recent(window, window.recent_menu)
-    assert [a.text() for a in window.recent_menu.actions()][0] == demo.demo_image().name
+    recent_menu = window.registry.menu("file.recent")
+    window.features["navigation"].fill_recent()
+    assert [a.text() for a in recent_menu.actions()][0] == demo.demo_image().name
     path = tmp_path / "shot.png"
     window.save_screenshot(path)
     from PySide6.QtGui import QImage
@@ -297,18 +298,18 @@ def test_3d_view_has_a_labelled_orientation_cube_and_plane_and_point_toggles(qtb
         assert [cube.GetXPlusFaceText(), cube.GetXMinusFaceText(), cube.GetYPlusFaceText(),
                 cube.GetYMinusFaceText(), cube.GetZPlusFaceText(), cube.GetZMinusFaceText()] \
             == list(FACES.values()) == ["R", "L", "A", "P", "S", "I"]
-        win.state.add_point(win.state.crosshair, "axial", win.workspace.views["axial"].depth)
+        win.state.active.add_point(win.state.crosshair, "axial", win.workspace.views["axial"].depth)
         view.flush()
         assert view._plane_actors and view._points_actor is not None
-        win.act_show_planes.trigger()            # off
+        win.registry["show-planes"].trigger()            # off
         assert not any(a.GetVisibility() for a in view._plane_actors.values())
-        win.act_show_points.trigger()
+        win.registry["show-points"].trigger()
         assert not view._points_actor.GetVisibility()
-        win.state.add_point(win.state.crosshair + [1, 0, 0], "axial",
+        win.state.active.add_point(win.state.crosshair + [1, 0, 0], "axial",
                             win.workspace.views["axial"].depth)
         view.flush()                             # redraws keep the choice
         assert not view._points_actor.GetVisibility()
-        win.act_show_planes.trigger()            # on again
+        win.registry["show-planes"].trigger()            # on again
         assert all(a.GetVisibility() for a in view._plane_actors.values())
     finally:
         win.runner.cancel()
@@ -328,7 +329,7 @@ def test_ruler_and_angle_in_a_slice_kept_with_the_session_and_exported(window, t
     window.set_tool("ruler")
     a, b = view.world_to_screen(c), view.world_to_screen(c + [12.0, 16.0, 0.0])
     drag(view, [a, (a + b) / 2, b])
-    store = window.measurements
+    store = window.features["measurements"].store
     assert len(store.items) == 1
     ruler = store.items[0]
     px = 1.0 / view._base()[0]                      # mm per pixel
@@ -347,9 +348,9 @@ def test_ruler_and_angle_in_a_slice_kept_with_the_session_and_exported(window, t
     # session and export
     path = tmp_path / "session.json"
     assert window.save_session(path=path)
-    window.measurements.clear()
+    window.features["measurements"].store.clear()
     window.open_session(path)
-    assert [m.kind for m in window.measurements.items] == ["ruler", "angle"]
+    assert [m.kind for m in window.features["measurements"].store.items] == ["ruler", "angle"]
     written = {p.name for p in window.export_all(tmp_path / "out")}
     assert {"measurements.csv", "measurements.mrk.json"} <= written
     rows = (tmp_path / "out" / "measurements.csv").read_text().splitlines()
@@ -397,7 +398,7 @@ def test_label_fill_follows_the_surface_on_every_repaint(window, qtbot):
     repaint the new fill, not the cached old one."""
     view = window.workspace.views["axial"]
     s = window.state.active
-    window.label_panel.outline.setChecked(False)
+    window.features["editing"].panel.outline.setChecked(False)
     inside = _inside_point(window, view)
     x, y = view.world_to_screen(inside) + 3           # off the crosshair's lines
     tinted = view.grab().toImage().pixelColor(int(x), int(y))

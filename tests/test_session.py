@@ -379,7 +379,7 @@ def _model(n_factors: int):
 def test_session_whose_coefficients_do_not_fit_the_model_is_refused_whole(tmp_path):
     """Before: three Qt-slot tracebacks, then the error; now one error naming the session,
     raised before any of it is applied (the GUI's session controller reads through it)."""
-    from app.controllers import SessionController
+    from app.model.controllers import SessionController
     from core.io import save_model
 
     save_model(tmp_path / "m.npz", _model(3))
@@ -534,8 +534,8 @@ def test_running_writer_holds_its_lock(state_dir):
 
 
 def test_recovered_session_that_does_not_fit_its_model_is_refused(state_dir, tmp_path):
-    from app.controllers import SessionController
-    from app.state import WorkspaceState
+    from app.model.controllers import SessionController
+    from app.model.state import WorkspaceState
     from core.io import save_model
 
     save_model(tmp_path / "m.npz", _model(3))

@@ -1,4 +1,4 @@
-"""The Qt-free workspace model (app.state): events, structures, per-structure undo; layering rules.
+"""The Qt-free workspace model (app.model.state): events, structures, per-structure undo; layering rules.
 
 No display and no Qt needed: the model is plain Python (napari's ViewerModel pattern).
 """
@@ -13,14 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.events import EmitterGroup
-from app.state import STRUCTURE_COLORS, Structure, WorkspaceState
+from app.model.events import EmitterGroup
+from app.model.state import STRUCTURE_COLORS, Structure, WorkspaceState
 from core.io import Volume
 from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
 ROOT = Path(__file__).resolve().parents[1]
 QT_MODULES = ("PySide6", "PyQt5", "PyQt6", "pyvistaqt", "qtpy", "vtk", "pyvista")
-QT_FREE = ("app/state.py", "app/events.py", "app/controllers.py", "app/second_image.py")
+# app/model/ is the Qt-free model (issue 30): every module in it, whatever is added later
+QT_FREE = tuple(sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "app" / "model").glob("*.py")))
 
 
 def _imports(path: Path) -> list[str]:
@@ -38,7 +39,9 @@ def test_workspace_model_imports_no_qt():
         bad = [n for n in _imports(ROOT / rel) if n.split(".")[0] in QT_MODULES]
         assert bad == [], rel
     # and nothing it imports pulls Qt or VTK in
-    code = ("import sys, app.state, app.events, app.controllers, app.second_image; "
+    modules = ", ".join(rel[:-3].replace("/", ".") for rel in QT_FREE if "__init__" not in rel)
+    assert "app.model.state" in modules and "app.model.planning" in modules
+    code = (f"import sys, {modules}; "
             f"bad = [m for m in sys.modules if m.split('.')[0] in {QT_MODULES!r}]; "
             "print(bad); sys.exit(1 if bad else 0)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
@@ -100,18 +103,18 @@ def _recorder(state: WorkspaceState):
 def test_events_fire_once_per_change(model):
     state = WorkspaceState()
     seen = _recorder(state)
-    state.set_model(model, "m.npz")
+    state.active.set_model(model, "m.npz")
     sid = state.active.id
     assert (sid, "model") in seen and "model" in seen and "surface" in seen
     seen.clear()
-    state.add_point([1.0, 2.0, 3.0], "axial", 3.0)
+    state.active.add_point([1.0, 2.0, 3.0], "axial", 3.0)
     assert seen.count("points") == 1 and seen.count("edited") == 1 and seen.count("history") == 1
     assert (sid, "points") in seen and "surface" not in seen
     seen.clear()
     with state.events.blocked():
-        state.add_point([2.0, 2.0, 3.0], "axial", 3.0)
+        state.active.add_point([2.0, 2.0, 3.0], "axial", 3.0)
     assert seen == []
-    assert len(state.points) == 2
+    assert len(state.active.points) == 2
 
 
 def test_each_structure_keeps_its_points_and_undo(model):
@@ -122,41 +125,41 @@ def test_each_structure_keeps_its_points_and_undo(model):
     second.set_model(model, "right.npz")
     assert state.active is second and second.color != first.color
     assert second.color in STRUCTURE_COLORS
-    state.add_point([0.0, 0.0, 1.0], "axial", 1.0)
-    state.add_point([1.0, 0.0, 1.0], "axial", 1.0)
+    state.active.add_point([0.0, 0.0, 1.0], "axial", 1.0)
+    state.active.add_point([1.0, 0.0, 1.0], "axial", 1.0)
     state.set_active(first)
-    state.add_point([5.0, 5.0, 2.0], "coronal", 5.0)
+    state.active.add_point([5.0, 5.0, 2.0], "coronal", 5.0)
     assert len(first.points) == 1 and len(second.points) == 2
-    assert state.undo()                       # undoes in the active (first) structure only
+    assert state.active.undo()                       # undoes in the active (first) structure only
     assert len(first.points) == 0 and len(second.points) == 2
-    assert not state.can_undo()
+    assert not state.active.can_undo()
     state.set_active(second)
-    assert state.can_undo() and len(state.points) == 2
-    state.undo()
+    assert state.active.can_undo() and len(state.active.points) == 2
+    state.active.undo()
     assert len(second.points) == 1 and len(first.points) == 0
-    assert state.redo() and len(second.points) == 2
+    assert state.active.redo() and len(second.points) == 2
 
 
 def test_switching_the_active_structure_reemits_its_events(model):
     state = WorkspaceState()
-    state.set_model(model)
+    state.active.set_model(model)
     other = state.add_structure(activate=False)
     seen = _recorder(state)
     state.set_active(other)
     assert seen[:1] == ["active"] and {"points", "surface", "model", "history"} <= set(seen)
-    assert state.model is None and state.surface_vertices() is None
+    assert state.active.model is None and state.active.surface_vertices() is None
 
 
 def test_edits_of_another_structure_do_not_touch_the_active_one(model):
     state = WorkspaceState()
-    state.set_model(model)
+    state.active.set_model(model)
     other = state.add_structure(activate=False)
     other.set_model(model)
     seen = _recorder(state)
     other.set_coefficient(0, 1.0)
     assert "surface" not in seen                  # the active structure's event: not emitted
     assert (other.id, "surface") in seen and "edited" in seen
-    assert np.allclose(state.coef, 0.0)
+    assert np.allclose(state.active.coef, 0.0)
 
 
 def test_remove_structures_and_properties(model):
@@ -166,7 +169,7 @@ def test_remove_structures_and_properties(model):
     state.remove_structure(b)
     assert state.active is a and state.structures == [a]
     state.remove_structure(a)                   # the last one: an empty structure replaces it
-    assert len(state.structures) == 1 and state.active is not a and state.model is None
+    assert len(state.structures) == 1 and state.active is not a and state.active.model is None
     s = state.active
     s.set_properties(name="thalamus", side="left", color=(10, 20, 30), visible=False, locked=True)
     assert s.label == "thalamus (left)" and s.color == (10, 20, 30) and not s.visible and s.locked
@@ -178,13 +181,13 @@ def test_remove_structures_and_properties(model):
 
 def test_model_name_and_placement(model):
     state = WorkspaceState()
-    state.set_model(model, Path("models") / "caudate-left.npz")
+    state.active.set_model(model, Path("models") / "caudate-left.npz")
     assert state.active.label == "caudate (left)"        # from the file name (no header)
     target = np.array([10.0, -5.0, 3.0])
-    state.place_at(target)
-    assert state.surface_vertices().mean(axis=0) == pytest.approx(target)
-    state.undo()
-    assert state.surface_vertices().mean(axis=0) == pytest.approx(model.world_instance().mean(axis=0))
+    state.active.place_at(target)
+    assert state.active.surface_vertices().mean(axis=0) == pytest.approx(target)
+    state.active.undo()
+    assert state.active.surface_vertices().mean(axis=0) == pytest.approx(model.world_instance().mean(axis=0))
 
 
 def test_crosshair_snaps_to_voxels_and_clear_slice_uses_the_step(model):
@@ -193,11 +196,11 @@ def test_crosshair_snaps_to_voxels_and_clear_slice_uses_the_step(model):
     state.set_image(Volume(np.zeros((10, 10, 10), np.float32), affine))
     state.set_crosshair([3.3, 4.6, 5.2])
     assert state.crosshair == pytest.approx([3.0, 5.0, 6.0])
-    state.add_point([1.0, 1.0, 6.0], "axial", 6.0)
-    state.add_point([1.0, 2.0, 6.4], "axial", 6.4)      # same 2 mm slice
-    state.add_point([1.0, 2.0, 8.0], "axial", 8.0)
-    assert state.points.n_slices() == 3
-    assert state.clear_slice("axial", 6.0) == 2 and len(state.points) == 1
+    state.active.add_point([1.0, 1.0, 6.0], "axial", 6.0)
+    state.active.add_point([1.0, 2.0, 6.4], "axial", 6.4)      # same 2 mm slice
+    state.active.add_point([1.0, 2.0, 8.0], "axial", 8.0)
+    assert state.active.points.n_slices() == 3
+    assert state.clear_slice("axial", 6.0) == 2 and len(state.active.points) == 1
 
 
 def test_events_hold_bound_methods_weakly():
@@ -220,7 +223,7 @@ def test_events_hold_bound_methods_weakly():
 
 def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
     """The autosave (packed arrays) carries all structures; the sessions open as they were."""
-    from app.controllers import SessionController
+    from app.model.controllers import SessionController
     from core.session import document as sessions
     from core.io import save_model
 
@@ -231,12 +234,12 @@ def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
     controller = SessionController(state)
     state.set_image(Volume(np.zeros((40, 40, 40), np.float32), np.diag([1.0, 1, 1, 1])))
     controller.open_model(path)
-    state.add_point([1.0, 2.0, 3.0], "axial", 3.0)
+    state.active.add_point([1.0, 2.0, 3.0], "axial", 3.0)
     second, _ = controller.add_structure(path)
     second.set_properties(name="other", side="right")
     second.set_coefficient(1, 0.5)
     for k in range(3):
-        state.add_point([k, 1.0, 4.0], "coronal", 1.0)
+        state.active.add_point([k, 1.0, 4.0], "coronal", 1.0)
     controller.write_recovery({"method": "icp", "pose": "rigid", "prior_weight": 1.0})
     restored = WorkspaceState()
     recovered, question = SessionController(restored).pending_recovery() or (None, "")
@@ -251,8 +254,8 @@ def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
 
 
 def test_second_image_state_swaps_the_window_with_the_base_and_keeps_its_settings():
-    """app.second_image is plain Python: the base image owns the workspace's window/level."""
-    from app.second_image import SecondImage
+    """app.model.second_image is plain Python: the base image owns the workspace's window/level."""
+    from app.model.second_image import SecondImage
     from core.registration.coregistration import coregister
 
     state = WorkspaceState()

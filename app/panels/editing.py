@@ -1,6 +1,7 @@
 """The "Label map" side-panel box and the tools that edit a result by hand (issue 17).
 
-:func:`install_editing` adds to a main window, without the window knowing their details:
+:class:`Editing` (the window's feature ``"editing"``) adds, without the window knowing
+their details:
 
 - the filled label overlay on every slice view (:class:`app.views.label_overlay.LabelOverlay`)
   with its display options (fill, outline, opacity) in a side-panel box;
@@ -25,6 +26,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from app.actions import add_help_shortcuts
 from app.views.edit_tools import BrushTool, MoveTool
 from app.views.label_overlay import LabelOverlay
 
@@ -106,7 +108,7 @@ class LabelPanel(QWidget):
         row = QHBoxLayout()
         self.tool_buttons = {}
         for tool in TOOLS:
-            action = window.tool_actions[tool]
+            action = window.tools.actions[tool]
             button = QPushButton(action.text())
             button.setCheckable(True)
             button.setToolTip(action.toolTip())
@@ -158,36 +160,38 @@ class LabelPanel(QWidget):
         self.opacity.blockSignals(False)
 
 
-def install_editing(window) -> LabelOverlay:
-    """Add the label overlay, the volume read-out and the edit tools to ``window``."""
-    from app.actions import add_tools
+class Editing:
+    """The window's feature ``"editing"``: the label ``overlay`` on every slice view, its side
+    panel box (``panel``), the status bar's ``volume_label`` and the brush, eraser and move
+    tools (see the module docstring)."""
 
-    overlay = LabelOverlay(window.state)
-    brush, eraser, move = BrushTool(), BrushTool(erase=True), MoveTool()
-    handlers = {"brush": brush, "eraser": eraser, "move": move}
-    for view in window.workspace.views.values():
-        view.layers.append(overlay)
-        view.tool_handlers.update(handlers)
-    add_tools(window, TOOLS, SHORTCUTS, insert_at=3)
-    window.label_panel = LabelPanel(window, overlay, brush, eraser)
-    box = QGroupBox("Label map")
-    box_layout = QVBoxLayout(box)
-    box_layout.setContentsMargins(2, 2, 2, 2)
-    box_layout.addWidget(window.label_panel)
-    window.side_dock.panel.layout().insertWidget(1, box)
-    window.side_dock.boxes["Label map"] = box
-    window.volume_label = VolumeReadout(overlay)
-    window.statusBar().addPermanentWidget(window.volume_label)
-    window.tabs.segment_shown.connect(window.volume_label.setVisible)   # not in the Build tab
-    views = list(window.workspace.views.values())
-    overlay.events.display.connect(lambda: [v.update() for v in views])
-    window.state.events.structure_changed.connect(
-        lambda s, what: [v.update() for v in views] if what == "edits" else None)
-    window.state.events.image.connect(lambda: _drop_stale_edits(window.state))
-    window.sessions.info_providers["manual_edits"] = lambda: edits_document(window.state)
-    window.sessions.info_readers["manual_edits"] = lambda doc: apply_edits_document(
-        window.state, doc)
-    return overlay
+    def __init__(self, window):
+        self.overlay = overlay = LabelOverlay(window.state)
+        brush, eraser, move = BrushTool(), BrushTool(erase=True), MoveTool()
+        handlers = {"brush": brush, "eraser": eraser, "move": move}
+        for view in window.workspace.views.values():
+            view.layers.append(overlay)
+            view.tool_handlers.update(handlers)
+        window.tools.add(TOOLS, menu_before="view.tools-end")
+        add_help_shortcuts(SHORTCUTS)
+        self.panel = LabelPanel(window, overlay, brush, eraser)
+        box = QGroupBox("Label map")
+        box_layout = QVBoxLayout(box)
+        box_layout.setContentsMargins(2, 2, 2, 2)
+        box_layout.addWidget(self.panel)
+        window.side_dock.panel.layout().insertWidget(1, box)
+        window.side_dock.boxes["Label map"] = box
+        self.volume_label = VolumeReadout(overlay)
+        window.statusBar().addPermanentWidget(self.volume_label)
+        window.tabs.segment_shown.connect(self.volume_label.setVisible)   # not in the Build tab
+        views = list(window.workspace.views.values())
+        overlay.events.display.connect(lambda: [v.update() for v in views])
+        window.state.events.structure_changed.connect(
+            lambda s, what: [v.update() for v in views] if what == "edits" else None)
+        window.state.events.image.connect(lambda: _drop_stale_edits(window.state))
+        window.sessions.info_providers["manual_edits"] = lambda: edits_document(window.state)
+        window.sessions.info_readers["manual_edits"] = lambda doc: apply_edits_document(
+            window.state, doc)
 
 
 def edits_document(state) -> dict:

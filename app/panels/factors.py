@@ -14,7 +14,7 @@ from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (QGridLayout, QLabel, QPushButton, QScrollArea, QSlider,
                                QVBoxLayout, QWidget)
 
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 
 STEPS_PER_SD = 100
 MAX_SD = 3.0
@@ -62,7 +62,7 @@ class FactorsPanel(QWidget):
             if item.widget() is not None:
                 item.widget().deleteLater()
         self.sliders, self.value_labels, self.share_labels = [], [], []
-        model = self.state.model
+        model = self.state.active.model
         if model is None:
             self.summary.setText("No model loaded")
             self.reset_button.setEnabled(False)
@@ -96,7 +96,7 @@ class FactorsPanel(QWidget):
             slider.setPageStep(STEPS_PER_SD // 2)
             slider.setObjectName(f"factor-{m}")
             slider.valueChanged.connect(lambda value, m=m: self._on_slider(m, value))
-            slider.sliderPressed.connect(self.state.checkpoint)
+            slider.sliderPressed.connect(self.state.active.checkpoint)
             slider.sliderPressed.connect(lambda m=m: self.factor_touched.emit(m))
             value = QLabel("+0.00")
             value.setMinimumWidth(44)
@@ -112,7 +112,7 @@ class FactorsPanel(QWidget):
         self._sync()
 
     def _sync(self) -> None:
-        model, coef = self.state.model, self.state.coef
+        model, coef = self.state.active.model, self.state.active.coef
         if model is None or coef is None or len(self.sliders) != model.n_factors:
             return
         sd_values = coef / np.sqrt(model.coef_var)
@@ -123,16 +123,16 @@ class FactorsPanel(QWidget):
             label.setText(f"{value:+.2f}")
 
     def _on_slider(self, index: int, value: int) -> None:
-        model = self.state.model
+        model = self.state.active.model
         if model is None:
             return
         slider = self.sliders[index]
         if not slider.isSliderDown():
-            self.state.checkpoint()      # keyboard/page steps: one undo step each
+            self.state.active.checkpoint()      # keyboard/page steps: one undo step each
         sd = value / STEPS_PER_SD
         self.value_labels[index].setText(f"{sd:+.2f}")
         self.factor_touched.emit(index)
-        self.state.set_coefficient(index, sd * float(np.sqrt(model.coef_var[index])))
+        self.state.active.set_coefficient(index, sd * float(np.sqrt(model.coef_var[index])))
 
     def describe(self, index: int) -> str:
         """What factor ``index`` does, for the status bar."""
@@ -146,7 +146,7 @@ class FactorsPanel(QWidget):
         self.sliders[index].setValue(int(round(sd * STEPS_PER_SD)))
 
     def reset(self) -> None:
-        if self.state.model is None:
+        if self.state.active.model is None:
             return
         self.state.active.reset_coefficients()
         self.factor_touched.emit(-1)

@@ -8,7 +8,7 @@ from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout,
                                QLabel, QPushButton, QVBoxLayout, QWidget)
 
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 
 METHODS = (("gmm-aniso", "GMM, anisotropic (slides along surface)"),
            ("gmm-iso", "GMM, isotropic"),
@@ -100,7 +100,7 @@ class FitPanel(QWidget):
             self.pose_spread.setValue(float(pose_spread))
 
     def _show(self) -> None:
-        info = self.state.fit_info
+        info = self.state.active.fit_info
         lines = []
         if info.kind != "fit" and not math.isnan(info.residual_mm):
             source = "restored from the session" if info.kind == "restored" else "after your edit"

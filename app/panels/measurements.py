@@ -12,6 +12,7 @@ import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QPainter, QPen
 
+from app.actions import add_help_shortcuts
 from core.planning.measure import (
     Measurement,
     measurements_from_json,
@@ -126,28 +127,27 @@ def paint_measurements(store: Measurements):
     return paint
 
 
-def install_measurements(window) -> Measurements:
-    """Ruler and angle tools, their painting, session keys and export (see module docstring)."""
-    from app.actions import _action, add_tools
+class MeasurementTools:
+    """The window's feature ``"measurements"``: the ruler and angle tools, their painting,
+    *View > Clear measurements*, session keys and export; the measurements in ``store``."""
 
-    views = list(window.workspace.views.values())
-    store = Measurements(lambda: [v.update() for v in views])
-    handlers = {"ruler": RulerTool(store), "angle": AngleTool(store)}
-    painter = paint_measurements(store)
-    for view in views:
-        view.tool_handlers.update(handlers)
-        view.overlays.append(painter)
-    add_tools(window, TOOLS, SHORTCUTS)
-    view_menu = next((a.menu() for a in window.menuBar().actions() if a.text() == "&View"), None)
-    window.act_clear_measurements = _action(window, "Clear measurements", store.clear, None,
-                                            "Remove every ruler and angle")
-    if view_menu is not None:
-        view_menu.addAction(window.act_clear_measurements)
-    window.sessions.info_providers["measurements"] = lambda: measurements_to_json(store.items)
-    window.sessions.info_readers["measurements"] = lambda data: store.set_items(
-        measurements_from_json(data))
-    window.exports.extra_exports.append(
-        lambda folder: [save_measurements(folder / name, store.items)
-                        for name in ("measurements.csv", "measurements.mrk.json")]
-        if store.items else [])
-    return store
+    def __init__(self, window):
+        views = list(window.workspace.views.values())
+        self.store = store = Measurements(lambda: [v.update() for v in views])
+        handlers = {"ruler": RulerTool(store), "angle": AngleTool(store)}
+        painter = paint_measurements(store)
+        for view in views:
+            view.tool_handlers.update(handlers)
+            view.overlays.append(painter)
+        window.tools.add(TOOLS)
+        add_help_shortcuts(SHORTCUTS)
+        self.clear = window.registry.add("clear-measurements", "Clear measurements", store.clear,
+                                         None, "Remove every ruler and angle")
+        window.registry.place("view", "clear-measurements")
+        window.sessions.info_providers["measurements"] = lambda: measurements_to_json(store.items)
+        window.sessions.info_readers["measurements"] = lambda data: store.set_items(
+            measurements_from_json(data))
+        window.exports.extra_exports.append(
+            lambda folder: [save_measurements(folder / name, store.items)
+                            for name in ("measurements.csv", "measurements.mrk.json")]
+            if store.items else [])

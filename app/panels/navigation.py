@@ -1,7 +1,7 @@
 """Navigation and display tools of the segmentation workspace (issue 17), as Slicer and
 ITK-SNAP users expect them.
 
-:func:`install_navigation` adds to a main window:
+:class:`Navigation` (the window's feature ``"navigation"``) registers on the main window:
 
 - *Zoom to structure* (Z): every slice view centred on the active structure's cross-section
   and zoomed so that it fills about 60% of the view; the crosshair moves to its centre;
@@ -23,14 +23,9 @@ from pathlib import Path
 
 import numpy as np
 from PySide6.QtGui import QAction, QActionGroup
-from PySide6.QtWidgets import (
-    QDialog,
-    QDialogButtonBox,
-    QDoubleSpinBox,
-    QFileDialog,
-    QFormLayout,
-    QMenu,
-)
+from PySide6.QtWidgets import QDialog, QDialogButtonBox, QDoubleSpinBox, QFileDialog, QFormLayout
+
+from app.actions import add_help_shortcuts
 
 LAYOUTS = ("2 x 2", "axial", "sagittal", "coronal", "3D")
 COLORMAPS = ("grey", "inverted grey", "hot", "bone", "viridis")
@@ -80,30 +75,6 @@ def zoom_to_structure(window) -> bool:
     return True
 
 
-def set_layout(window, layout: str) -> None:
-    """Show all four views ("2 x 2") or one of them filling the grid."""
-    if layout not in LAYOUTS:
-        msg = f"layout must be one of {', '.join(LAYOUTS)}; got {layout!r}"
-        raise ValueError(msg)
-    ws = window.workspace
-    cells = dict(ws.views)
-    three_d = ws.volume_view if ws.volume_view is not None else \
-        ws._layout.itemAtPosition(1, 1).widget()
-    cells["3D"] = three_d
-    for name, widget in cells.items():
-        if widget is not None:
-            widget.setVisible(layout == "2 x 2" or layout == name)
-    window.current_layout = layout
-    for action in getattr(window, "layout_actions", {}).values():
-        action.setChecked(action.data() == layout)
-
-
-def toggle_maximised(window) -> None:
-    """F: the active slice view alone, or back to the 2 x 2 grid."""
-    current = getattr(window, "current_layout", "2 x 2")
-    set_layout(window, window.active_view if current == "2 x 2" else "2 x 2")
-
-
 class WindowLevelDialog(QDialog):
     """Type the window (width) and level (centre) of the image display."""
 
@@ -142,15 +113,6 @@ def ask_window_level(window) -> None:
         window.state.set_window(*dialog.values())
 
 
-def set_colormap(window, name: str) -> None:
-    lut = colormap_lut(name)
-    for view in window.workspace.views.values():
-        view.colormap = lut
-        view._rebuild_image()
-        view.update()
-    window.current_colormap = name
-
-
 # -- recent files ------------------------------------------------------------------------------
 def recent_path() -> Path:
     from core.session.recovery import state_dir
@@ -183,15 +145,6 @@ def remember(path: str | os.PathLike | None) -> None:
         pass
 
 
-def _fill_recent(window, menu: QMenu) -> None:
-    menu.clear()
-    items = recent_files()
-    for path in items:
-        menu.addAction(Path(path).name, lambda p=path: window.open_path(p)).setToolTip(path)
-    if not items:
-        menu.addAction("(none)").setEnabled(False)
-
-
 def save_screenshot_dialog(window) -> None:
     start = str(Path(window._start_dir()) / "ssm-studio.png")
     path, _ = QFileDialog.getSaveFileName(window, "Save screenshot", start, "PNG images (*.png)")
@@ -200,87 +153,110 @@ def save_screenshot_dialog(window) -> None:
                                  window.show_message(f"Saved screenshot {Path(path).name}")))
 
 
-# -- installation ------------------------------------------------------------------------------
-def _menu(window, title: str) -> QMenu | None:
-    return next((a.menu() for a in window.menuBar().actions() if a.text() == title), None)
+# -- the feature -------------------------------------------------------------------------------
+class Navigation:
+    """The navigation and display actions and menus of main window ``window`` (see the module
+    docstring), registered in ``window.registry``; the current layout and colour map."""
 
-
-def install_navigation(window) -> None:
-    """Add the navigation and display actions and menus to ``window`` (see module docstring)."""
-    from app.actions import SHORTCUTS as HELP_SHORTCUTS
-    from app.actions import _action
-
-    HELP_SHORTCUTS.extend(row for row in SHORTCUTS if row not in HELP_SHORTCUTS)
-    window.current_layout, window.current_colormap = "2 x 2", "grey"
-    view_menu, file_menu = _menu(window, "&View"), _menu(window, "&File")
-    window.act_zoom_structure = _action(window, "&Zoom to structure",
-                                        lambda: zoom_to_structure(window), "Z",
-                                        "Centre and zoom the slice views on the active structure")
-    window.act_maximise = _action(window, "Maximise active view", lambda: toggle_maximised(window),
-                                  "F", "The active view alone / back to the 2 x 2 grid")
-    window.act_window_level = _action(window, "Window and level…",
-                                      lambda: ask_window_level(window), "Ctrl+L",
-                                      "Type the window width and level")
-    window.act_screenshot = _action(window, "Save screenshot…",
-                                    lambda: save_screenshot_dialog(window), "F12",
-                                    "Save the window as a PNG image")
-    window.act_show_planes = _action(window, "Slice planes in 3D", lambda on: _show_3d(
-        window, planes=on))
-    window.act_show_points = _action(window, "Points in 3D", lambda on: _show_3d(
-        window, points=on))
-    for act in (window.act_show_planes, window.act_show_points):
-        act.setCheckable(True)
-        act.setChecked(True)
-    if view_menu is not None:
-        view_menu.addSeparator()
-        for act in (window.act_zoom_structure, window.act_maximise):
-            view_menu.addAction(act)
-        layouts = view_menu.addMenu("Layout")
+    def __init__(self, window):
+        add_help_shortcuts(SHORTCUTS)
+        self.window = window
+        self.layout, self.colormap = "2 x 2", "grey"
+        r = window.registry
+        self.zoom_structure = r.add("zoom-structure", "&Zoom to structure",
+                                    lambda: zoom_to_structure(window), "Z",
+                                    "Centre and zoom the slice views on the active structure")
+        self.maximise = r.add("maximise", "Maximise active view", self.toggle_maximised, "F",
+                              "The active view alone / back to the 2 x 2 grid")
+        self.window_level = r.add("window-level", "Window and level…",
+                                  lambda: ask_window_level(window), "Ctrl+L",
+                                  "Type the window width and level")
+        self.screenshot = r.add("screenshot", "Save screenshot…",
+                                lambda: save_screenshot_dialog(window), "F12",
+                                "Save the window as a PNG image")
+        self.show_planes = r.add("show-planes", "Slice planes in 3D",
+                                 lambda on: self.show_3d(planes=on), checkable=True, checked=True)
+        self.show_points = r.add("show-points", "Points in 3D",
+                                 lambda on: self.show_3d(points=on), checkable=True, checked=True)
+        r.place("view", None, "zoom-structure", "maximise")
+        r.add_menu("view.layout", "Layout", parent="view")
         group = QActionGroup(window)
-        window.layout_actions = {}
+        self.layout_actions: dict[str, QAction] = {}
         for name in LAYOUTS:
-            act = QAction(name if name == "2 x 2" else f"{name} only", window)
-            act.setCheckable(True)
-            act.setData(name)
-            act.setChecked(name == "2 x 2")
-            act.triggered.connect(lambda checked=False, n=name: set_layout(window, n))
+            act = r.add(f"layout-{name.replace(' ', '')}",
+                        name if name == "2 x 2" else f"{name} only",
+                        lambda checked=False, n=name: self.set_layout(n),
+                        checkable=True, checked=name == "2 x 2")
             group.addAction(act)
-            layouts.addAction(act)
-            window.layout_actions[name] = act
-        view_menu.addAction(window.act_window_level)
-        colours = view_menu.addMenu("Colour map")
+            self.layout_actions[name] = act
+        r.place("view.layout", *self.layout_actions.values())
+        r.place("view", "window-level")
+        r.add_menu("view.colormap", "Colour map", parent="view")
         cgroup = QActionGroup(window)
         for name in COLORMAPS:
-            act = QAction(name, window)
-            act.setCheckable(True)
-            act.setChecked(name == "grey")
-            act.triggered.connect(lambda checked=False, n=name: set_colormap(window, n))
+            act = r.add(f"colormap-{name.replace(' ', '-')}", name,
+                        lambda checked=False, n=name: self.set_colormap(n),
+                        checkable=True, checked=name == "grey")
             cgroup.addAction(act)
-            colours.addAction(act)
-        view_menu.addSeparator()
-        view_menu.addAction(window.act_show_planes)
-        view_menu.addAction(window.act_show_points)
-    if file_menu is not None:
-        first = file_menu.actions()[2] if len(file_menu.actions()) > 2 else None
-        window.recent_menu = QMenu("Open &recent", file_menu)
-        window.recent_menu.aboutToShow.connect(lambda: _fill_recent(window, window.recent_menu))
-        file_menu.insertMenu(first, window.recent_menu)
-        file_menu.insertAction(file_menu.actions()[-1], window.act_screenshot)
-    events = window.state.events
-    events.image.connect(lambda: remember(window.state.image_path))
-    events.model.connect(lambda: remember(window.state.active.model_path))
-    window.workspace.volume_view_created.connect(lambda: _show_3d(window))
+            r.place("view.colormap", act)
+        r.place("view", None, "show-planes", "show-points")
+        self.recent_menu = r.add_menu("file.recent", "Open &recent", parent="file",
+                                      before="load-model")
+        self.recent_menu.aboutToShow.connect(self.fill_recent)
+        r.place("file", "screenshot", before="quit")
+        events = window.state.events
+        events.image.connect(lambda: remember(window.state.image_path))
+        events.model.connect(lambda: remember(window.state.active.model_path))
+        window.workspace.volume_view_created.connect(lambda: self.show_3d())
+
+    def set_layout(self, layout: str) -> None:
+        """Show all four views ("2 x 2") or one of them filling the grid."""
+        if layout not in LAYOUTS:
+            msg = f"layout must be one of {', '.join(LAYOUTS)}; got {layout!r}"
+            raise ValueError(msg)
+        ws = self.window.workspace
+        cells = dict(ws.views)
+        cells["3D"] = ws.volume_view if ws.volume_view is not None else \
+            ws._layout.itemAtPosition(1, 1).widget()
+        for name, widget in cells.items():
+            if widget is not None:
+                widget.setVisible(layout == "2 x 2" or layout == name)
+        self.layout = layout
+        for name, action in self.layout_actions.items():
+            action.setChecked(name == layout)
+
+    def toggle_maximised(self) -> None:
+        """F: the active slice view alone, or back to the 2 x 2 grid."""
+        self.set_layout(self.window.active_view if self.layout == "2 x 2" else "2 x 2")
+
+    def set_colormap(self, name: str) -> None:
+        lut = colormap_lut(name)
+        for view in self.window.workspace.views.values():
+            view.colormap = lut
+            view._rebuild_image()
+            view.update()
+        self.colormap = name
+
+    def fill_recent(self) -> None:
+        """File > Open recent's entries, filled when it opens."""
+        menu = self.recent_menu
+        menu.clear()
+        items = recent_files()
+        for path in items:
+            menu.addAction(Path(path).name,
+                           lambda p=path: self.window.open_path(p)).setToolTip(path)
+        if not items:
+            menu.addAction("(none)").setEnabled(False)
+
+    def show_3d(self, planes: bool | None = None, points: bool | None = None) -> None:
+        """The slice planes and the points in the 3D view, as the View menu's toggles say."""
+        view = self.window.workspace.volume_view
+        if view is None:
+            return
+        view.show_planes = self.show_planes.isChecked() if planes is None else bool(planes)
+        view.show_points = self.show_points.isChecked() if points is None else bool(points)
+        view.apply_visibility()
+        view.plotter.render()
 
 
-def _show_3d(window, planes: bool | None = None, points: bool | None = None) -> None:
-    view = window.workspace.volume_view
-    if view is None:
-        return
-    view.show_planes = window.act_show_planes.isChecked() if planes is None else bool(planes)
-    view.show_points = window.act_show_points.isChecked() if points is None else bool(points)
-    view.apply_visibility()
-    view.plotter.render()
-
-
-__all__ = ["install_navigation", "zoom_to_structure", "set_layout", "set_colormap",
-           "colormap_lut", "recent_files", "remember"]
+__all__ = ["Navigation", "zoom_to_structure", "colormap_lut", "recent_files", "remember"]

@@ -81,7 +81,7 @@ class PlacementNudgeDialog(QDialog):
             done = self.placement.nudge(rotation_deg=vector)
         if done:
             self.window.show_message(self.placement.readout())
-            if len(self.window.state.points):
+            if len(self.window.state.active.points):
                 self.window.schedule_refit()
         return done
 
@@ -95,19 +95,22 @@ class PlacementNudgeDialog(QDialog):
         self.readout.setText(self.placement.readout())
 
 
-def install_nudge(window) -> None:
-    """Edit > Adjust automatic placement… (the dialog is made once, when first shown)."""
-    edit = next((a.menu() for a in window.menuBar().actions() if a.text() == "&Edit"), None)
-    action = window.act_adjust_placement = edit.addAction("Adjust automatic placement…")
-    action.setToolTip("Shift or turn the automatic placement by hand, every structure together")
-    action.triggered.connect(lambda: show_nudge(window))
+class PlacementNudge:
+    """The window's feature ``"placement-nudge"``: *Edit > Adjust automatic placement…*
+    (the dialog is made once, when first shown)."""
 
+    def __init__(self, window):
+        self.window = window
+        self.dialog: PlacementNudgeDialog | None = None
+        self.action = window.registry.add(
+            "adjust-placement", "Adjust automatic placement…", self.show,
+            tip="Shift or turn the automatic placement by hand, every structure together")
+        window.registry.place("edit", "adjust-placement")
 
-def show_nudge(window) -> PlacementNudgeDialog:
-    dialog = getattr(window, "nudge_dialog", None)
-    if dialog is None:
-        dialog = window.nudge_dialog = PlacementNudgeDialog(window)
-    dialog.show()
-    dialog.refresh()
-    dialog.raise_()
-    return dialog
+    def show(self) -> PlacementNudgeDialog:
+        if self.dialog is None:
+            self.dialog = PlacementNudgeDialog(self.window)
+        self.dialog.show()
+        self.dialog.refresh()
+        self.dialog.raise_()
+        return self.dialog

@@ -1,10 +1,10 @@
 """The Planning panel: AC-PC landmarks, the active structure's target and trajectory, the
 probe's-eye view, how sure the fit is, and the plan export.
 
-Widgets and wiring only: the state is :class:`app.planning.PlanningState`; geometry comes from
+Widgets and wiring only: the state is :class:`app.model.planning.PlanningState`; geometry comes from
 ``core.planning.frames``, the posterior from ``core.reconstruction.uncertainty``, the files from
 ``core.planning.report``. Points are set where the user last clicked in a slice view (the
-crosshair's unsnapped point, :attr:`app.state.WorkspaceState.picked`: sub-voxel in the view's
+crosshair's unsnapped point, :attr:`app.model.state.WorkspaceState.picked`: sub-voxel in the view's
 plane), or typed as "x, y, z" (world RAS mm) in their fields, as in frame-based planning
 software.
 """
@@ -20,7 +20,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QComboBox, QDoubleS
                                QLineEdit, QPushButton, QSlider, QTableWidget,
                                QTableWidgetItem, QToolButton, QVBoxLayout, QWidget)
 
-from app.planning import LANDMARK_LABELS, LANDMARKS, PlanningState
+from app.model.planning import LANDMARK_LABELS, LANDMARKS, PlanningState
 from app.views.plan_overlays import ProbeView
 from core.planning.frames import format_acpc
 from core.planning.lead import LEAD_TYPES

@@ -24,7 +24,8 @@ from PySide6.QtCore import QObject, Qt, Signal
 from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QGroupBox, QHBoxLayout, QLabel,
                                QPushButton, QSlider, QVBoxLayout, QWidget)
 
-from app.second_image import SecondImage
+from app.actions import add_help_shortcuts
+from app.model.second_image import SecondImage
 from app.views.second_image_layer import SecondImageLayer
 from app.workers import DialogTask
 from core.geometry.planes import window_to_uint8
@@ -216,63 +217,54 @@ class SecondImagePanel(QWidget):
                           "No second image (File > Open second image…, Ctrl+Shift+I)")
 
 
-def install_second_image(window) -> SecondImageController:
-    """Add the second-image actions, layer, side-panel box and session hooks to ``window``."""
-    from app.actions import SHORTCUTS as HELP_SHORTCUTS
-    from app.actions import _action
+class SecondImageFeature:
+    """The window's feature ``"second-image"``: the second-image ``controller`` (worker,
+    model, layer), its actions (File > Open / Remove second image, View > checkerboard and
+    swap), side-panel box (``panel``), status-bar value and session hooks."""
 
-    controller = SecondImageController(window)
-    model = controller.model
-    controller.message.connect(window.show_message)
-    controller.error.connect(window.show_error)
-    HELP_SHORTCUTS.extend(row for row in SHORTCUTS if row not in HELP_SHORTCUTS)
+    def __init__(self, window):
+        self.controller = controller = SecondImageController(window)
+        model = controller.model
+        controller.message.connect(window.show_message)
+        controller.error.connect(window.show_error)
+        add_help_shortcuts(SHORTCUTS)
 
-    def toggle_mode() -> None:
-        if model.loaded:
-            model.set_mode("blend" if model.mode == "checkerboard" else "checkerboard")
+        def toggle_mode() -> None:
+            if model.loaded:
+                model.set_mode("blend" if model.mode == "checkerboard" else "checkerboard")
 
-    def swap() -> None:
-        if model.loaded:
-            model.swap_base()
-            window.show_message(f"Drawing on the {model.base} image")
+        def swap() -> None:
+            if model.loaded:
+                model.swap_base()
+                window.show_message(f"Drawing on the {model.base} image")
 
-    window.act_open_second = _action(window, "Open second &image (T2, FLAIR, CT)…",
-                                     lambda: window.open_dialog("second"), "Ctrl+Shift+I",
-                                     "Show a second scan over the first; registered rigidly "
-                                     "when the grids differ")
-    window.act_checkerboard = _action(window, "Second image: checkerboard / blend", toggle_mode,
-                                      "K")
-    window.act_swap_base = _action(window, "Second image: swap the base image", swap, "Ctrl+B",
-                                   "Draw on the other image (the points stay where they are)")
-    window.act_remove_second = _action(window, "Remove second image", model.clear)
-    menus = {a.text(): a.menu() for a in window.menuBar().actions()}
-    if menus.get("&File") is not None:
-        file_menu = menus["&File"]
-        after = next((a for a in file_menu.actions() if a is window.act_open_dicom), None)
-        entries = file_menu.actions()
-        position = entries[entries.index(after) + 1] if after in entries[:-1] else None
-        for act in (window.act_open_second, window.act_remove_second):
-            file_menu.insertAction(position, act) if position else file_menu.addAction(act)
-    if menus.get("&View") is not None:
-        menus["&View"].addSeparator()
-        menus["&View"].addAction(window.act_checkerboard)
-        menus["&View"].addAction(window.act_swap_base)
-    panel = window.second_image_panel = SecondImagePanel(controller)
-    box = QGroupBox("Second image")
-    box_layout = QVBoxLayout(box)
-    box_layout.setContentsMargins(2, 2, 2, 2)
-    box_layout.addWidget(panel)
-    side = window.side_dock
-    side.panel.layout().insertWidget(min(2, side.panel.layout().count()), box)
-    side.boxes["Second image"] = box
-    before = window.cursor_label.extra               # the status bar: its value too
+        r = window.registry
+        self.open = r.add("open-second", "Open second &image (T2, FLAIR, CT)…",
+                          lambda: window.open_dialog("second"), "Ctrl+Shift+I",
+                          "Show a second scan over the first; registered rigidly when the "
+                          "grids differ")
+        self.checkerboard = r.add("second-checkerboard", "Second image: checkerboard / blend",
+                                  toggle_mode, "K")
+        self.swap_base = r.add("second-swap-base", "Second image: swap the base image", swap,
+                               "Ctrl+B", "Draw on the other image (the points stay where they are)")
+        self.remove = r.add("remove-second", "Remove second image", model.clear)
+        r.place("file", "open-second", "remove-second", after="open-dicom")
+        r.place("view", None, "second-checkerboard", "second-swap-base")
+        self.panel = SecondImagePanel(controller)
+        box = QGroupBox("Second image")
+        box_layout = QVBoxLayout(box)
+        box_layout.setContentsMargins(2, 2, 2, 2)
+        box_layout.addWidget(self.panel)
+        side = window.side_dock
+        side.panel.layout().insertWidget(min(2, side.panel.layout().count()), box)
+        side.boxes["Second image"] = box
+        before = window.cursor_label.extra               # the status bar: its value too
 
-    def extra(world) -> str:
-        value = model.value_at(world)
-        text = before(world)
-        return text if value is None else (f"second {value:.4g}" + (f"   {text}" if text else ""))
+        def extra(world) -> str:
+            value = model.value_at(world)
+            text = before(world)
+            return text if value is None else (f"second {value:.4g}" + (f"   {text}" if text else ""))
 
-    window.cursor_label.extra = extra
-    window.sessions.info_providers["second_image"] = model.to_document
-    window.sessions.info_readers["second_image"] = controller.restore
-    return controller
+        window.cursor_label.extra = extra
+        window.sessions.info_providers["second_image"] = model.to_document
+        window.sessions.info_readers["second_image"] = controller.restore

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtWidgets import QLabel
 
-from app.state import WorkspaceState
+from app.model.state import WorkspaceState
 
 
 class CursorReadout(QLabel):
@@ -43,4 +43,4 @@ class FitReadout(QLabel):
 
     def _on_applied(self, result) -> None:
         self.setText(f"residual {result.residual_mm:.2f} mm, {result.n_iter} it, "
-                     f"{1000 * self.state.fit_info.seconds:.0f} ms")
+                     f"{1000 * self.state.active.fit_info.seconds:.0f} ms")

@@ -2,7 +2,7 @@
 
 The selected row is the active structure (drawing, sliders, refit and undo act on it). Name,
 side, colour, visibility and lock are edited here and written to the workspace model
-(:meth:`app.state.Structure.set_properties`); the table follows the model's events, with
+(:meth:`app.model.state.Structure.set_properties`); the table follows the model's events, with
 its own signals blocked while it does (no feedback loop). *Add* offers the model library
 (``core.io.model_library``: ``resources/models/`` and the user's model folder), a model file, or
 an empty structure; adding and removing go through the session controller (and stop the
@@ -18,7 +18,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QColorDialog, QComboBox, QHBox
                                QHeaderView, QMenu, QMessageBox, QPushButton, QTableWidget,
                                QTableWidgetItem, QToolButton, QVBoxLayout, QWidget)
 
-from app.state import SIDES, Structure, WorkspaceState
+from app.model.state import SIDES, Structure, WorkspaceState
 from app.workers import error_message
 
 COLUMNS = ("", "", "Name", "Side", "Model", "Lock")
@@ -36,7 +36,7 @@ class StructuresPanel(QWidget):
                  parent: QWidget | None = None):
         super().__init__(parent)
         self.state = state
-        self.sessions = sessions      # app.controllers.SessionController
+        self.sessions = sessions      # app.model.controllers.SessionController
         self.refit = refit            # app.refit.RefitController
         self._library = library       # () -> list of core.io.model_library.LibraryEntry
         self._syncing = False

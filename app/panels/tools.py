@@ -24,7 +24,7 @@ class ToolsPanel(QWidget):
         row = QHBoxLayout()
         self.tool_buttons = {}
         for tool in TOOLS:
-            action = window.tool_actions[tool]
+            action = window.tools.actions[tool]
             button = QPushButton(action.text().replace("&", ""))
             button.setCheckable(True)
             button.setChecked(action.isChecked())
@@ -41,10 +41,11 @@ class ToolsPanel(QWidget):
         wl.addWidget(self.presets, 1)
         layout.addLayout(wl)
         grid = QGridLayout()
-        buttons = [("Place here", window.act_place), ("Place automatically", window.act_auto_place),
-                   ("Reset pose", window.act_reset_pose), ("Reset views", window.act_reset_views),
-                   ("Clear slice", window.act_clear_slice), ("Clear all", window.act_clear_points)]
-        for i, (text, action) in enumerate(buttons):
+        buttons = [("Place here", "place-here"), ("Place automatically", "auto-place"),
+                   ("Reset pose", "reset-pose"), ("Reset views", "reset-views"),
+                   ("Clear slice", "clear-slice"), ("Clear all", "clear-points")]
+        for i, (text, action_id) in enumerate(buttons):
+            action = window.registry[action_id]
             button = QPushButton(text)
             button.setToolTip(action.toolTip() or action.text())
             button.clicked.connect(action.trigger)
@@ -58,5 +59,5 @@ class ToolsPanel(QWidget):
         self._count()
 
     def _count(self) -> None:
-        pts = self.state.points
+        pts = self.state.active.points
         self.count.setText(f"{len(pts)} contour point(s) on {pts.n_slices()} slice(s)")

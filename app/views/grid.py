@@ -5,7 +5,7 @@ from __future__ import annotations
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import QApplication, QGridLayout, QLabel, QWidget
 
-from app.state import FRAME_NAMES, WorkspaceState
+from app.model.state import FRAME_NAMES, WorkspaceState
 from app.views.slice_view import SliceView
 
 

@@ -20,8 +20,8 @@ import numpy as np
 from PySide6.QtCore import QRectF
 from PySide6.QtGui import QImage, QPainter
 
-from app.events import EmitterGroup
-from app.state import Structure, WorkspaceState
+from app.model.events import EmitterGroup
+from app.model.state import Structure, WorkspaceState
 from core.geometry.labelmap import mask_volume_mm3, structure_label_map
 from core.geometry.planes import SliceSampler
 

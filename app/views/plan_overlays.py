@@ -22,7 +22,7 @@ from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QImage, QPainter, QPen
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
-from app.planning import LANDMARK_LABELS, PlanningState
+from app.model.planning import LANDMARK_LABELS, PlanningState
 from core.geometry.planes import frame_along, window_to_uint8
 from core.geometry.slicing import intersect_plane
 from core.planning.lead import contact_extents

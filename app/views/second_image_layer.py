@@ -1,6 +1,6 @@
 """The slice views' layer that shows the second image with the first (blend or checkerboard).
 
-Both images are on the first image's grid (:mod:`app.second_image`), so the view's slice of
+Both images are on the first image's grid (:mod:`app.model.second_image`), so the view's slice of
 the first image and this layer's slice of the second cover the same pixels. Each is windowed
 with its own window/level; the base image is at the bottom, the other on top blended with its
 opacity, or in the alternate squares of a checkerboard fixed in mm
@@ -16,7 +16,7 @@ import numpy as np
 from PySide6.QtCore import QRectF
 from PySide6.QtGui import QImage, QPainter
 
-from app.second_image import SecondImage
+from app.model.second_image import SecondImage
 from core.registration.coregistration import blend, checkerboard_mask
 from core.geometry.planes import window_to_uint8
 

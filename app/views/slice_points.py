@@ -24,19 +24,19 @@ def add_point_at(view, x: float, y: float, checkpoint: bool = True,
         if np.any(world < lo - 1e-6) or np.any(world > hi + 1e-6):
             view.message.emit("Point outside the image: not added")
             return None
-    view.state.add_point(world, view.frame_name, view.depth, checkpoint=checkpoint, stroke=stroke)
+    view.state.active.add_point(world, view.frame_name, view.depth, checkpoint=checkpoint, stroke=stroke)
     return world
 
 
 def points_here(view) -> np.ndarray:
     """Indices of the active structure's points drawn on this view's slice, in order."""
-    return np.flatnonzero(view.state.points.on_slice(view.frame_index, view.depth,
+    return np.flatnonzero(view.state.active.points.on_slice(view.frame_index, view.depth,
                                                      view._step() / 2))
 
 
 def point_near(view, x: float, y: float, radius_px: float = 8.0) -> int | None:
     """Index of the contour point on this slice nearest to pixel (x, y), within the radius."""
-    pts = view.state.points
+    pts = view.state.active.points
     if len(pts) == 0:
         return None
     here = np.flatnonzero(pts.on_slice(view.frame_index, view.depth, view._step() / 2))
@@ -51,5 +51,5 @@ def delete_point_near(view, x: float, y: float) -> bool:
     index = view.point_near(x, y)
     if index is None or view.state.active.locked:
         return False
-    view.state.remove_point(index)
+    view.state.active.remove_point(index)
     return True

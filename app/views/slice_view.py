@@ -24,7 +24,7 @@ from PySide6.QtCore import QRectF, Qt, Signal
 from PySide6.QtGui import QColor, QFont, QImage, QPainter
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
-from app.state import FRAME_NAMES, Structure, WorkspaceState
+from app.model.state import FRAME_NAMES, Structure, WorkspaceState
 from core.geometry.planes import FRAMES, SliceImage, window_to_uint8
 from core.geometry.slicing import intersect_plane
 

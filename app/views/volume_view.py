@@ -22,7 +22,7 @@ from PySide6.QtWidgets import QVBoxLayout, QWidget
 from pyvistaqt import QtInteractor
 
 from app.convert import face_camera_to, points_polydata, surface_polydata
-from app.state import FRAME_NAMES, Structure, WorkspaceState
+from app.model.state import FRAME_NAMES, Structure, WorkspaceState
 from core.geometry.planes import FRAMES, window_to_uint8
 
 PLANE_OPACITY = 0.75  # slice planes in 3D: the image stays readable, the surface shows through
@@ -122,7 +122,7 @@ class VolumeView(QWidget):
         self._mark("surface", "points")
 
     def _on_fit_info(self) -> None:
-        warnings = self.state.fit_info.warnings
+        warnings = self.state.active.fit_info.warnings
         self._set_note("plausibility", "Implausible fit: " + "; ".join(warnings) if warnings else "",
                        "lower_right")
 
@@ -373,7 +373,7 @@ class VolumeView(QWidget):
         return actor, mesh, style
 
     def _update_points(self) -> None:
-        pts = self.state.points
+        pts = self.state.active.points
         if len(pts) == 0 or not self.state.active.visible:
             if self._points_actor is not None:
                 self.plotter.remove_actor(self._points_actor, render=False)

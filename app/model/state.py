@@ -7,7 +7,7 @@ points, last fit read-out and undo history. One structure is *active*: drawing, 
 sliders, the refit and undo act on it.
 
 Every setter validates, changes the data and emits one event from :attr:`WorkspaceState.events`
-(see :mod:`app.events`); views and panels subscribe and redraw, and never change each other.
+(see :mod:`app.model.events`); views and panels subscribe and redraw, and never change each other.
 Events about "the" model, points, surface, fit and history are those of the active
 structure (so a view written for one structure keeps working); ``structure_changed(structure,
 what)`` reports a change of any structure, and ``structures`` / ``active`` a change of the
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.events import EmitterGroup
-from app.history import UndoHistory
+from app.model.events import EmitterGroup
+from app.model.history import UndoHistory
 from core.io import Volume
 from core.io.model_library import structure_info
 from core.reconstruction.plausibility import plausibility_warnings
@@ -655,89 +655,11 @@ class WorkspaceState:
         if structure is self._active and what in _ACTIVE_EVENTS:
             getattr(self.events, what)()
 
-    # -- the active structure, under the single-structure names ----------------------------
-    @property
-    def model(self) -> ShapeModel | None:
-        return self._active.model
-
-    @property
-    def model_path(self) -> Path | None:
-        return self._active.model_path
-
-    @property
-    def coef(self) -> np.ndarray | None:
-        return self._active.coef
-
-    @property
-    def pose(self) -> np.ndarray | None:
-        return self._active.pose
-
-    @property
-    def placement(self) -> np.ndarray | None:
-        return self._active.placement
-
-    @property
-    def points(self) -> Points:
-        return self._active.points
-
-    @property
-    def fit_info(self) -> FitInfo:
-        return self._active.fit_info
-
-    def set_model(self, model: ShapeModel, path: str | Path | None = None,
-                  coef: np.ndarray | None = None, pose: np.ndarray | None = None) -> None:
-        self._active.set_model(model, path, coef=coef, pose=pose)
-
-    def surface_vertices(self) -> np.ndarray | None:
-        return self._active.surface_vertices()
-
-    def set_surface(self, coef, pose, vertices=None) -> None:
-        self._active.set_surface(coef, pose, vertices)
-
-    def set_coefficient(self, index: int, value: float) -> None:
-        self._active.set_coefficient(index, value)
-
-    def place_at(self, xyz: np.ndarray) -> None:
-        self._active.place_at(xyz)
-
-    def reset_placement(self) -> None:
-        self._active.reset_placement()
-
-    def set_fit_info(self, info: FitInfo) -> None:
-        self._active.set_fit_info(info)
-
-    def add_point(self, xyz: np.ndarray, frame_name: str, depth: float, checkpoint: bool = True,
-                  stroke: str = "click") -> None:
-        self._active.add_point(xyz, frame_name, depth, checkpoint=checkpoint, stroke=stroke)
-
-    def remove_point(self, index: int) -> None:
-        self._active.remove_point(index)
-
+    # -- the active structure's points of one slice (the tolerance is the image's) -------
     def clear_slice(self, frame_name: str, depth: float) -> int:
         """Remove the active structure's points of one slice; returns how many."""
         tol = 0.5 * (self.sampler.step(FRAMES[frame_name]) if self.sampler else 1.0)
         return self._active.clear_slice(frame_name, depth, tol)
-
-    def clear_points(self) -> None:
-        self._active.clear_points()
-
-    def set_points(self, points: Points, checkpoint: bool = True) -> None:
-        self._active.set_points(points, checkpoint=checkpoint)
-
-    def checkpoint(self) -> None:
-        self._active.checkpoint()
-
-    def can_undo(self) -> bool:
-        return self._active.can_undo()
-
-    def can_redo(self) -> bool:
-        return self._active.can_redo()
-
-    def undo(self) -> bool:
-        return self._active.undo()
-
-    def redo(self) -> bool:
-        return self._active.redo()
 
     def clear_history(self) -> None:
         for structure in self.structures:

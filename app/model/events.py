@@ -1,6 +1,6 @@
 """Qt-free events for the workspace model (napari's ``EmitterGroup``/``Event`` in miniature).
 
-The workspace model (:mod:`app.state`) is plain Python: it declares its events here and
+The workspace model (:mod:`app.model.state`) is plain Python: it declares its events here and
 emits them after each change; widgets subscribe with :meth:`Event.connect`. Nothing here
 imports Qt, so the model can be driven and tested without a display.
 

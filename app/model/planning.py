@@ -1,7 +1,7 @@
 """The planning model of the workspace: AC, PC, midline, and a target and entry per structure.
 
-Plain Python, no Qt (like :mod:`app.state`; a test checks it). :class:`PlanningState` sits next
-to the :class:`app.state.WorkspaceState` and refers to its structures by identity:
+Plain Python, no Qt (like :mod:`app.model.state`; a test checks it). :class:`PlanningState` sits next
+to the :class:`app.model.state.WorkspaceState` and refers to its structures by identity:
 
 - landmarks ``ac``, ``pc``, ``midline`` (world RAS mm, or None); with all three set and valid,
   :meth:`PlanningState.frame` is the AC-PC frame (``core.planning.frames.ACPCFrame``) and every read-out
@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.events import EmitterGroup
-from app.history import UndoHistory
-from app.state import Structure, WorkspaceState
+from app.model.events import EmitterGroup
+from app.model.history import UndoHistory
+from app.model.state import Structure, WorkspaceState
 from core.io.model_library import structure_info
 from core.planning.lead import PlacedLead, contact_readout, place_lead
 from core.planning.report import LeadChoice, PlannedStructure, model_target, plan_report

@@ -1,7 +1,7 @@
 """Session and export logic of the segmentation workspace (3D Slicer's *Logic*; no Qt).
 
 The window's actions call these with file paths; they read and write through ``core`` and
-change the :class:`app.state.WorkspaceState`, raise ``ValueError``/``OSError`` (a
+change the :class:`app.model.state.WorkspaceState`, raise ``ValueError``/``OSError`` (a
 ``core.io.DataFileError`` names the file) for the window to show, and return the one-line
 message for the status bar. The refit, which needs a worker thread, is in
 :mod:`app.refit`.
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from app.state import FRAME_NAMES, STRUCTURE_COLORS, FitInfo, Points, Structure, WorkspaceState
+from app.model.state import FRAME_NAMES, STRUCTURE_COLORS, FitInfo, Points, Structure, WorkspaceState
 from core.geometry.planes import PLANE_NAMES
 from core.io import DataFileError, load_model, load_volume, save_mesh, save_points, save_volume
 from core.io.registry import split_member  # a FILE.h5#GROUP model path names FILE
@@ -93,13 +93,13 @@ class SessionController:
         return ""
 
     def center_on_model(self) -> None:
-        vertices = self.state.surface_vertices()
+        vertices = self.state.active.surface_vertices()
         if vertices is not None and self.state.volume is not None:
             self.state.set_crosshair(vertices.mean(axis=0))
 
     def add_structure(self, path: str | os.PathLike) -> tuple[Structure, str]:
         """A new active structure with the model file ``path`` (name, side and colour from its
-        header, :meth:`app.state.Structure.set_model`), at the model's stored placement; its
+        header, :meth:`app.model.state.Structure.set_model`), at the model's stored placement; its
         first undo step removes it again."""
         model = load_model(path)
         structure = Structure()
@@ -330,11 +330,11 @@ class ExportController:
         state = self.state
         if state.volume is None and what in ("labels", "all"):
             return "nothing to export: open an image first"
-        if state.model is None and what in ("labels", "mesh"):
+        if state.active.model is None and what in ("labels", "mesh"):
             return "nothing to export: load a model first"
-        if what == "points" and len(state.points) == 0:
+        if what == "points" and len(state.active.points) == 0:
             return "no contour points to export"
-        if what == "all" and state.model is None and len(state.points) == 0:
+        if what == "all" and state.active.model is None and len(state.active.points) == 0:
             return "nothing to export: load a model or draw contour points first"
         return ""
 
@@ -342,9 +342,9 @@ class ExportController:
         """The files :meth:`export_all` writes into ``folder``."""
         folder = Path(folder)
         names = []
-        if self.state.model is not None and self.state.volume is not None:
+        if self.state.active.model is not None and self.state.volume is not None:
             names += ["segmentation.nii.gz", "surface.vtk"]
-        if len(self.state.points):
+        if len(self.state.active.points):
             names += ["points.csv", "points.mrk.json"]
         return [folder / name for name in names]
 
@@ -356,14 +356,14 @@ class ExportController:
         """Label map, mesh and points (CSV and Slicer markups) into ``folder``."""
         folder = Path(folder)
         written = []
-        if self.state.model is not None and self.state.volume is not None:
+        if self.state.active.model is not None and self.state.volume is not None:
             written.append(folder / "segmentation.nii.gz")
             self.export_labels(written[-1])
             if self._edits(self.state.active):
                 written.append(edits_path(written[-1]))
             written.append(folder / "surface.vtk")
             self.export_mesh(written[-1])
-        if len(self.state.points):
+        if len(self.state.active.points):
             for name in ("points.csv", "points.mrk.json"):
                 written.append(folder / name)
                 self.export_points(written[-1])
@@ -396,7 +396,7 @@ class ExportController:
             depths[members] = float(np.mean(FRAMES[name].depth(xyz[members])))
         given = np.full_like(xyz, np.nan) if pset.normals is None else np.asarray(pset.normals, float)
         imported = Points(xyz, frames, depths, labels, np.ones(len(xyz), dtype=bool), given)
-        self.state.set_points(self.state.points.extend(imported), checkpoint=True)
+        self.state.active.set_points(self.state.active.points.extend(imported), checkpoint=True)
         planes = len(normals)
         note = f", {tilted} oblique" if tilted else ""
         kept = ", normals kept" if pset.normals is not None else ""

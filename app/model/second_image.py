@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.events import EmitterGroup
+from app.model.events import EmitterGroup
 from core.geometry.planes import SliceSampler, auto_window
 
 MODES = ("blend", "checkerboard")
@@ -31,7 +31,7 @@ BASES = ("first", "second")
 
 
 class SecondImage:
-    """See the module docstring; ``workspace`` is the :class:`app.state.WorkspaceState`."""
+    """See the module docstring; ``workspace`` is the :class:`app.model.state.WorkspaceState`."""
 
     def __init__(self, workspace):
         self.workspace = workspace
