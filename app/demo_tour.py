@@ -201,16 +201,16 @@ class DemoTour(QObject):
         elif kind == "stn_contours":        # drawn on the structure just added and placed
             self.steps[self.index:self.index] = stn_contours(w)
         elif kind == "landmark":
-            w.planning.set_landmark(step[1], step[2])
+            w.plan.planning.set_landmark(step[1], step[2])
         elif kind == "entry":
             s = w.state.active
-            target = w.planning.target_of(s)
+            target = w.plan.planning.target_of(s)
             if target is not None:
-                w.planning.set_entry(s, target + step[1])
+                w.plan.planning.set_entry(s, target + step[1])
         elif kind == "lead":
             from core.planning.report import LeadChoice
 
-            w.planning.set_lead(w.state.active, LeadChoice(step[1]))
+            w.plan.planning.set_lead(w.state.active, LeadChoice(step[1]))
         # a frame after each step, but only every RECORD_EVERY-th contour point (a 3D
         # render under software OpenGL costs ~0.5 s)
         if self.record is not None and kind != "wait_fit" and \
