@@ -16,6 +16,7 @@ to the surfaces.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,38 @@ class AutoPlacement(QObject):
         self.transform: np.ndarray | None = None   # image -> template, with the nudges
         self._nudges: list[np.ndarray] = []        # the transforms before each nudge
         self._placed_ids: list[int] = []           # the structures placed through it
+
+    def structures_at_template(self) -> list:
+        """Structures whose model sits where its file puts it in its template space (not
+        placed on this image: no Place here, no automatic placement, no fit moved it)."""
+        from core.io.model_library import structure_info
+
+        return [s for s in self.state.structures
+                if s.model is not None and not s.locked and structure_info(s.model).template_space
+                and np.allclose(s.pose, s.model.world_transform, atol=1e-6)]
+
+    def offer(self, window, message: str = "") -> bool:
+        """A new image while models sit at template coordinates: offer *Place models
+        automatically* (the placement itself has Cancel); True if it was started. Declined
+        (or without dialogs), the hint follows the image's ``message`` in the status bar."""
+        from core.registration.volumes import default_template_path
+
+        waiting = self.structures_at_template()
+        image = self.state.image_path
+        if not waiting or image is None or self.is_running:
+            return False
+        if Path(os.path.abspath(image)) == Path(os.path.abspath(default_template_path())):
+            return False                 # the template itself: the models are in place
+        names = ", ".join(s.label for s in waiting)
+        question = (f"{names} still sit{'s' if len(waiting) == 1 else ''} at the template's "
+                    f"coordinates, not on this image. Place the models automatically now "
+                    f"(registration to the template; Cancel stops it)?")
+        if not window.ask(question):
+            window.show_message(f"{message + '. ' if message else ''}{names}: at template "
+                                f"coordinates; Edit > Place models automatically (Ctrl+P) "
+                                f"puts them on this image", 12000)
+            return False
+        return window.place_automatically()
 
     @property
     def is_running(self) -> bool:

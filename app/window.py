@@ -37,7 +37,7 @@ from app.placement import AutoPlacement
 from app.panels.factors import FactorsPanel
 from app.panels.fit import FitPanel
 from app.panels.side import DrawingBar, SidePanel
-from app.panels.status import CursorReadout, FitReadout
+from app.panels.status import status_readouts
 from app.panels.structures import StructuresPanel
 from app.panels.tools import WINDOW_PRESETS, ToolsPanel
 from app.plan_controller import install_planning
@@ -59,6 +59,15 @@ BASE_TOOLS = {"navigate": ("Navigate", "N", "Navigate: click to move the crossha
                                             "add contour points; Ctrl+click deletes a point"),
               "window": ("Window/level", "W",
                          "Window/level: drag left-right for width, up-down for level")}
+
+
+def _single_shot(parent, msecs: int, slot) -> QTimer:
+    """A single-shot timer of ``parent`` that calls ``slot`` ``msecs`` after each start."""
+    timer = QTimer(parent)
+    timer.setSingleShot(True)
+    timer.setInterval(msecs)
+    timer.timeout.connect(slot)
+    return timer
 
 
 class MainWindow(QMainWindow):
@@ -125,21 +134,14 @@ class MainWindow(QMainWindow):
         if self.workspace.volume_view is not None:
             self._wire_volume_view()
         self.factors_panel.factor_touched.connect(self._show_factor_region)
-        self._factor_timer = self._timer(2500, lambda: self._show_factor_region(-1))
+        self._factor_timer = _single_shot(self, 2500, lambda: self._show_factor_region(-1))
         self.tabs = WorkspaceTabs(self.workspace)
         self.tabs.segment_shown.connect(self._show_segment_controls)
         self.tabs.use_model.connect(self._use_built_model)
         self.setCentralWidget(self.tabs)
 
-        self.cursor_label = CursorReadout(self.state)
-        self.fit_label = FitReadout(self.state, self.refit)
-        self.cursor_label.extra = self.plan.acpc_text
-        self.plan.planning.events.landmarks.connect(self.cursor_label.refresh)
-        self.statusBar().addPermanentWidget(self.cursor_label, 1)
-        self.statusBar().addPermanentWidget(self.fit_label)
-
+        self.cursor_label, self.fit_label = status_readouts(self)
         for view in self.workspace.views.values():
-            view.hovered.connect(self.cursor_label.on_hover)
             view.activated.connect(self.set_active_view)
             view.message.connect(self.show_message)
         events = self.state.events
@@ -151,7 +153,7 @@ class MainWindow(QMainWindow):
         events.edited.connect(self._on_edited)
         self.fit_panel.settings_changed.connect(self.refit.settings_changed)
         self.fit_panel.refit_requested.connect(lambda: self.schedule_refit(force=True))
-        self._autosave_timer = self._timer(250, self.write_recovery)
+        self._autosave_timer = _single_shot(self, 250, self.write_recovery)
         self._update_actions()
         install_segment_tools(self)  # labels, measurements, second_image, navigation, tour
 
@@ -165,18 +167,6 @@ class MainWindow(QMainWindow):
     def runner(self):
         """The active structure's refit runner (tests and scripts wait on it)."""
         return self.refit.runner
-
-    @property
-    def refit_times(self) -> list[float]:
-        return self.refit.refit_times
-
-    # -- construction ---------------------------------------------------------------------------
-    def _timer(self, msecs: int, slot) -> QTimer:
-        timer = QTimer(self)
-        timer.setSingleShot(True)
-        timer.setInterval(msecs)
-        timer.timeout.connect(slot)
-        return timer
 
     # -- opening files --------------------------------------------------------------------------
     def load_image(self, path: str | os.PathLike, series: str | None = None,
@@ -203,39 +193,7 @@ class MainWindow(QMainWindow):
             raise
         message = self.sessions.overlap_warning() or message
         self.show_message(message + (f" ({notes[0]})" if notes else ""))
-        self.offer_auto_placement(message)
-
-    def structures_at_template(self) -> list:
-        """Structures whose model sits where its file puts it in its template space (not
-        placed on this image: no Place here, no automatic placement, no fit moved it)."""
-        from core.io.model_library import structure_info
-
-        return [s for s in self.state.structures
-                if s.model is not None and not s.locked and structure_info(s.model).template_space
-                and np.allclose(s.pose, s.model.world_transform, atol=1e-6)]
-
-    def offer_auto_placement(self, message: str = "") -> bool:
-        """A new image while models sit at template coordinates: offer *Place models
-        automatically* (the placement itself has Cancel); True if it was started. Declined
-        (or without dialogs), the hint follows the image's ``message`` in the status bar."""
-        from core.registration.volumes import default_template_path
-
-        waiting = self.structures_at_template()
-        image = self.state.image_path
-        if not waiting or image is None or self.auto_place.is_running:
-            return False
-        if Path(os.path.abspath(image)) == Path(os.path.abspath(default_template_path())):
-            return False                 # the template itself: the models are in place
-        names = ", ".join(s.label for s in waiting)
-        question = (f"{names} still sit{'s' if len(waiting) == 1 else ''} at the template's "
-                    f"coordinates, not on this image. Place the models automatically now "
-                    f"(registration to the template; Cancel stops it)?")
-        if not self.ask(question):
-            self.show_message(f"{message + '. ' if message else ''}{names}: at template "
-                              f"coordinates; Edit > Place models automatically (Ctrl+P) puts "
-                              f"them on this image", 12000)
-            return False
-        return self.place_automatically()
+        self.auto_place.offer(self, message)
 
     def load_model(self, path: str | os.PathLike, coef=None, pose=None) -> None:
         """Load a shape model into the active structure at its stored placement."""

@@ -134,7 +134,7 @@ def test_new_patient_offers_placement_then_nudge_with_undo(make_window, moved_ca
     placed = [s.surface_vertices().copy() for s in structures]
     for b, p in zip(before, placed):
         assert np.linalg.norm(p.mean(axis=0) - (b.mean(axis=0) + shift)) < 2.0
-    assert window.structures_at_template() == []    # placed: nothing more to offer
+    assert window.auto_place.structures_at_template() == []    # placed: nothing more to offer
     window.load_image(patient)
     assert len(asked) == 1
 

@@ -99,7 +99,7 @@ def test_warnings_in_red_when_the_target_lies_outside_its_structure(window):
     planning, panel, state = window.plan.planning, window.plan.panel, window.state
     _plan(window)
     assert panel.warnings_label.text() == ""
-    outside = state.surface_vertices()[:, 0].max() + 6.0
+    outside = state.active.surface_vertices()[:, 0].max() + 6.0
     target = planning.target_of(state.active).copy()
     target[0] = outside
     planning.set_target(state.active, target)
@@ -108,7 +108,7 @@ def test_warnings_in_red_when_the_target_lies_outside_its_structure(window):
     assert "e03030" in panel.warnings_label.styleSheet()
     shown = float(text.split("lies ")[1].split(" mm")[0])
     # every surface point has x <= the extreme: at least 6 mm; at most the nearest vertex
-    nearest_vertex = float(np.linalg.norm(state.surface_vertices() - target, axis=1).min())
+    nearest_vertex = float(np.linalg.norm(state.active.surface_vertices() - target, axis=1).min())
     assert 6.0 - 0.05 <= shown <= nearest_vertex + 0.05
 
 

@@ -63,7 +63,10 @@ def test_export_label_map_mesh_and_points_reread(qtbot, tmp_path, state_dir):
     window.wait_for_refit(20000)
     written = window.export_all(tmp_path / "out")
     names = sorted(p.name for p in written)
-    assert names == ["points.csv", "points.mrk.json", "segmentation.nii.gz", "surface.vtk"]
+    # the active structure's files, and every structure's (Export all; no DICOM source here)
+    assert {"points.csv", "points.mrk.json", "segmentation.nii.gz", "surface.vtk"} <= set(names)
+    assert {"all_labels.seg.nrrd", "all_labels.nii.gz"} <= set(names), names
+    assert not [n for n in names if n.endswith(".dcm")]
 
     labels = load_volume(tmp_path / "out" / "segmentation.nii.gz")
     image = window.state.volume

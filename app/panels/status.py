@@ -44,3 +44,17 @@ class FitReadout(QLabel):
     def _on_applied(self, result) -> None:
         self.setText(f"residual {result.residual_mm:.2f} mm, {result.n_iter} it, "
                      f"{1000 * self.state.active.fit_info.seconds:.0f} ms")
+
+
+def status_readouts(window) -> tuple[CursorReadout, FitReadout]:
+    """The status bar's permanent read-outs, wired: the cursor (world, voxel, value, AC-PC
+    from the plan) and the last fit."""
+    cursor = CursorReadout(window.state)
+    fit = FitReadout(window.state, window.refit)
+    cursor.extra = window.plan.acpc_text
+    window.plan.planning.events.landmarks.connect(cursor.refresh)
+    window.statusBar().addPermanentWidget(cursor, 1)
+    window.statusBar().addPermanentWidget(fit)
+    for view in window.workspace.views.values():
+        view.hovered.connect(cursor.on_hover)
+    return cursor, fit

@@ -25,7 +25,7 @@ from PySide6.QtWidgets import QSizePolicy, QWidget
 from app.model.planning import LANDMARK_LABELS, PlanningState
 from core.geometry.planes import frame_along, window_to_uint8
 from core.geometry.slicing import intersect_plane
-from core.planning.lead import contact_extents
+from core.planning.lead import across_in_plane, contact_extents
 from core.reconstruction.uncertainty import section_sd
 
 LANDMARK_COLOR = QColor(255, 80, 200)
@@ -117,10 +117,7 @@ class SlicePlanOverlay:
         band on the lead's axis projected on the slice; crossing when the slice's plane cuts
         the band's extent along the lead (within half a voxel step)."""
         n = np.asarray(view.frame.n, dtype=np.float64)
-        across = np.cross(n, placed.axis)
-        if np.linalg.norm(across) < 1e-6:        # the lead runs along the slice normal
-            across = np.asarray(view.frame.u, dtype=np.float64)
-        across /= np.linalg.norm(across)
+        across = across_in_plane(placed, n, view.frame.u)
         half_step = view._step() / 2
         out = []
         for band in contact_extents(placed):
@@ -233,7 +230,7 @@ def _contact_cylinders(placed) -> pv.PolyData:
         centre = (band["start"] + band["end"]) / 2
         cylinders.append(pv.Cylinder(center=centre, direction=placed.axis,
                                      radius=max(band["radius_mm"], 0.6),
-                                     height=float(np.linalg.norm(band["end"] - band["start"])),
+                                     height=float(band["length_mm"]),
                                      resolution=24))
     return pv.merge(cylinders) if len(cylinders) > 1 else cylinders[0]
 

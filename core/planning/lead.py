@@ -114,11 +114,24 @@ def contact_extents(placed: PlacedLead) -> list[dict]:
     out = []
     for c in placed.contacts:
         row = {"name": c.name, "start": c.axis_point - half * placed.axis,
-               "end": c.axis_point + half * placed.axis, "radius_mm": placed.lead.diameter_mm / 2}
+               "end": c.axis_point + half * placed.axis, "radius_mm": placed.lead.diameter_mm / 2,
+               "length_mm": placed.lead.contact_length_mm}
         if c.angle_deg is not None:
             row.update(angle_deg=c.angle_deg, arc_deg=90.0)
         out.append(row)
     return out
+
+
+def across_in_plane(placed: PlacedLead, normal: np.ndarray,
+                    fallback: np.ndarray) -> np.ndarray:
+    """The unit direction across the lead within a slice of normal ``normal`` (where a view
+    draws the band's width); ``fallback`` (a unit in-plane direction) when the lead runs along
+    the normal."""
+    across = np.cross(np.asarray(normal, dtype=np.float64), placed.axis)
+    size = float(np.linalg.norm(across))
+    if size < 1e-6:
+        return np.asarray(fallback, dtype=np.float64)
+    return across / size
 
 
 def place_lead(trajectory: Trajectory, lead: LeadType | str, depth_mm: float = 0.0,
