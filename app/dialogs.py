@@ -51,7 +51,8 @@ class ExportActions:
             w.show_message("Export cancelled: the fit looks implausible")
             return []
         written = w.exports.export_all(folder)
-        w.show_message(f"Exported {len(written)} file(s) to {folder}")
+        w.show_message("; ".join([f"Exported {len(written)} file(s) to {folder}"]
+                                 + w.exports.notes))
         return written
 
     def export_dialog(self, what: str) -> None:

@@ -22,7 +22,7 @@ from app.model.state import FRAME_NAMES
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
 from app.workers import DialogTask
 from core.geometry.planes import PLANE_AXIS
-from core.planning.report import export_all_structures, export_plan
+from core.planning.report import all_structures_outputs, export_all_structures, export_plan
 from core.planning.frames import anchored_point_weights, format_acpc
 from core.reconstruction.uncertainty import ellipsoid, fit_posterior, suggest_slice
 
@@ -36,7 +36,8 @@ def install_planning(window) -> PlanController:
     window.sessions.info_providers["planning"] = planning.to_document
     # Export all: every structure (label map with names and colours, DICOM SEG + RTSTRUCT
     # when the image came from DICOM), not only the active one
-    window.exports.extra_exports.append(controller.export_structures)
+    window.exports.extra_exports.append((controller.export_structures,
+                                         controller.structure_outputs))
     return controller
 
 
@@ -210,6 +211,17 @@ class PlanController(QObject):
         frame = self.planning.frame()
         return "" if frame is None or world is None else format_acpc(frame.to_acpc(world))
 
+    def structure_outputs(self, folder) -> list[Path]:
+        """The files :meth:`export_structures` would write into ``folder``."""
+        from core.cli.plan import _dicom_files
+
+        structures = self.planning.planned_structures()
+        if not structures or self.workspace.volume is None:
+            return []
+        return all_structures_outputs(folder, structures, self.workspace.volume, stem="all",
+                                      dicom_series=_dicom_files(self.workspace.image_path),
+                                      meshes=False)
+
     def export_structures(self, folder) -> list[Path]:
         """Every fitted structure into ``folder`` (``core.planning.report.export_all_structures``:
         ``all_labels.seg.nrrd``/``.nii.gz``/``.txt``, and ``all_structures.seg.dcm`` +
@@ -233,7 +245,7 @@ class PlanController(QObject):
         for signal in (task.succeeded, task.failed, task.cancelled):
             signal.connect(loop.quit)
         task.start(export_all_structures, folder, structures, volume, stem="all",
-                   dicom_series=series, meshes=False,
+                   dicom_series=series, meshes=False, notes=self.window.exports.notes,
                    show_dialog=not self.window._quiet_errors())
         loop.exec()     # the GUI keeps painting; the dialog's Cancel reaches the worker
         if "error" in outcome:

@@ -265,6 +265,41 @@ def test_seg_and_rtstruct_sit_on_an_oblique_series_written_backwards(tmp_path):
                     {"structures": [{"name": s.name, "color": s.color} for s in spheres]})
 
 
+def test_a_series_without_frame_of_reference_gets_no_seg_but_the_rest(tmp_path):
+    """SEG and RTSTRUCT must reference the series' frame of reference: a series that lacks it
+    (non-conformant, some exporters drop it) gets a one-line note naming the file (or, without
+    a notes list, an error), the label maps are written; the declared outputs match."""
+    import pydicom
+
+    from analytic import sphere as icosphere
+    from core.errors import DataFileError
+    from core.planning.report import (PlannedStructure, all_structures_outputs,
+                                      export_all_structures)
+
+    data = np.random.default_rng(4).integers(0, 1000, size=(20, 18, 12))
+    files = write_series(tmp_path / "series", data, np.array([1.0, 1.0, 1.5]),
+                         np.array([0.0, 0.0, 0.0]))
+    volume = load_volume(tmp_path / "series")
+    centre = volume.voxel_to_world(np.array([10.0, 9.0, 6.0]))
+    spheres = [PlannedStructure("sphere", *icosphere(5.0, centre, 2), (0.9, 0.7, 0.1))]
+    expected = all_structures_outputs(tmp_path / "ok", spheres, volume, dicom_series=files)
+    assert sorted(export_all_structures(tmp_path / "ok", spheres, volume,
+                                        dicom_series=files)) == sorted(expected)
+    for f in files:
+        ds = pydicom.dcmread(str(f))
+        del ds.FrameOfReferenceUID
+        ds.save_as(str(f))
+    notes: list = []
+    written = export_all_structures(tmp_path / "out", spheres, volume, dicom_series=files,
+                                    meshes=False, notes=notes)
+    assert {p.name for p in written} == {"plan_labels.seg.nrrd", "plan_labels.nii.gz",
+                                         "plan_labels.txt"}
+    assert len(notes) == 1 and "Frame of Reference UID" in notes[0] and files[0].name in notes[0]
+    with pytest.raises(DataFileError, match="Frame of Reference UID"):
+        export_all_structures(tmp_path / "again", spheres, volume, dicom_series=files,
+                              meshes=False)
+
+
 def _check_seg(seg_path, files, label_map, names):
     """Segment names, the source series referenced, and each segment rebuilt from the SEG's
     own frame geometry (per-frame positions, shared orientation and spacing) as a SimpleITK

@@ -62,12 +62,15 @@ def test_export_all_asks_before_overwriting_an_earlier_export(make_window, tmp_p
     monkeypatch.setattr(QFileDialog, "getExistingDirectory", staticmethod(lambda *a, **k: str(folder)))
     window.export_all_dialog()
     first = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
-    assert set(first) == {"segmentation.nii.gz", "surface.vtk"}
+    # the active structure's files and every structure's (one here: with its name and colour
+    # for 3D Slicer, and ITK-SNAP's label description)
+    assert set(first) == {"segmentation.nii.gz", "surface.vtk", "all_labels.seg.nrrd",
+                          "all_labels.nii.gz", "all_labels.txt"}
     window.state.active.place_at(window.state.crosshair + [3.0, 0, 0])      # a different result
     questions = []
     window.ask = lambda text: questions.append(text) or False
     window.export_all_dialog()
-    assert questions and "segmentation.nii.gz" in questions[0]
+    assert questions and "segmentation.nii.gz" in questions[0] and "all_labels.seg.nrrd" in questions[0]
     assert {p.name: p.stat().st_mtime_ns for p in folder.iterdir()} == first   # untouched
     window.ask = lambda text: True
     window.export_all_dialog()
@@ -257,7 +260,9 @@ def test_image_without_sform_or_qform_is_marked_unknown_and_exports_ask(make_win
     assert window.export_all(tmp_path / "out") == [] and not (tmp_path / "out").exists()
     assert "left" in questions[0] and "right" in questions[0]
     window.ask = lambda text: True
-    assert len(window.export_all(tmp_path / "out")) == 2
+    assert {p.name for p in window.export_all(tmp_path / "out")} == {
+        "segmentation.nii.gz", "surface.vtk", "all_labels.seg.nrrd", "all_labels.nii.gz",
+        "all_labels.txt"}
     window.load_image(demo.demo_image())                # a known orientation: letters again
     assert window.workspace.views["axial"].label_layout()["left"][1] == "R"
 

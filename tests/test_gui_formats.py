@@ -82,6 +82,11 @@ def test_dropped_dicom_folder_opens_and_leaks_no_patient_name(window, dicom_fold
     names = [p.name for p in (tmp_path / "state").rglob("*")]
     names += [p.name for p in window.export_all(tmp_path / "export")]
     assert len(names) >= 3
+    # this test series has no Frame of Reference UID: the DICOM SEG and RTSTRUCT are left out
+    # with a one-line reason, the other files are written
+    message = window.statusBar().currentMessage()
+    assert "Frame of Reference UID" in message and "SEG and RTSTRUCT not written" in message
+    assert not any(name.endswith(".dcm") for name in names)
     for name in names:
         _no_patient(name)
     _no_patient(window.windowTitle())

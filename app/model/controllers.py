@@ -266,8 +266,13 @@ class ExportController:
 
     def __init__(self, state: WorkspaceState):
         self.state = state
-        # more files for Export all: ``write(folder) -> [paths]`` (e.g. the measurements)
-        self.extra_exports: list[Callable[[Path], list[Path]]] = []
+        # more files for Export all, each a pair ``(write(folder) -> [paths written],
+        # outputs(folder) -> [paths it would write])`` (the measurements, every structure):
+        # the outputs let Export all ask before overwriting any of them
+        self.extra_exports: list[tuple[Callable[[Path], list[Path]],
+                                       Callable[[Path], list[Path]]]] = []
+        # what the last Export all could not write and why (one line each), for its message
+        self.notes: list[str] = []
 
     def label_map(self, structure: Structure | None = None) -> np.ndarray:
         """The fitted surface as a uint8 label map on the image grid (1 inside), with the
@@ -346,7 +351,8 @@ class ExportController:
             names += ["segmentation.nii.gz", "surface.vtk"]
         if len(self.state.active.points):
             names += ["points.csv", "points.mrk.json"]
-        return [folder / name for name in names]
+        return [folder / name for name in names] + [
+            p for _, outputs in self.extra_exports for p in outputs(folder)]
 
     def existing_outputs(self, folder: str | os.PathLike) -> list[Path]:
         """Files of an earlier export that :meth:`export_all` would overwrite."""
@@ -356,6 +362,7 @@ class ExportController:
         """Label map, mesh and points (CSV and Slicer markups) into ``folder``."""
         folder = Path(folder)
         written = []
+        self.notes = []
         if self.state.active.model is not None and self.state.volume is not None:
             written.append(folder / "segmentation.nii.gz")
             self.export_labels(written[-1])
@@ -367,7 +374,7 @@ class ExportController:
             for name in ("points.csv", "points.mrk.json"):
                 written.append(folder / name)
                 self.export_points(written[-1])
-        for write in self.extra_exports:
+        for write, _ in self.extra_exports:
             written.extend(write(folder))
         return written
 

@@ -8,6 +8,8 @@ with the points (``measurements.csv`` and Slicer ``measurements.mrk.json``).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt
 from PySide6.QtGui import QColor, QPainter, QPen
@@ -147,7 +149,9 @@ class MeasurementTools:
         window.sessions.info_providers["measurements"] = lambda: measurements_to_json(store.items)
         window.sessions.info_readers["measurements"] = lambda data: store.set_items(
             measurements_from_json(data))
+        def outputs(folder: Path) -> list[Path]:
+            return [folder / name for name in ("measurements.csv", "measurements.mrk.json")
+                    ] if store.items else []
+
         window.exports.extra_exports.append(
-            lambda folder: [save_measurements(folder / name, store.items)
-                            for name in ("measurements.csv", "measurements.mrk.json")]
-            if store.items else [])
+            (lambda folder: [save_measurements(p, store.items) for p in outputs(folder)], outputs))

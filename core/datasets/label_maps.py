@@ -227,8 +227,6 @@ def manual_label_map(kind: str = "bean", spacing=(1.0, 1.0, 1.0), *, seed: int =
     default plants all of them, about in proportion to the number of boundary voxels. The
     solid is turned by up to ``rotation_deg`` and centred up to ``far`` mm off the origin
     (per axis); the grid is oblique whatever the solid's pose."""
-    from scipy import ndimage
-
     rng = np.random.default_rng(seed)
     spacing = np.broadcast_to(np.asarray(spacing, dtype=np.float64), (3,)).copy()
     rotation = random_rotation(rng, rotation_deg)
@@ -240,29 +238,52 @@ def manual_label_map(kind: str = "bean", spacing=(1.0, 1.0, 1.0), *, seed: int =
             "corner_contacts": 8, "bridges": 3, "notches": 6}
     if defects is not None:
         want = {k: defects.get(k, 0) for k in DEFECTS}
+    mask = _jittered_solid(kind, shape, affine, centre, rotation, scale, bend, rng,
+                           bool(want["jitter"]))
+    done = {"jitter": int(bool(want["jitter"]))}
+    done.update(_flips_and_islands(mask, rng, want))
+    done.update(_diagonal_contacts(mask, rng, want))
+    done["bridges"] = _bridges(mask, rng, int(want["bridges"]))
+    done["notches"] = _notches(mask, rng, int(want["notches"]))
+    data = np.where(mask, value, 0).astype(np.int16)
+    return ManualLabelMap(Volume(data, affine), int(value), kind, tuple(scale), float(bend),
+                          rotation, centre, done)
+
+
+def _jittered_solid(kind, shape, affine, centre, rotation, scale, bend, rng,
+                    jitter: bool) -> np.ndarray:
+    """The solid voxelised one axial slice at a time, each with its own in-plane shift (the
+    ragged slice-to-slice boundary of a manual outline)."""
     ijk = np.stack(np.meshgrid(*[np.arange(n, dtype=np.float64) for n in shape[:2]],
                                indexing="ij"), -1).reshape(-1, 2)
     mask = np.zeros(shape, bool)
-    for k in range(shape[2]):  # one axial slice at a time, each with its own in-plane shift
-        shift = rng.uniform(-1.0, 1.0, 2) if want["jitter"] else np.zeros(2)
+    for k in range(shape[2]):
+        shift = rng.uniform(-1.0, 1.0, 2) if jitter else np.zeros(2)
         pts = np.column_stack([ijk + shift, np.full(len(ijk), float(k))])
         world = pts @ affine[:3, :3].T + affine[:3, 3]
         local = (world - centre) @ rotation
         mask[:, :, k] = (implicit(kind, local, scale, bend) <= 0).reshape(shape[:2])
-    done = {"jitter": int(bool(want["jitter"]))}
-    # Random flips of boundary voxels (both sides), then single-voxel islands.
+    return mask
+
+
+def _flips_and_islands(mask: np.ndarray, rng, want: dict) -> dict:
+    """Random flips of boundary voxels (both sides), then single-voxel islands (in place)."""
     inner, outer = _boundary(mask)
     n_flip = int(round(want["flips"] * (len(inner) + len(outer)) / 2))
     for cand in (inner, outer):
         pick = cand[rng.choice(len(cand), size=min(n_flip, len(cand)), replace=False)]
         mask[tuple(pick.T)] = ~mask[tuple(pick.T)]
-    done["flips"] = 2 * n_flip
     islands = _plant_off_surface(mask, rng, int(want["islands"]), (3, 7), FACE_STEPS)
     for p in islands:
         mask[tuple(p)] = True
-    done["islands"] = len(islands)
-    # Edge- and corner-only contacts: a voxel off the surface touching it only diagonally,
-    # and floating diagonal-only pairs.
+    return {"flips": 2 * n_flip, "islands": len(islands)}
+
+
+def _diagonal_contacts(mask: np.ndarray, rng, want: dict) -> dict:
+    """Edge- and corner-only contacts (in place): a voxel off the surface touching it only
+    diagonally, and floating diagonal-only pairs."""
+    shape = mask.shape
+    done = {}
     for name, steps in (("edge_contacts", EDGE_STEPS), ("corner_contacts", CORNER_STEPS)):
         n, target = 0, int(want[name])
         inner, _ = _boundary(mask)
@@ -280,9 +301,16 @@ def manual_label_map(kind: str = "bean", spacing=(1.0, 1.0, 1.0), *, seed: int =
                 mask[tuple(p)] = mask[tuple(q)] = True
                 n += 1
         done[name] = n
-    # One-voxel bridges to a small blob a few voxels off the surface.
+    return done
+
+
+def _bridges(mask: np.ndarray, rng, count: int) -> int:
+    """One-voxel bridges to a small blob a few voxels off the surface (in place)."""
+    from scipy import ndimage
+
+    shape = mask.shape
     n = 0
-    for p in _plant_off_surface(mask, rng, int(want["bridges"]), (4, 6), FACE_STEPS):
+    for p in _plant_off_surface(mask, rng, count, (4, 6), FACE_STEPS):
         lo, hi = np.maximum(p - 1, 0), np.minimum(p + 1, shape)
         mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = True  # a 2x2x2 blob
         dist, (ii, jj, kk) = ndimage.distance_transform_edt(~mask | _blob(shape, lo, hi),
@@ -294,12 +322,16 @@ def manual_label_map(kind: str = "bean", spacing=(1.0, 1.0, 1.0), *, seed: int =
             cur[axis] += np.sign(target[axis] - cur[axis])
             mask[tuple(cur)] = True
         n += 1
-    done["bridges"] = n
-    # Notches: one-voxel-wide dents, 1-2 voxels deep, along the inward face direction.
+    return n
+
+
+def _notches(mask: np.ndarray, rng, count: int) -> int:
+    """One-voxel-wide dents, 1-2 voxels deep, along the inward face direction (in place)."""
+    shape = mask.shape
     n = 0
     inner, _ = _boundary(mask)
-    for _ in range(20 * int(want["notches"])):
-        if n >= int(want["notches"]) or len(inner) == 0:
+    for _ in range(20 * count):
+        if n >= count or len(inner) == 0:
             break
         p = inner[rng.integers(len(inner))]
         q = p + FACE_STEPS
@@ -313,10 +345,7 @@ def manual_label_map(kind: str = "bean", spacing=(1.0, 1.0, 1.0), *, seed: int =
             if _inside(shape, r[None])[0]:
                 mask[tuple(r)] = False
         n += 1
-    done["notches"] = n
-    data = np.where(mask, value, 0).astype(np.int16)
-    return ManualLabelMap(Volume(data, affine), int(value), kind, tuple(scale), float(bend),
-                          rotation, centre, done)
+    return n
 
 
 def _blob(shape, lo, hi) -> np.ndarray:

@@ -314,6 +314,12 @@ def export_structures_dicom(folder: str | os.PathLike, structures: list[ExportSt
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     datasets = read_series(list(series_files))
+    for f, ds in zip(series_files, datasets):
+        # both objects reference the series' frame of reference (highdicom and the RTSTRUCT IOD
+        # require it; the MR and CT image IODs make it type 1, but some exporters drop it)
+        if not str(getattr(ds, "FrameOfReferenceUID", "") or ""):
+            raise DataFileError(f, "the source series has no Frame of Reference UID, which DICOM "
+                                   "SEG and RTSTRUCT must reference")
     masks = masks_on_series(label_map, affine, datasets, list(range(1, len(structures) + 1)))
     return [write_dicom_seg(folder / f"{stem}.seg.dcm", structures, masks, datasets),
             write_rtstruct(folder / f"{stem}.rtstruct.dcm", structures, masks, datasets)]

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import DataFileError
 from core.io import TriMesh, atomic_write_json, atomic_write_text, save_mesh
 from core.io.model_library import structure_info
 from core.planning.frames import (ACPCFrame, Trajectory, anchored_point, anchored_point_weights,
@@ -354,9 +355,30 @@ def save_plan_markups(path: str | os.PathLike, structures: list[PlannedStructure
     atomic_write_json(path, plan_markups(structures, frame))
 
 
+def all_structures_outputs(folder: str | os.PathLike, structures: list[PlannedStructure],
+                           volume, stem: str = "plan", dicom_series: list | None = None,
+                           meshes: bool = True) -> list[Path]:
+    """The files :func:`export_all_structures` would write with these arguments (so a caller
+    can ask before overwriting an earlier export)."""
+    folder = Path(folder)
+    names = []
+    if volume is not None:
+        names += [f"{stem}_labels.seg.nrrd", f"{stem}_labels.nii.gz", f"{stem}_labels.txt"]
+        if dicom_series:
+            names += [f"{stem}_structures.seg.dcm", f"{stem}_structures.rtstruct.dcm"]
+    if meshes:
+        names += [f"{stem}_{i:02d}_{_safe_name(s.name, i)}.vtk"
+                  for i, s in enumerate(structures, start=1)]
+    return [folder / name for name in names]
+
+
+def _safe_name(name: str, index: int) -> str:
+    return "".join(c if c.isalnum() else "_" for c in name).strip("_") or f"structure{index}"
+
+
 def export_all_structures(folder: str | os.PathLike, structures: list[PlannedStructure],
                           volume, stem: str = "plan", dicom_series: list | None = None,
-                          meshes: bool = True, progress=None) -> list[Path]:
+                          meshes: bool = True, progress=None, notes: list[str] | None = None) -> list[Path]:
     """Every structure at once (the GUI's *Export all*): on ``volume``'s grid the multi-label
     map as ``<stem>_labels.seg.nrrd`` (3D Slicer: names, colours) and ``<stem>_labels.nii.gz``
     + ``<stem>_labels.txt`` (ITK-SNAP labels); with ``dicom_series`` (the source series' files,
@@ -364,7 +386,9 @@ def export_all_structures(folder: str | os.PathLike, structures: list[PlannedStr
     ``<stem>_structures.rtstruct.dcm`` (RTSTRUCT) referencing it; with ``meshes`` one surface
     per structure, ``<stem>_NN_<name>.vtk``. Returns the paths written. ``progress(fraction,
     message)`` (``core.runtime.progress``) is called before each file; cancelling through it
-    stops before the next file."""
+    stops before the next file. With ``notes`` (a list), a source series the DICOM objects
+    cannot reference (:class:`core.errors.DataFileError`, e.g. no Frame of Reference UID) adds
+    a one-line note there and the other files are still written; without, it raises."""
     from core.io import save_volume
     from core.io.nrrd import Segment, write_segmentation
 
@@ -389,12 +413,17 @@ def export_all_structures(folder: str | os.PathLike, structures: list[PlannedStr
 
             report(0.7, "DICOM SEG and RTSTRUCT")
             exports = [ExportStructure(s.name, s.color, s.vertices, s.faces) for s in structures]
-            written += export_structures_dicom(folder, exports, label_map, volume.affine,
-                                               list(dicom_series), stem=f"{stem}_structures")
+            try:
+                written += export_structures_dicom(folder, exports, label_map, volume.affine,
+                                                   list(dicom_series), stem=f"{stem}_structures")
+            except DataFileError as exc:
+                if notes is None:
+                    raise
+                notes.append(f"DICOM SEG and RTSTRUCT not written: {exc}")
     if meshes:
         report(0.9, "surface meshes")
         for i, s in enumerate(structures, start=1):
-            safe = "".join(c if c.isalnum() else "_" for c in s.name).strip("_") or f"structure{i}"
+            safe = _safe_name(s.name, i)
             path = folder / f"{stem}_{i:02d}_{safe}.vtk"
             save_mesh(path, TriMesh(s.vertices, s.faces, safe))
             written.append(path)
