@@ -76,8 +76,8 @@ def contour_steps(state, vertices, faces, slices, spacing: float, rng,
                   noise: float = 0.3) -> list[tuple]:
     """The simulated user's contour points of the surface (vertices, faces) on the slices
     named ``slices`` through its centre (``core.evaluation.simulated_user.simulate_user``)."""
-    from core.geometry.planes import FRAMES
     from core.evaluation.simulated_user import simulate_user
+    from core.geometry.planes import FRAMES
 
     centre = vertices.mean(axis=0)
     steps: list[tuple] = []

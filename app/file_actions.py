@@ -9,15 +9,14 @@ series chooser) and routes a path to the window's ``load_image`` / ``load_model`
 from __future__ import annotations
 
 import os
-from pathlib import Path
-
 import re
+from pathlib import Path
 
 from PySide6.QtWidgets import QFileDialog, QInputDialog, QMessageBox
 
 from app import formats
-from core.io.points import is_markups_file, markups_name
 from core.io.model_library import structure_from_name
+from core.io.points import is_markups_file, markups_name
 
 OPEN_DIALOGS = {"image": ("Open image", formats.IMAGE_FILTER),
                 "second": ("Open a second image (T2, FLAIR, CT…)", formats.IMAGE_FILTER),

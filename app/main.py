@@ -98,9 +98,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    from core.runtime.parallel import Terminated, termination_signals
-
     from core.cli import attach_negative_lists
+    from core.runtime.parallel import Terminated, termination_signals
 
     argv = attach_negative_lists(list(sys.argv[1:] if argv is None else argv))
     try:  # a signal while the commands are imported is not lost (nor a traceback)

@@ -13,17 +13,16 @@ from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import QEventLoop, QObject, Qt
-from PySide6.QtGui import QKeySequence
 from PySide6.QtWidgets import QDockWidget, QFileDialog, QScrollArea
 
-from app.panels.planning import PlanningPanel
 from app.model.planning import PlanningState
 from app.model.state import FRAME_NAMES
+from app.panels.planning import PlanningPanel
 from app.views.plan_overlays import SlicePlanOverlay, VolumePlanOverlay
 from app.workers import DialogTask
 from core.geometry.planes import PLANE_AXIS
-from core.planning.report import all_structures_outputs, export_all_structures, export_plan
 from core.planning.frames import anchored_point_weights, format_acpc
+from core.planning.report import all_structures_outputs, export_all_structures, export_plan
 from core.reconstruction.uncertainty import ellipsoid, fit_posterior, suggest_slice
 
 

@@ -22,32 +22,38 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
 from app import demo, formats
-from app.actions import (SHORTCUTS, create_actions, create_menus, create_toolbar,
-                         show_segment_controls, update_actions, update_title)
-from app.model.controllers import ExportController, SessionController
+from app.actions import (
+    SHORTCUTS,
+    create_actions,
+    create_menus,
+    create_toolbar,
+    show_segment_controls,
+    update_actions,
+    update_title,
+)
 from app.dialogs import ExportActions, SessionActions
 from app.edit_commands import EditCommands
 from app.file_actions import OPEN_DIALOGS, FileActions
-from app.placement import AutoPlacement
+from app.model.controllers import ExportController, SessionController
+from app.model.state import WorkspaceState
+from app.paint_gate import PaintGate
 from app.panels.factors import FactorsPanel
 from app.panels.fit import FitPanel
 from app.panels.side import DrawingBar, SidePanel
 from app.panels.status import status_readouts
 from app.panels.structures import StructuresPanel
 from app.panels.tools import WINDOW_PRESETS, ToolsPanel
+from app.placement import AutoPlacement
 from app.plan_controller import install_planning
-from app.paint_gate import PaintGate
 from app.refit import RefitController
 from app.registry import ActionRegistry, SliceTools
-from app.model.state import WorkspaceState
 from app.tabs import WorkspaceTabs
-from app.views.grid import SegmentWorkspace
 from app.tools_install import install_segment_tools
+from app.views.grid import SegmentWorkspace
 from app.workers import error_message
 from core.errors import DataFileError
 from core.io.model_library import list_library

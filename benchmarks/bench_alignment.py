@@ -25,8 +25,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.alignment.transforms import (apply_transform, homogeneous, reference_transforms,  # noqa: E402
-                            synchronize_transforms)
+from core.alignment.transforms import (  # noqa: E402
+    apply_transform,
+    homogeneous,
+    reference_transforms,
+    synchronize_transforms,
+)
 from core.geometry.toolkit import random_rotation  # noqa: E402
 
 

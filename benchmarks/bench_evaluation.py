@@ -32,9 +32,9 @@ from scipy.stats import wilcoxon
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from core.evaluation import Realign, Recorrespond, evaluate_model  # noqa: E402
-from core.datasets.factors import ellipsoid_surface, planted_shapes  # noqa: E402
 from core.build.pipeline import align  # noqa: E402
+from core.datasets.factors import ellipsoid_surface, planted_shapes  # noqa: E402
+from core.evaluation import Realign, Recorrespond, evaluate_model  # noqa: E402
 
 DEMO = ROOT / "resources" / "demo"
 MEASURE_KEYS = {"g": "generalisation", "g0.05": "sparse_reconstruction"}
@@ -95,8 +95,8 @@ def protocol_rows(args) -> list[dict]:
 
 
 def recorrespond_rows(args) -> list[dict]:
+    from core.build.pipeline import correspond, corresponded_shapes
     from core.io import load_mesh
-    from core.build.pipeline import corresponded_shapes, correspond
 
     files = sorted((DEMO / "meshes").glob("*.vtk"))[:args.recorrespond]
     meshes = [load_mesh(f) for f in files]

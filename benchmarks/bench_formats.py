@@ -43,7 +43,6 @@ import formats_synth as synth  # noqa: E402
 
 from core.io import load_volume  # noqa: E402
 
-
 PHILIPS = ROOT / "tests" / "data" / "real" / "dicom" / "philips_enhanced_3d.dcm"
 MOSAIC = ROOT / "tests" / "data" / "real" / "dicom" / "siemens_mosaic_1volume.IMA"
 

@@ -40,8 +40,8 @@ from PySide6.QtTest import QTest  # noqa: E402
 from PySide6.QtWidgets import QApplication  # noqa: E402
 
 from app.window import MainWindow  # noqa: E402
-from core.io import Volume  # noqa: E402
 from core.geometry.slicing import polylines, sample_polyline  # noqa: E402
+from core.io import Volume  # noqa: E402
 
 T_IMPORTED = time.perf_counter()
 

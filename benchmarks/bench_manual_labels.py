@@ -28,9 +28,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from core.correspondence import grooming  # noqa: E402
-from core.geometry import mesh as meshops
 from core.correspondence.mesh_labels import label_surface, mask_surface  # noqa: E402
 from core.datasets.label_maps import manual_label_map, marching_cubes_mesh, population  # noqa: E402
+from core.geometry import mesh as meshops
 
 GRIDS = {"0.3 mm": (0.3, 0.3, 0.3), "1 mm": (1.0, 1.0, 1.0), "0.5x0.5x2 mm": (0.5, 0.5, 2.0)}
 if "--grids" in sys.argv:  # e.g. --grids 0.5x0.5x2

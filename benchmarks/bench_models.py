@@ -36,11 +36,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from core.build.pipeline import align  # noqa: E402
+from core.datasets.factors import ellipsoid_surface, grid_surface, mixed_shapes, planted_shapes, support_iou  # noqa: E402
 from core.evaluation import evaluate_methods, evaluate_model, plot_metrics, summary_rows  # noqa: E402
 from core.models import METHODS, make_model  # noqa: E402
-from core.datasets.factors import (ellipsoid_surface, grid_surface, mixed_shapes,  # noqa: E402
-                                   planted_shapes, support_iou)
-from core.build.pipeline import align  # noqa: E402
 from core.runtime.progress import Cancelled  # noqa: E402
 
 DEMO = ROOT / "resources" / "demo" / "ground_truth.npz"
@@ -166,8 +165,8 @@ def cancel_latency(run, after: float) -> tuple[float, bool]:
 
 
 def bench_cancel(shapes, faces, args) -> None:
-    from core.io import TriMesh
     from core.build.pipeline import correspond
+    from core.io import TriMesh
 
     meshes = [TriMesh(s, faces, f"s{i}") for i, s in enumerate(shapes[:6])]
     stages = {
@@ -186,7 +185,7 @@ def bench_cancel(shapes, faces, args) -> None:
         lat = [cancel_latency(run, after) for after in (0.3, 1.0, 2.0)]
         rows.append({"stage": name, "latency_ms": " / ".join(f"{1000 * t:.0f}" for t, _ in lat),
                      "stopped_by_cancel": " / ".join("yes" if c else "finished" for _, c in lat)})
-    print(f"\n## Cancel latency (cancel after 0.3 / 1.0 / 2.0 s; shared machine, upper bounds)\n")
+    print("\n## Cancel latency (cancel after 0.3 / 1.0 / 2.0 s; shared machine, upper bounds)\n")
     print_table(rows, ["stage", "latency_ms", "stopped_by_cancel"])
 
 

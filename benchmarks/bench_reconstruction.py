@@ -66,9 +66,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from core.evaluation.simulated_user import pca_model, simulate_user, slice_planes, synthetic_shapes  # noqa: E402
 from core.geometry.toolkit import surface_distance  # noqa: E402
 from core.reconstruction import fit_points  # noqa: E402
-from core.evaluation.simulated_user import pca_model, simulate_user, slice_planes, synthetic_shapes  # noqa: E402
 
 OURS = ("gmm-aniso", "gmm-iso", "icp")
 NO_PRIOR = "aniso-no-pose-prior"  # gmm-aniso with pose_sd=None

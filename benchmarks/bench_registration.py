@@ -41,9 +41,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from core.datasets.images import moved_copy, random_affine  # noqa: E402
 from core.io import load_mesh, load_volume  # noqa: E402
 from core.registration.volumes import itk_to_ras, register, volume_to_sitk  # noqa: E402
-from core.datasets.images import moved_copy, random_affine  # noqa: E402
 
 TEMPLATE = ROOT / "resources" / "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 BRAIN_CENTRE = np.array([0.0, -18.0, 18.0])
@@ -124,9 +124,9 @@ def main() -> None:
 def part_b(n_images: int, n_seeds: int, spacing: float = 4.0) -> None:
     import tempfile
 
+    from core.datasets.images import downsample
     from core.io import save_volume
     from core.registration.multi_image import register_images
-    from core.datasets.images import downsample
 
     template = load_volume(TEMPLATE)
     gm = load_volume(ROOT / "resources" / "mni_icbm152_gm_tal_nlin_sym_09a.nii.gz")

@@ -26,11 +26,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from core.evaluation.simulated_user import simulate_user  # noqa: E402
 from core.io import DataFileError, load_model, save_model  # noqa: E402
 from core.io.statismo import read_statismo  # noqa: E402
-from core.reconstruction import fit_points  # noqa: E402
 from core.models.shape_model import covariance_gap  # noqa: E402
-from core.evaluation.simulated_user import simulate_user  # noqa: E402
+from core.reconstruction import fit_points  # noqa: E402
 
 FILES = ("RvtkStatismo_mandibles.h5", "scalismo_asmData_model.h5",
          "scalismo-faces_random-l4.h5", "scalismo-faces_random-l4.h5#shape",

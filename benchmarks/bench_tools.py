@@ -38,12 +38,12 @@ for p in (ROOT, ROOT / "benchmarks"):
         sys.path.insert(0, str(p))
 
 import numpy as np  # noqa: E402
+from bench_gui import _stats, bench_refit  # noqa: E402
 from PySide6.QtCore import QPoint, Qt, QTimer  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 from PySide6.QtWidgets import QApplication  # noqa: E402
 
 from app.window import MainWindow  # noqa: E402
-from bench_gui import _stats, bench_refit  # noqa: E402
 
 
 def slice_steps(window, app, steps: int = 40, cpu: list | None = None) -> list[float]:

@@ -42,10 +42,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from core.evaluation.simulated_user import pca_model, simulate_user  # noqa: E402
 from core.geometry.toolkit import vertex_normals  # noqa: E402
 from core.planning.frames import anchored_point_weights, volume_centroid  # noqa: E402
 from core.reconstruction import fit_points  # noqa: E402
-from core.evaluation.simulated_user import pca_model, simulate_user  # noqa: E402
 from core.reconstruction.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior  # noqa: E402
 
 TUNING_CASES = (0, 1, 2, 3)
@@ -91,8 +91,9 @@ CONTOURS = {"1 axial": ("axial", 1), "1 sagittal": ("sagittal", 1), "2 parallel"
 def unseen_cases(kind: str):
     """(model, faces, [truth (N, 3)]) of a family: held-out shapes turned up to 25 degrees
     and shifted N(0, 10 mm) per axis about their centre."""
-    from core.geometry.toolkit import random_rotation
     from recon_families import family
+
+    from core.geometry.toolkit import random_rotation
 
     fam = family(kind)
     rng = np.random.default_rng(27)

@@ -56,11 +56,20 @@ RESOURCES = Path(__file__).resolve().parent
 if str(RESOURCES.parent) not in sys.path:  # run as a script from anywhere in the repository
     sys.path.insert(0, str(RESOURCES.parent))
 
-from core.geometry import toolkit as geometry, mesh as meshops  # noqa: E402
-from core.io import (PointSet, TriMesh, atomic_path, atomic_write_json, load_volume,  # noqa: E402
-                     save_mesh, save_model, save_points)
-from core.models.shape_model import ShapeModel  # noqa: E402
+from core.geometry import mesh as meshops
+from core.geometry import toolkit as geometry  # noqa: E402
 from core.geometry.slicing import polylines, sample_polyline  # noqa: E402
+from core.io import (  # noqa: E402
+    PointSet,
+    TriMesh,
+    atomic_path,
+    atomic_write_json,
+    load_volume,
+    save_mesh,
+    save_model,
+    save_points,
+)
+from core.models.shape_model import ShapeModel  # noqa: E402
 
 DEMO = RESOURCES / "demo"
 STRUCTURE = "left caudate nucleus"
@@ -457,7 +466,6 @@ def extract_base_shape(spec: StructureSpec = LEFT_CAUDATE) -> tuple[TriMesh, dic
     Returns the mesh (~N_BASE_VERTICES vertices, outward-oriented, one component) and a dict
     describing the extraction (voxel count, voxel volume, parameters).
     """
-    import pyvista as pv
 
     if spec.atlas_labels:
         base, info, _ = atlas_structure(spec)

@@ -14,8 +14,8 @@ import warnings
 
 
 def main(list_file: str) -> None:
-    from core.session import document as session
     from core.io import DataFileError, load_mesh, load_model, load_points, load_volume
+    from core.session import document as session
 
     loaders = {"mesh": load_mesh, "volume": load_volume, "points": load_points,
                "model": load_model, "session": session.load_session}

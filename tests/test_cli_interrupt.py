@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from proc_tree import descendants, session_members, still_alive
 
 ROOT = Path(__file__).resolve().parents[1]

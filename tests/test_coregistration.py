@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.registration.coregistration import blend, checkerboard_mask, coregister, same_grid
-from core.io import Volume, load_mesh, load_volume
-from core.geometry.planes import FRAMES, SliceSampler
-from core.runtime.progress import Cancelled
 from core.datasets.images import moved_copy, random_affine
+from core.geometry.planes import FRAMES, SliceSampler
+from core.io import Volume, load_mesh, load_volume
+from core.registration.coregistration import blend, checkerboard_mask, coregister, same_grid
+from core.runtime.progress import Cancelled
 
 TEMPLATE = "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 

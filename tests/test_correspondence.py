@@ -21,10 +21,11 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from core import correspondence as corr  # noqa: E402
-from core.geometry import toolkit as geometry, mesh as meshops  # noqa: E402
 from core.alignment.transforms import apply_transform, homogeneous  # noqa: E402
-from core.io import TriMesh, load_mesh, save_mesh  # noqa: E402
 from core.datasets.shapes import known_homology_shapes  # noqa: E402
+from core.geometry import mesh as meshops
+from core.geometry import toolkit as geometry  # noqa: E402
+from core.io import TriMesh, load_mesh, save_mesh  # noqa: E402
 from core.runtime.progress import Cancelled  # noqa: E402
 
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from analytic import sphere as icosphere
+
 from core.geometry.toolkit import signed_surface_distance, winding_numbers
 from core.io import Volume
+from core.planning.frames import ACPCFrame, PlanningError, Surface, Trajectory, trajectory_warnings
 from core.planning.lead import LEAD_TYPES, contact_extents, contact_readout, lead_type, place_lead
 from core.planning.report import LeadChoice, PlannedStructure, export_plan, plan_report
-from core.planning.frames import ACPCFrame, PlanningError, Surface, Trajectory, trajectory_warnings
 
 # A 6 mm sphere around the target, a 4 mm sphere on the way in, a 3 mm one beside the path.
 TARGET = np.array([-12.0, -2.0, -4.0])

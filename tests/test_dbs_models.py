@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core.geometry.mesh import is_closed
+from core.geometry.mesh import volume as mesh_volume
 from core.geometry.toolkit import signed_surface_distance, winding_numbers
 from core.io import load_mesh, load_model, load_volume
-from core.geometry.mesh import is_closed, volume as mesh_volume
 from core.io.model_library import StructureInfo, list_library, structure_info
 from core.planning.frames import VENTRICLES_FILE
 

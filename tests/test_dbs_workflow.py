@@ -21,17 +21,16 @@ pydicom = pytest.importorskip("pydicom")
 hd = pytest.importorskip("highdicom")
 
 from core.cli import main as cli_main  # noqa: E402
+from core.evaluation.simulated_user import simulate_user  # noqa: E402
 from core.geometry.toolkit import rodrigues, symmetric_surface_distance  # noqa: E402
 from core.io import load_model, load_volume  # noqa: E402
 from core.io.model_library import structure_info  # noqa: E402
-from core.registration.placement import placement_through, register_to_template  # noqa: E402
-from core.planning.report import model_target  # noqa: E402
 from core.planning.frames import ACPCFrame  # noqa: E402
+from core.planning.report import model_target  # noqa: E402
 from core.reconstruction import fit_points  # noqa: E402
+from core.registration.placement import placement_through, register_to_template  # noqa: E402
 from core.registration.volumes import default_template_path, resample  # noqa: E402
-from core.geometry.segmentation import voxelize  # noqa: E402
 from core.session.document import Session, SessionStructure, save_session  # noqa: E402
-from core.evaluation.simulated_user import simulate_user  # noqa: E402
 
 MODELS = Path(__file__).resolve().parents[1] / "resources" / "models"
 _LPS = np.array([-1.0, -1.0, 1.0])
@@ -240,6 +239,7 @@ def test_seg_and_rtstruct_sit_on_an_oblique_series_written_backwards(tmp_path):
     """An oblique series (20 degrees about an oblique axis, anisotropic voxels, files in
     reverse order): SEG and RTSTRUCT of two spheres read back at the label map's voxels."""
     from analytic import sphere as icosphere
+
     from core.planning.report import PlannedStructure, export_all_structures
 
     rotation = rodrigues(np.deg2rad(20.0) * np.array([0.6, 0.0, 0.8]))
@@ -270,11 +270,10 @@ def test_a_series_without_frame_of_reference_gets_no_seg_but_the_rest(tmp_path):
     (non-conformant, some exporters drop it) gets a one-line note naming the file (or, without
     a notes list, an error), the label maps are written; the declared outputs match."""
     import pydicom
-
     from analytic import sphere as icosphere
+
     from core.errors import DataFileError
-    from core.planning.report import (PlannedStructure, all_structures_outputs,
-                                      export_all_structures)
+    from core.planning.report import PlannedStructure, all_structures_outputs, export_all_structures
 
     data = np.random.default_rng(4).integers(0, 1000, size=(20, 18, 12))
     files = write_series(tmp_path / "series", data, np.array([1.0, 1.0, 1.5]),

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from core.geometry import toolkit as geometry, mesh as meshops
+from core.geometry import mesh as meshops
+from core.geometry import toolkit as geometry
 from core.io import load_mesh, load_model, load_points, load_volume
 
 LEFT_CAUDATE_MNI = np.array([-13.0, 10.0, 10.0])   # approximate centre of the left caudate, mm

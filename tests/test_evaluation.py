@@ -9,11 +9,22 @@ import json
 import numpy as np
 import pytest
 
-from core.evaluation import (MEASURES, Realign, Recorrespond, compactness, evaluate_methods,
-                             evaluate_model, plot_metrics, sparse_fit, specificity,
-                             summary_table, to_json, vertex_errors)
-from core.models import LSF, PCA, SPLOCS
 from core.datasets.factors import ellipsoid_surface, planted_shapes
+from core.evaluation import (
+    MEASURES,
+    Realign,
+    Recorrespond,
+    compactness,
+    evaluate_methods,
+    evaluate_model,
+    plot_metrics,
+    sparse_fit,
+    specificity,
+    summary_table,
+    to_json,
+    vertex_errors,
+)
+from core.models import LSF, PCA, SPLOCS
 from core.runtime.progress import Cancelled
 
 

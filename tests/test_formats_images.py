@@ -68,8 +68,8 @@ def test_every_format_puts_every_voxel_at_the_same_world_place(oblique):
 
 
 def _placed_model_and_points(centre: np.ndarray):
-    from core.models.shape_model import ShapeModel
     from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
+    from core.models.shape_model import ShapeModel
 
     shapes, faces = synthetic_shapes(10, subdivisions=3, seed=4, size=(4.0, 3.5, 7.0))
     base = pca_model(shapes[1:], faces)

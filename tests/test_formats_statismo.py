@@ -122,8 +122,8 @@ def test_h5_round_trip_of_a_non_orthonormal_model(tmp_path):
 
 def test_convert_model_both_ways_keeps_mean_basis_variances_and_faces(tmp_path, capsys):
     from core.cli import main
-    from core.io import load_model, save_model
     from core.evaluation.simulated_user import pca_model, synthetic_shapes
+    from core.io import load_model, save_model
 
     shapes, faces = synthetic_shapes(8, subdivisions=2, seed=5)
     model = pca_model(shapes, faces)
@@ -151,9 +151,9 @@ def test_convert_model_both_ways_keeps_mean_basis_variances_and_faces(tmp_path, 
 
 def test_noise_variance_floors_the_fit_variance(tmp_path):
     """model/noiseVariance is the GMM variance floor of the fit (a plain info attribute)."""
+    from core.evaluation.simulated_user import simulate_user, synthetic_shapes
     from core.io import load_model
     from core.reconstruction import fit_points
-    from core.evaluation.simulated_user import simulate_user, synthetic_shapes
 
     mean, basis, variance, faces = _pca_parts(seed=1)
     shapes, _ = synthetic_shapes(1, subdivisions=2, seed=11)
@@ -220,8 +220,8 @@ def test_fit_model_space_reads_an_h5_written_in_ras(tmp_path, capsys):
     import json
 
     from core.cli import main
-    from core.io import save_points
     from core.evaluation.simulated_user import simulate_user, synthetic_shapes
+    from core.io import save_points
 
     mean, basis, variance, faces = _pca_parts(seed=6)
     write_like_statismo(tmp_path / "ras.h5", mean, basis, variance, faces)  # RAS, not LPS

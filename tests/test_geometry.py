@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.geometry import toolkit as geometry, mesh as meshops
 from core.datasets.factors import ellipsoid_surface as icosphere
+from core.geometry import mesh as meshops
+from core.geometry import toolkit as geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 

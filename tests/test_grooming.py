@@ -7,10 +7,10 @@ import pytest
 
 from core import correspondence as corr
 from core.correspondence import grooming
-from core.geometry import mesh as meshops
-from core.datasets.shapes import known_homology_shapes
-from core.geometry.toolkit import closest_points_on_surface
 from core.datasets.factors import ellipsoid_surface
+from core.datasets.shapes import known_homology_shapes
+from core.geometry import mesh as meshops
+from core.geometry.toolkit import closest_points_on_surface
 from core.types import TriMesh
 
 

@@ -14,13 +14,13 @@ from PySide6.QtCore import QMimeData, QPointF, Qt, QTimer, QUrl
 from PySide6.QtGui import QDropEvent
 from PySide6.QtWidgets import QCheckBox, QComboBox, QDoubleSpinBox, QLineEdit, QMainWindow, QSpinBox
 
-from app.panels.builder import BuilderPanel
-from app.panels.builder_forms import ParameterForm, parse_numpydoc_parameters
 import core.correspondence  # noqa: F401 - imported here, not in the timed worker
+from app.panels.builder import BuilderPanel
 from app.panels.builder_engine import NO_CORRESPONDENCE
+from app.panels.builder_forms import ParameterForm, parse_numpydoc_parameters
+from core.datasets.factors import ellipsoid_surface, planted_shapes, support_iou
 from core.io import TriMesh, load_model, save_mesh
 from core.models import LSF, PCA, Varimax
-from core.datasets.factors import ellipsoid_surface, planted_shapes, support_iou
 
 DEMO = Path(__file__).resolve().parents[1] / "resources" / "demo" / "meshes"
 N_TRAIN = 5

@@ -94,8 +94,8 @@ def test_builder_views_keep_their_lights_when_redrawn(qtbot):
 
 
 def _planted_meshes(n_shapes=12, n_factors=3):
-    from core.io import TriMesh
     from core.datasets.factors import ellipsoid_surface, planted_shapes
+    from core.io import TriMesh
 
     base, faces = ellipsoid_surface(2)
     planted = planted_shapes(base, faces, n_shapes=n_shapes, n_factors=n_factors, noise=0.02,

@@ -14,8 +14,8 @@ pytestmark = pytest.mark.gui
 from PySide6.QtCore import QMimeData, QPointF, Qt, QUrl  # noqa: E402
 from PySide6.QtGui import QDropEvent  # noqa: E402
 from PySide6.QtWidgets import QFileDialog, QInputDialog, QMessageBox  # noqa: E402
-
 from recovery_runs import crashing_run  # noqa: E402
+
 from app import demo, demo_tour  # noqa: E402
 from core.io import load_model, save_points  # noqa: E402
 from core.io.model_library import RESOURCES_MODELS, structure_info  # noqa: E402

@@ -71,8 +71,8 @@ def test_dropped_dicom_folder_opens_and_leaks_no_patient_name(window, dicom_fold
     assert "T1 MPRAGE" in title and "most files" in message
     _no_patient(title)
     _no_patient(message)
-    from core.io import save_model
     from core.evaluation.simulated_user import pca_model, synthetic_shapes
+    from core.io import save_model
 
     shapes, faces = synthetic_shapes(5, subdivisions=2, seed=3, size=(3.0, 3.0, 4.0))
     model = pca_model(shapes + vol.voxel_to_world((np.array(vol.shape) - 1) / 2), faces)
@@ -119,9 +119,9 @@ def test_series_dialog_choice_is_kept_in_the_session(window, dicom_folder, tmp_p
 def test_nrrd_image_h5_model_and_seg_nrrd_export(window, tmp_path):
     import SimpleITK as sitk
 
+    from core.evaluation.simulated_user import pca_model, synthetic_shapes
     from core.io import load_volume, save_model
     from core.io.nrrd import segmentation_fields
-    from core.evaluation.simulated_user import pca_model, synthetic_shapes
 
     image = synth.oblique_image((30, 28, 20), (1.0, 1.0, 1.5))
     sitk.WriteImage(image, str(tmp_path / "scan.nrrd"))
@@ -180,8 +180,8 @@ def test_gui_model_loading_refuses_what_the_cli_refuses(window, tmp_path):
     another file and a catalog without '#shape' are one-line errors; FILE#shape opens."""
     import h5py
 
-    from core.io import save_model
     from core.evaluation.simulated_user import pca_model, synthetic_shapes
+    from core.io import save_model
 
     shapes, faces = synthetic_shapes(6, subdivisions=1, seed=3)
     save_model(tmp_path / "m.h5", pca_model(shapes, faces, n_factors=3))

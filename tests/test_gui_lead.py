@@ -145,11 +145,10 @@ def test_a_session_with_a_lead_round_trips(window, tmp_path):
 
 def test_export_all_writes_every_structure_as_dicom_seg_and_rtstruct(make_window, tmp_path):
     import pydicom
-
-    from core.io import load_volume
     from test_dbs_workflow import write_series
 
     from app import demo
+    from core.io import load_volume
     if demo.demo_image() is None:
         pytest.skip("no demo image")
     t1 = load_volume(demo.demo_image())

@@ -5,9 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.geometry.planes import (
+    AXIAL,
+    CORONAL,
+    FRAMES,
+    SAGITTAL,
+    SliceSampler,
+    auto_window,
+    contour_normals,
+    window_to_uint8,
+)
 from core.io import Volume
-from core.geometry.planes import (AXIAL, CORONAL, FRAMES, SAGITTAL, SliceSampler, auto_window,
-                         contour_normals, window_to_uint8)
 
 
 def _volume(affine_dir: np.ndarray, shape=(12, 14, 10), seed=0) -> Volume:

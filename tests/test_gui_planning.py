@@ -11,8 +11,8 @@ pytest.importorskip("PySide6")
 pytestmark = pytest.mark.gui
 
 from app.model.state import FRAME_NAMES, Points  # noqa: E402
-from core.planning.frames import ACPCFrame, volume_centroid  # noqa: E402
 from core.evaluation.simulated_user import simulate_user  # noqa: E402
+from core.planning.frames import ACPCFrame, volume_centroid  # noqa: E402
 
 # AC, PC and a midline point of the MNI template, roughly where they are (mm)
 AC, PC, MID = np.array([0.0, 2.0, -4.0]), np.array([0.0, -24.0, -2.0]), np.array([0.0, -10.0, 40.0])

@@ -165,8 +165,8 @@ def test_3d_view_follows_a_slice_step_without_waiting_for_the_scroll_to_end(qtbo
 def test_3d_planes_show_the_second_images_composite(qtbot, tmp_path, monkeypatch):
     """With a second image, the 3D view's planes carry the same blend or checkerboard as the
     slice views (the first image alone, in its own window, without one)."""
-    from core.io import save_volume
     from core.geometry.planes import FRAMES, window_to_uint8
+    from core.io import save_volume
 
     window = _demo_window_with_3d(qtbot, tmp_path, monkeypatch, (1200, 800))
     volume = window.state.volume

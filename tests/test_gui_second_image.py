@@ -17,9 +17,9 @@ pytestmark = pytest.mark.gui
 from PySide6.QtCore import QPoint, Qt  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
-from core.registration.coregistration import checkerboard_mask  # noqa: E402
-from core.io import save_volume  # noqa: E402
 from core.geometry.planes import window_to_uint8  # noqa: E402
+from core.io import save_volume  # noqa: E402
+from core.registration.coregistration import checkerboard_mask  # noqa: E402
 
 
 def inverted(data: np.ndarray) -> np.ndarray:

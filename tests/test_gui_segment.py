@@ -18,10 +18,10 @@ from PySide6.QtTest import QTest  # noqa: E402
 
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
-from core.io import load_model  # noqa: E402
 from core.geometry.planes import window_to_uint8  # noqa: E402
-from core.geometry.toolkit import surface_distance  # noqa: E402
 from core.geometry.slicing import polylines, sample_polyline  # noqa: E402
+from core.geometry.toolkit import surface_distance  # noqa: E402
+from core.io import load_model  # noqa: E402
 
 NO_MOD = Qt.KeyboardModifier.NoModifier
 LEFT = Qt.MouseButton.LeftButton
@@ -266,8 +266,8 @@ def test_fit_error_keeps_the_surface_and_shows_the_message(window, qtbot):
 
 
 def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
-    from core.io import save_model
     from core.evaluation.simulated_user import pca_model, synthetic_shapes
+    from core.io import save_model
 
     shapes, faces = synthetic_shapes(6, subdivisions=2, seed=1)
     model = pca_model(shapes + window.state.crosshair, faces, n_factors=3)
@@ -280,8 +280,8 @@ def test_model_with_other_vertex_count_replaces_the_fit(window, tmp_path):
 
 def test_builder_tab_is_created_lazily_and_hands_over_its_model(window, qtbot, tmp_path):
     pytest.importorskip("app.panels.builder")
-    from core.io import save_model
     from core.evaluation.simulated_user import pca_model, synthetic_shapes
+    from core.io import save_model
 
     assert window.builder is None and window.tabs.count() == 2
     window.tabs.setCurrentIndex(1)
@@ -343,8 +343,9 @@ def test_zoom_pan_keep_clicks_exact_and_window_drag_changes_contrast(window):
 
 def test_oblique_image_clicks_and_display_agree(qtbot, tmp_path, monkeypatch):
     """An image whose voxel axes are rotated 20 degrees: views stay world-aligned."""
-    from core.io import Volume
     from scipy import ndimage
+
+    from core.io import Volume
 
     monkeypatch.setenv("SSM_STUDIO_NO_DIALOGS", "1")
     rng = np.random.default_rng(5)
@@ -400,8 +401,8 @@ def test_dropping_a_model_file_loads_it(window, tmp_path):
     from PySide6.QtGui import QDragEnterEvent, QDropEvent
     from PySide6.QtWidgets import QApplication
 
-    from core.io import save_model
     from core.evaluation.simulated_user import pca_model, synthetic_shapes
+    from core.io import save_model
 
     shapes, faces = synthetic_shapes(5, subdivisions=2, seed=4)
     path = tmp_path / "dropped.npz"
@@ -441,9 +442,9 @@ def test_open_stroke_normals_point_out_of_the_model(window):
 def test_factor_sliders_show_each_factors_share_of_the_training_variance(window, tmp_path):
     """Issue 17, defect 4 (Segment tab): the sliders carry the model's explained shares; the
     truth is the SVD of the centred training shapes (eigenvalue ratios)."""
+    from core.evaluation.simulated_user import synthetic_shapes
     from core.io import save_model
     from core.models import PCA
-    from core.evaluation.simulated_user import synthetic_shapes
 
     shapes, faces = synthetic_shapes(8, subdivisions=2, seed=4)
     shapes = shapes + window.state.crosshair

@@ -13,13 +13,13 @@ pytestmark = pytest.mark.gui
 
 from PySide6.QtCore import QPoint, Qt  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
-
 from recovery_runs import crashing_run  # noqa: E402
+
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
-from core.io import load_mesh, load_points, load_volume  # noqa: E402
-from core.geometry.toolkit import vertex_normals  # noqa: E402
 from core.geometry.mesh import volume as mesh_volume  # noqa: E402
+from core.geometry.toolkit import vertex_normals  # noqa: E402
+from core.io import load_mesh, load_points, load_volume  # noqa: E402
 
 
 def _need_demo():

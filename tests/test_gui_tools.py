@@ -14,8 +14,8 @@ from PySide6.QtTest import QTest  # noqa: E402
 
 from app import demo  # noqa: E402
 from app.window import MainWindow  # noqa: E402
-from core.io import load_volume  # noqa: E402
 from core.geometry.segmentation import voxelize  # noqa: E402
+from core.io import load_volume  # noqa: E402
 
 NO_MOD = Qt.KeyboardModifier.NoModifier
 LEFT = Qt.MouseButton.LeftButton

@@ -36,8 +36,9 @@ def test_many_emits_do_not_exhaust_true(qtbot):
     """Regression: PySide6 6.12.0 emit() leaks a reference to True per call (app/qtfix.py)."""
     import sys
 
-    import app  # noqa: F401 - installs the guard
     from PySide6.QtCore import QObject, Signal
+
+    import app  # noqa: F401 - installs the guard
 
     class Emitter(QObject):
         ping = Signal()

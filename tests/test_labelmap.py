@@ -7,13 +7,13 @@ import json
 import numpy as np
 import pytest
 
+from core.datasets.factors import ellipsoid_surface
 from core.geometry.labelmap import (
     ManualEdits,
     brush_voxels,
     mask_volume_mm3,
     structure_label_map,
 )
-from core.datasets.factors import ellipsoid_surface
 
 
 def test_round_brush_covers_the_disc_on_one_slice():

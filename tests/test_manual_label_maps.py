@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from core.correspondence import grooming
-from core.geometry import mesh as meshops
 from core.correspondence.mesh_labels import LabelError, label_surface, mask_surface, repair_mask
 from core.datasets.label_maps import manual_label_map, marching_cubes_mesh, population
+from core.geometry import mesh as meshops
 from core.types import TriMesh, Volume
 
 CASES = [("pallidum", (0.3, 0.3, 0.3)), ("bean", (1.0, 1.0, 1.0)),

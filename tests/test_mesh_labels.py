@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from core.correspondence.mesh_labels import LabelError, label_map_surface, label_surface, resolve_label
 from core.geometry import mesh as meshops
 from core.geometry.toolkit import random_rotation
-from core.correspondence.mesh_labels import LabelError, label_map_surface, label_surface, resolve_label
 from core.types import Volume
 
 RADII = np.array([12.0, 9.0, 7.0])  # mm

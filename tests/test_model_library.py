@@ -8,10 +8,17 @@ import numpy as np
 import pytest
 
 from core.io import load_model, save_model
-from core.io.model_library import (MNI_TEMPLATE_SPACE, RESOURCES_MODELS, StructureInfo,
-                                list_library, structure_info, user_models_dir, with_structure)
-from core.planning.frames import volume_centroid
+from core.io.model_library import (
+    MNI_TEMPLATE_SPACE,
+    RESOURCES_MODELS,
+    StructureInfo,
+    list_library,
+    structure_info,
+    user_models_dir,
+    with_structure,
+)
 from core.models.shape_model import ShapeModel
+from core.planning.frames import volume_centroid
 
 
 def _tiny_model(info=None) -> ShapeModel:

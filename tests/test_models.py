@@ -7,15 +7,13 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from core.io import load_model, save_model
-from core.models import (LSF, METHODS, PCA, SPLOCS, Varimax, clone, make_model,
-                         model_from_shape_model)
-from core.models.base import edge_adjacency
-from core.models.lsf import (FactorNorm, graph_gradient, project_l1_ball, prox_sparse_group,
-                             split_factors)
 from core.datasets.factors import ellipsoid_surface, planted_shapes, support_iou
-from core.runtime.progress import Cancelled
 from core.geometry import mesh as meshops
+from core.io import load_model, save_model
+from core.models import LSF, METHODS, PCA, SPLOCS, Varimax, clone, make_model, model_from_shape_model
+from core.models.base import edge_adjacency
+from core.models.lsf import FactorNorm, graph_gradient, project_l1_ball, prox_sparse_group, split_factors
+from core.runtime.progress import Cancelled
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from core.cli import main as cli_main
+from core.datasets.images import downsample, moved_copy, random_affine
 from core.io import load_volume, save_volume
 from core.registration.multi_image import knn_pairs, register_images, robust_synchronize
-from core.datasets.images import downsample, moved_copy, random_affine
 
 TEMPLATE = "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 FAST = {"levels_mm": (10.0, 5.0), "n_samples": 6000}

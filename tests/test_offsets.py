@@ -14,10 +14,10 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence  # noqa: E402
+from core.correspondence.grooming import remesh  # noqa: E402
 from core.correspondence.offsets import fit_normal_offsets, offset_basis  # noqa: E402
 from core.datasets.shapes import known_homology_shapes  # noqa: E402
 from core.geometry.toolkit import SurfaceProjector, rodrigues, vertex_normals  # noqa: E402
-from core.correspondence.grooming import remesh  # noqa: E402
 
 
 def test_offset_basis_reproduces_its_kernel():

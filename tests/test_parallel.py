@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from proc_tree import descendants, still_alive
 
 from core.runtime.parallel import JobError, check_scheduler, dask_jobs_per_task, run_jobs, use_scheduler
 from core.runtime.progress import Cancelled
-from proc_tree import descendants, still_alive
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.cli import main as cli_main
-from core.io import TriMesh, load_model, save_mesh
-from core.datasets.factors import ellipsoid_surface, planted_shapes
 from core.build.pipeline import align, build_model, corresponded_shapes, fit_model, world_placement
+from core.cli import main as cli_main
+from core.datasets.factors import ellipsoid_surface, planted_shapes
+from core.io import TriMesh, load_model, save_mesh
 
 WORLD_CENTRE = np.array([-13.0, 8.0, 12.0])  # e.g. a caudate in MNI space
 
@@ -141,8 +141,8 @@ def test_cli_evaluate(mesh_dir, tmp_path, capsys):
 def test_cli_evaluate_true_leave_one_out(mesh_dir, tmp_path, posed, capsys):
     """--loo refit re-aligns every fold (the JSON and the table say so) and gives the values of
     core.evaluation with Realign folds; --noise-var is recorded and used."""
-    from core.evaluation import Realign, evaluate_model
     from core.build.pipeline import align
+    from core.evaluation import Realign, evaluate_model
 
     rc = cli_main(["evaluate", str(mesh_dir), "--methods", "pca", "--factors", "3", "--loo",
                    "refit", "--noise-var", "0.01", "--jobs", "1", "--samples", "20",

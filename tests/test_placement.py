@@ -10,8 +10,8 @@ pytest.importorskip("SimpleITK")
 
 from core.cli import main as cli_main  # noqa: E402
 from core.io import Volume, load_mesh, load_model, load_points, load_volume, save_points, save_volume  # noqa: E402
-from core.registration.placement import placement_through  # noqa: E402
 from core.reconstruction import surface_distance  # noqa: E402
+from core.registration.placement import placement_through  # noqa: E402
 from core.registration.volumes import resample  # noqa: E402
 
 

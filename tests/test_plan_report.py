@@ -6,13 +6,19 @@ import json
 
 import numpy as np
 import pytest
-
 from analytic import sphere as icosphere
+
 from core.io import Volume, load_points, load_volume
 from core.io.nrrd import segmentation_fields
-from core.planning.report import (PlannedStructure, export_plan, itksnap_label_description,
-                              model_target, multi_label_map, plan_report)
 from core.planning.frames import ACPCFrame
+from core.planning.report import (
+    PlannedStructure,
+    export_plan,
+    itksnap_label_description,
+    model_target,
+    multi_label_map,
+    plan_report,
+)
 
 
 @pytest.fixture

@@ -4,13 +4,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from analytic import sphere as icosphere
 from scipy.spatial.transform import Rotation
 
 from core.geometry.mesh import volume
-from analytic import sphere as icosphere
-from core.planning.frames import (ACPCFrame, PlanningError, Trajectory, anchored_point,
-                           anchored_point_weights, format_acpc, ray_surface_crossings,
-                           structure_row, volume_centroid)
+from core.planning.frames import (
+    ACPCFrame,
+    PlanningError,
+    Trajectory,
+    anchored_point,
+    anchored_point_weights,
+    format_acpc,
+    ray_surface_crossings,
+    structure_row,
+    volume_centroid,
+)
 
 
 def _synthetic_frame(seed: int = 0):

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.runtime.progress import Cancelled
+from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
 from core.geometry.toolkit import closest_points_on_triangles, rodrigues, surface_distance, vertex_normals
 from core.reconstruction import FitResult, fit_points
-from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
+from core.runtime.progress import Cancelled
 
 
 @pytest.fixture(scope="module")
@@ -474,6 +474,7 @@ def test_residual_correlation_tells_white_noise_from_a_smooth_misfit():
     (what a shape outside the model's span leaves) has rho near 1, and the information of P
     points shrinks to P (1 - rho) / (1 + rho)."""
     from analytic import sphere
+
     from core.reconstruction.fit import information_inflation, residual_correlation
 
     v, f = sphere(10.0, [0, 0, 0], 5)

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import json
+
 import numpy as np
 import pytest
 
 from core.cli import main as cli_main
-from core.io import load_mesh, load_volume, save_volume
-from core.runtime.progress import Cancelled
-from core.registration.volumes import (itk_to_ras, ras_to_itk, register, resample, sitk_affine,
-                               volume_to_sitk)
 from core.datasets.images import downsample, moved_copy, random_affine
+from core.io import load_mesh, load_volume, save_volume
+from core.registration.volumes import itk_to_ras, ras_to_itk, register, resample, sitk_affine, volume_to_sitk
+from core.runtime.progress import Cancelled
 
 TEMPLATE = "mni_icbm152_t1_tal_nlin_sym_09a.nii.gz"
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import pyvista as pv
 
-from core.io import Volume
 from core.geometry.mesh import volume
-from core.geometry.toolkit import rodrigues
 from core.geometry.segmentation import mask_volume_mm3, voxelize
+from core.geometry.toolkit import rodrigues
+from core.io import Volume
 
 
 def _sphere(radius: float, centre, nsub: int = 5) -> tuple[np.ndarray, np.ndarray]:
@@ -71,8 +71,8 @@ def test_segment_cli_writes_an_aligned_mask(tmp_path):
     import nibabel as nib
 
     from core.cli import main
-    from core.io import load_mesh, load_volume, save_model, save_points, save_volume
     from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
+    from core.io import load_mesh, load_volume, save_model, save_points, save_volume
 
     shapes, faces = synthetic_shapes(12, subdivisions=3, seed=2)
     model = pca_model(shapes[1:], faces)
@@ -106,8 +106,8 @@ def test_segment_cli_writes_an_aligned_mask(tmp_path):
 
 def test_segment_cli_bad_points_is_a_one_line_error(tmp_path, capsys):
     from core.cli import main
-    from core.io import save_model, save_volume
     from core.evaluation.simulated_user import pca_model, synthetic_shapes
+    from core.io import save_model, save_volume
 
     shapes, faces = synthetic_shapes(6, subdivisions=2, seed=2)
     save_model(tmp_path / "model.npz", pca_model(shapes, faces))

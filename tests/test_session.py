@@ -13,12 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recovery_runs import crashing_run
 
+from core.io import DataFileError
 from core.session import document as sessions
 from core.session import recovery as rec
-from core.io import DataFileError
 from core.session.document import Session
-from recovery_runs import crashing_run
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -107,8 +107,8 @@ def test_two_layer_segmentation_reads_each_segment_whole():
 
 
 def test_two_layer_segmentation_opens_as_one_label_map_with_a_note():
-    from core.io import load_volume
     from core.errors import DataFileWarning
+    from core.io import load_volume
     from core.io.nrrd import read_segmentation
 
     with pytest.warns(DataFileWarning, match="8 segments in 2 overlapping layers"):

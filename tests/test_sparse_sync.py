@@ -6,9 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.alignment.transforms import (align_shapes, align_shapes_sparse, apply_transform,
-                            batched_fit_transforms, fit_transform, shape_neighbours,
-                            synchronize_sparse, synchronize_transforms)
+from core.alignment.transforms import (
+    align_shapes,
+    align_shapes_sparse,
+    apply_transform,
+    batched_fit_transforms,
+    fit_transform,
+    shape_neighbours,
+    synchronize_sparse,
+    synchronize_transforms,
+)
 
 
 def _random_transform(rng, kind):
@@ -117,9 +124,9 @@ def test_sync_sparse_is_an_alignment_method_of_the_pipeline_and_the_cli(tmp_path
     the command line; poses recovered as well as the dense method's (known poses)."""
     import json
 
+    from core.build.pipeline import ALIGN_METHODS, align
     from core.cli import main as cli_main
     from core.io import TriMesh, save_mesh
-    from core.build.pipeline import ALIGN_METHODS, align
 
     assert "sync-sparse" in ALIGN_METHODS
     rng = np.random.default_rng(12)

@@ -9,8 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.io import TriMesh
-from core.datasets.factors import ellipsoid_surface, planted_shapes
 from core.build.stages import (
     DEFAULT_N_REFERENCES,
     NO_CORRESPONDENCE,
@@ -19,6 +17,8 @@ from core.build.stages import (
     StageCache,
     StagedBuild,
 )
+from core.datasets.factors import ellipsoid_surface, planted_shapes
+from core.io import TriMesh
 
 
 @pytest.fixture(scope="module")

@@ -178,9 +178,9 @@ def test_correspond_command_writes_what_the_library_computes(tmp_path):
 def test_build_model_correspond_streams_the_correspondence_and_builds_the_same_model(tmp_path):
     """`build-model --correspond` hands the input paths to the workers (groomed inputs in a
     scratch folder next to the model, removed): the model equals the in-memory build's."""
+    from core.build.pipeline import build_model
     from core.cli import main
     from core.io import load_model
-    from core.build.pipeline import build_model
 
     population = known_homology_shapes("bean", 6, seed=13, n_points=(80, 100))
     paths = _write(population.meshes, tmp_path / "in")

@@ -6,12 +6,12 @@ import json
 
 import numpy as np
 import pytest
+from analytic import sphere
 from scipy import stats
 
-from analytic import sphere
 from core.io import load_model, load_points
-from core.reconstruction import fit_points
 from core.models.shape_model import ShapeModel
+from core.reconstruction import fit_points
 from core.reconstruction.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior, suggest_slice
 
 
@@ -105,8 +105,8 @@ def test_pose_aware_posterior_covers_turned_shapes_and_says_the_pose_is_uncertai
     and its residual correlation (``fit=``) the true surface lies within 2 SD at more
     vertices than with the fixed 3-degree pose prior, and at >= 83 % on average. Left at the
     stored placement 12 mm away, the posterior says the pose, not the shape, is uncertain."""
-    from core.geometry.toolkit import rodrigues, vertex_normals
     from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
+    from core.geometry.toolkit import rodrigues, vertex_normals
 
     shapes, faces = synthetic_shapes(25, subdivisions=3, seed=5, size=(3.0, 6.0, 14.0))
     model = pca_model(shapes[4:], faces)

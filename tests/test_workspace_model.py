@@ -15,8 +15,8 @@ import pytest
 
 from app.model.events import EmitterGroup
 from app.model.state import STRUCTURE_COLORS, Structure, WorkspaceState
-from core.io import Volume
 from core.evaluation.simulated_user import pca_model, synthetic_shapes
+from core.io import Volume
 
 ROOT = Path(__file__).resolve().parents[1]
 QT_MODULES = ("PySide6", "PyQt5", "PyQt6", "pyvistaqt", "qtpy", "vtk", "pyvista")
@@ -224,8 +224,8 @@ def test_events_hold_bound_methods_weakly():
 def test_recovery_keeps_every_structure(model, tmp_path, monkeypatch):
     """The autosave (packed arrays) carries all structures; the sessions open as they were."""
     from app.model.controllers import SessionController
-    from core.session import document as sessions
     from core.io import save_model
+    from core.session import document as sessions
 
     monkeypatch.setenv("SSM_STUDIO_STATE_DIR", str(tmp_path / "state"))
     path = tmp_path / "left_caudate.npz"

@@ -21,7 +21,6 @@ from core.geometry.planes import PLANE_NAMES
 from core.io import DataFileError, load_model, load_volume, save_mesh, save_points, save_volume
 from core.io.registry import split_member  # a FILE.h5#GROUP model path names FILE
 
-
 RECOVERED_PATH_KEY = "session_path"     # in a recovery file's info: the session's own file
 
 
@@ -385,8 +384,8 @@ class ExportController:
         A group on an axial, coronal or sagittal plane is filed on that slice (so *Clear
         slice* removes it); an oblique one on the slice of the axis closest to its normal.
         """
-        from core.io import load_points
         from core.geometry.planes import FRAMES, group_coplanar
+        from core.io import load_points
 
         pset = load_points(path)
         xyz = np.asarray(pset.points, dtype=np.float64).reshape(-1, 3)

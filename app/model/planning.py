@@ -30,9 +30,9 @@ from app.model.events import EmitterGroup
 from app.model.history import UndoHistory
 from app.model.state import Structure, WorkspaceState
 from core.io.model_library import structure_info
+from core.planning.frames import ACPCFrame, PlanningError, Trajectory, trajectory_warnings
 from core.planning.lead import PlacedLead, contact_readout, place_lead
 from core.planning.report import LeadChoice, PlannedStructure, model_target, plan_report
-from core.planning.frames import ACPCFrame, PlanningError, Trajectory, trajectory_warnings
 
 LANDMARKS = ("ac", "pc", "midline")
 LANDMARK_LABELS = {"ac": "AC", "pc": "PC", "midline": "Midline"}

@@ -30,11 +30,11 @@ import numpy as np
 
 from app.model.events import EmitterGroup
 from app.model.history import UndoHistory
+from core.geometry.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
 from core.io import Volume
 from core.io.model_library import structure_info
-from core.reconstruction.plausibility import plausibility_warnings
-from core.geometry.planes import FRAMES, SliceSampler, auto_window, slice_contour_normals
 from core.models.shape_model import ShapeModel
+from core.reconstruction.plausibility import plausibility_warnings
 
 FRAME_NAMES = ("axial", "coronal", "sagittal")
 MAX_HISTORY = 200

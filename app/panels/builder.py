@@ -29,8 +29,8 @@ from app.panels.builder_pipeline import PipelineForm
 from app.panels.builder_runner import STAGE_TITLES, RunBox, StageRunner
 from app.panels.builder_state import BuilderState
 from app.panels.builder_views import BuilderViews
-from core.io import MESH_SUFFIXES, expand_mesh_paths
 from core.build.stages import STAGES, run_evaluation
+from core.io import MESH_SUFFIXES, expand_mesh_paths
 
 __all__ = ["BuilderPanel", "BuilderState", "STAGES", "STAGE_TITLES"]
 

@@ -16,12 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from core.io import TriMesh, load_meshes
-from core.geometry.mesh import surface_problems
-from core.models import MODELS
 from core.build.pipeline import ALIGN_METHODS, TRANSFORMS
-from core.runtime.progress import ProgressCallback
 from core.build.stages import DEFAULT_N_REFERENCES, NO_CORRESPONDENCE
+from core.geometry.mesh import surface_problems
+from core.io import TriMesh, load_meshes
+from core.models import MODELS
+from core.runtime.progress import ProgressCallback
 
 __all__ = ["ALIGN_METHODS", "TRANSFORMS", "NO_CORRESPONDENCE", "MeshEntry", "load_entries",
            "model_classes", "method_summary", "default_n_references", "evaluation_table",

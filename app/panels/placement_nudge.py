@@ -9,8 +9,16 @@ nudges moved the structures, the contour points' distance to the surfaces). The 
 
 from __future__ import annotations
 
-from PySide6.QtWidgets import (QDialog, QDoubleSpinBox, QGridLayout, QHBoxLayout, QLabel,
-                               QPushButton, QToolButton, QVBoxLayout)
+from PySide6.QtWidgets import (
+    QDialog,
+    QDoubleSpinBox,
+    QGridLayout,
+    QHBoxLayout,
+    QLabel,
+    QPushButton,
+    QToolButton,
+    QVBoxLayout,
+)
 
 AXES = (("R/L", 0), ("A/P", 1), ("S/I", 2))
 

@@ -21,8 +21,17 @@ import os
 from pathlib import Path
 
 from PySide6.QtCore import QObject, Qt, Signal
-from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QGroupBox, QHBoxLayout, QLabel,
-                               QPushButton, QSlider, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QComboBox,
+    QDoubleSpinBox,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QPushButton,
+    QSlider,
+    QVBoxLayout,
+    QWidget,
+)
 
 from app.actions import add_help_shortcuts
 from app.model.second_image import SecondImage
@@ -37,8 +46,8 @@ SHORTCUTS = [("Ctrl+Shift+I", "Open a second image (T2, FLAIR, CT) over the firs
 
 def _load(path: str, reference, transform=None, series=None, progress=None):
     """Worker: read the second image and bring it onto the reference grid."""
-    from core.registration.coregistration import coregister
     from core.io import DataFileError, load_volume
+    from core.registration.coregistration import coregister
 
     second = load_volume(path, series=series)
     try:

@@ -21,8 +21,8 @@ import math
 import numpy as np
 from PySide6.QtCore import Qt
 
-from core.registration.handles import drag_transform
 from core.geometry.labelmap import ManualEdits, brush_voxels
+from core.registration.handles import drag_transform
 
 
 def _editable(view) -> object | None:

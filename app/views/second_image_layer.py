@@ -17,8 +17,8 @@ from PySide6.QtCore import QRectF
 from PySide6.QtGui import QImage, QPainter
 
 from app.model.second_image import SecondImage
-from core.registration.coregistration import blend, checkerboard_mask
 from core.geometry.planes import window_to_uint8
+from core.registration.coregistration import blend, checkerboard_mask
 
 
 class SecondImageLayer:

@@ -25,13 +25,20 @@ from PySide6.QtGui import QColor, QFont, QImage, QPainter
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
 from app.model.state import FRAME_NAMES, Structure, WorkspaceState
+from app.views import slice_points
+from app.views.slice_overlays import (  # noqa: F401
+    CONTOUR_COLOR,
+    POINT_COLOR,
+    VIEW_COLORS,
+    label_layout,
+    outlined_text,
+    paint_contours,
+    paint_crosshair,
+    paint_labels,
+    paint_points,
+)
 from core.geometry.planes import FRAMES, SliceImage, window_to_uint8
 from core.geometry.slicing import intersect_plane
-
-from app.views import slice_points
-from app.views.slice_overlays import (CONTOUR_COLOR, POINT_COLOR, VIEW_COLORS,  # noqa: F401
-                                      label_layout, outlined_text, paint_contours,
-                                      paint_crosshair, paint_labels, paint_points)
 
 TOOLS = ("navigate", "draw", "window")
 DRAW_SPACING_MM = 1.5

@@ -31,8 +31,8 @@ import numpy as np
 from core.io import TriMesh
 from core.models import make_model, model_class
 from core.models.base import ShapeModelEstimator
-from core.runtime.progress import ProgressCallback, report, sub_progress
 from core.models.shape_model import ShapeModel
+from core.runtime.progress import ProgressCallback, report, sub_progress
 
 ALIGN_METHODS = ("sync", "sync-sparse", "gpa", "none")
 TRANSFORMS = ("similarity", "euclidean", "rigid", "affine")

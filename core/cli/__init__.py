@@ -11,10 +11,10 @@ warnings (from our readers or from libraries) as one line ``ssm-studio <command>
 from __future__ import annotations
 
 import argparse
-import importlib
 import contextlib
-import pkgutil
+import importlib
 import os
+import pkgutil
 import re
 import sys
 import warnings

@@ -30,11 +30,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from core.build.pipeline import build_model, load_training_meshes, parse_param_values, training_mesh_paths
+from core.cli._options import add_preparation_options, add_scheduler_option
 from core.io import DataFileError, save_model
 from core.models import METHODS
-from core.cli._options import add_preparation_options, add_scheduler_option
-from core.build.pipeline import build_model, load_training_meshes, parse_param_values, \
-    training_mesh_paths
 from core.runtime.parallel import use_scheduler
 from core.runtime.progress import StderrProgress
 

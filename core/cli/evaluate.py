@@ -22,13 +22,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from core.evaluation import (Realign, Recorrespond, evaluate_methods, plot_metrics,
-                             summary_table, to_json)
+from core.build.pipeline import (
+    align,
+    correspond,
+    corresponded_shapes,
+    load_training_meshes,
+    parse_param_values,
+)
+from core.cli._options import add_preparation_options, add_scheduler_option
+from core.evaluation import Realign, Recorrespond, evaluate_methods, plot_metrics, summary_table, to_json
 from core.io import atomic_write_json
 from core.models import METHODS, model_class
-from core.cli._options import add_preparation_options, add_scheduler_option
-from core.build.pipeline import align, corresponded_shapes, correspond, \
-    load_training_meshes, parse_param_values
 from core.runtime.parallel import use_scheduler
 from core.runtime.progress import StderrProgress
 

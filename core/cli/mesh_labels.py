@@ -25,8 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-from core.io import atomic_write_json, save_mesh
 from core.correspondence.mesh_labels import label_map_surface, repair_note
+from core.io import atomic_write_json, save_mesh
 
 COMMAND = "mesh-labels"
 HELP = "one label of label maps -> closed surfaces in world mm (training meshes)"

@@ -24,10 +24,16 @@ from pathlib import Path
 
 from core.io import load_volume
 from core.io.atomic import json_default
-from core.planning.lead import LEAD_TYPES, format_contact
-from core.planning.report import (LeadChoice, export_plan, plan_from_session, plan_report,
-                              save_plan_report, template_to_image)
 from core.planning.frames import template_ventricles
+from core.planning.lead import LEAD_TYPES, format_contact
+from core.planning.report import (
+    LeadChoice,
+    export_plan,
+    plan_from_session,
+    plan_report,
+    save_plan_report,
+    template_to_image,
+)
 from core.session.document import load_session
 
 COMMAND = "plan"

@@ -17,8 +17,8 @@ import argparse
 from pathlib import Path
 
 from core.io import atomic_write_json, load_volume
-from core.runtime.progress import StderrProgress
 from core.registration.volumes import DEFAULT_LEVELS_MM, TRANSFORMS, default_template_path, register_volumes
+from core.runtime.progress import StderrProgress
 
 COMMAND = "register"
 HELP = "register an image to the template (affine, mutual information): writes transform.json"

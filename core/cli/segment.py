@@ -22,8 +22,8 @@ import sys
 from pathlib import Path
 
 from core.cli.fit import add_fit_arguments, fit_from_args, summary, warn_if_implausible, write_json
-from core.io import TriMesh, load_volume, save_mesh, save_volume
 from core.geometry.segmentation import mask_volume_mm3, voxelize
+from core.io import TriMesh, load_volume, save_mesh, save_volume
 
 COMMAND = "segment"
 HELP = "fit a shape model to contour points and write the label map on the image's grid"

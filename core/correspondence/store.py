@@ -106,8 +106,9 @@ def _import_readers() -> None:
     if not _READERS_IMPORTED:
         _READERS_IMPORTED = True
         with contextlib.suppress(ImportError, AttributeError):
-            from core.io.vtk_meshes import import_classes
             from vtkmodules.util import numpy_support  # noqa: F401
+
+            from core.io.vtk_meshes import import_classes
 
             import_classes()
 

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.geometry import toolkit as geometry, mesh as meshops
+from core.geometry import mesh as meshops
+from core.geometry import toolkit as geometry
 
 
 @dataclass

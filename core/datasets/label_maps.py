@@ -132,8 +132,8 @@ class ManualLabelMap:
         implicit function on a ``resolution`` mm grid, outward faces."""
         from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
 
-        from core.geometry import mesh as meshops
         from core.correspondence.mesh_labels import polydata_arrays, vtk_image
+        from core.geometry import mesh as meshops
 
         half = 1.3 * HALF_EXTENT[self.kind] * max(self.scale)
         axis = np.arange(-half, half + resolution, resolution)

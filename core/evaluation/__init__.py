@@ -9,12 +9,30 @@ parts as scikit-learn separates metrics from model selection and from displays:
 - :mod:`core.evaluation.plotting`: the summary table, JSON, and the paper's Figure 4 boxplots.
 """
 
-from core.evaluation.measures import (compactness, reconstruction_errors, residual_variance,
-                                      sparse_fit, specificity, vertex_errors)
-from core.evaluation.plotting import (LABELS, PER_SHAPE_MEASURES, plot_metrics, summary_rows,
-                                      summary_table, to_json)
-from core.evaluation.protocol import (LEAVE_ONE_OUT, MEASURES, Realign, Recorrespond,
-                                      evaluate_methods, evaluate_model)
+from core.evaluation.measures import (
+                                      compactness,
+                                      reconstruction_errors,
+                                      residual_variance,
+                                      sparse_fit,
+                                      specificity,
+                                      vertex_errors,
+)
+from core.evaluation.plotting import (
+                                      LABELS,
+                                      PER_SHAPE_MEASURES,
+                                      plot_metrics,
+                                      summary_rows,
+                                      summary_table,
+                                      to_json,
+)
+from core.evaluation.protocol import (
+                                      LEAVE_ONE_OUT,
+                                      MEASURES,
+                                      Realign,
+                                      Recorrespond,
+                                      evaluate_methods,
+                                      evaluate_model,
+)
 from core.runtime.progress import Cancelled
 
 __all__ = ["MEASURES", "LEAVE_ONE_OUT", "LABELS", "PER_SHAPE_MEASURES", "evaluate_model",

@@ -105,8 +105,8 @@ class Recorrespond:
     name: str = field(default="recorrespond", init=False)
 
     def prepare(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        from core.correspondence import correspond_pair, establish_correspondence
         from core.build.pipeline import corresponded_shapes
+        from core.correspondence import correspond_pair, establish_correspondence
 
         train = [m for i, m in enumerate(self.meshes) if i != k]
         # the reference's index among the K - 1 training meshes (the first one if left out)

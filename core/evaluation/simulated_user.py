@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.models.shape_model import ShapeModel
 from core.geometry.planes import PLANE_AXIS
 from core.geometry.slicing import polylines, sample_polyline
+from core.models.shape_model import ShapeModel
 
 AXES = {name: np.eye(3)[axis] for name, axis in PLANE_AXIS.items()}  # slice normals
 

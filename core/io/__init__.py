@@ -26,8 +26,8 @@ table of :mod:`core.io.registry` (suffix -> reader/writer), as nibabel and trime
 Sessions are in :mod:`core.session.document`; the data types in :mod:`core.types` (re-exported here).
 """
 
-from core.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from core.errors import DataFileError
+from core.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from core.io.meshes import MESH_SUFFIXES, expand_mesh_paths, load_mesh, load_meshes, save_mesh
 from core.io.models import MODEL_FORMAT, MODEL_FORMAT_VERSION, load_model, save_model
 from core.io.nifti import VOLUME_SUFFIXES

@@ -210,7 +210,7 @@ def _rtstruct_dataset(datasets: list):
     reference, new series and instance UIDs, and the referenced frame/study/series/images."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.sequence import Sequence
-    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID, generate_uid
+    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, generate_uid
 
     from core import __version__
 

@@ -36,9 +36,15 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.dicom import (NATIVE_SYNTAXES, TRANSFER_SYNTAXES, _check_geometry, _finite_floats,
-                           check_image_tags, check_pixel_data_size)
 from core.errors import DataFileError, why
+from core.io.dicom import (
+    NATIVE_SYNTAXES,
+    TRANSFER_SYNTAXES,
+    _check_geometry,
+    _finite_floats,
+    check_image_tags,
+    check_pixel_data_size,
+)
 from core.io.itk_image import affine_from_itk
 from core.io.limits import check_declared_size
 from core.types.volume import Volume

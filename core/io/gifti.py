@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path
 from core.errors import DataFileError, why
+from core.io.atomic import atomic_path
 from core.types.trimesh import TriMesh
 
 

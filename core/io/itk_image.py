@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path
 from core.errors import DataFileError, without_path
+from core.io.atomic import atomic_path
 from core.io.registry import FileFormat, register
 from core.types.volume import Volume
 

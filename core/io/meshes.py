@@ -29,18 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import is_temporary_name
 from core.errors import DataFileError, DataFileWarning, require_file, warnings_as_notes
+from core.io.atomic import is_temporary_name
 from core.io.gifti import load_gifti, save_gifti
 from core.io.limits import coordinate_problem
-from core.io.obj import load_obj
-from core.io.ply import load_ply
+from core.io.obj import load_obj, save_obj
+from core.io.ply import load_ply, save_ply
 from core.io.registry import FileFormat, lookup, register
 from core.io.vtk_meshes import load_vtk_family, save_legacy_vtk, save_stl, save_xml_vtk
 from core.types.trimesh import TriMesh
-
-from core.io.obj import save_obj
-from core.io.ply import save_ply
 
 for _fmt in (
     FileFormat(".vtk", "mesh", "legacy VTK", read=load_vtk_family, write=save_legacy_vtk),

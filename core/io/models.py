@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path, json_default
 from core.errors import DataFileError, require_file, why
+from core.io.atomic import atomic_path, json_default
 from core.io.registry import FileFormat, lookup, register, split_member
 from core.models.shape_model import ShapeModel
 

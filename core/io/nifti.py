@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path
 from core.errors import DataFileError, require_file, why
+from core.io.atomic import atomic_path
 from core.io.limits import DEFLATE_MAX_RATIO, check_declared_size
 from core.io.registry import FileFormat, file_suffix, register
 from core.types.volume import NiftiOrientation, Volume

@@ -39,10 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path
 from core.errors import DataFileError, DataFileWarning, display_path
-from core.io.itk_image import LPS_TO_RAS, check_gzip_stream, read_itk_image, \
-    refuse_outside
+from core.io.atomic import atomic_path
+from core.io.itk_image import LPS_TO_RAS, check_gzip_stream, read_itk_image, refuse_outside
 from core.io.registry import FileFormat, register
 from core.types.volume import Volume
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path
 from core.errors import DataFileError
+from core.io.atomic import atomic_path
 from core.io.polygons import polygons_to_triangles
 from core.io.vtk_meshes import space_in_text
 from core.types.trimesh import TriMesh

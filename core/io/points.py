@@ -17,9 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import DataFileError, DataFileWarning, display_path, require_file, warnings_as_notes, why
 from core.io.atomic import atomic_write_json, atomic_write_text
-from core.errors import DataFileError, DataFileWarning, display_path, require_file, \
-    warnings_as_notes, why
 from core.io.limits import coordinate_problem
 from core.io.registry import FileFormat, file_suffix, lookup, register
 from core.types.pointset import PointSet

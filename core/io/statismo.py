@@ -70,8 +70,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path
 from core.errors import DataFileError, require_file
+from core.io.atomic import atomic_path
 from core.io.hdf5 import H5Reader, integer_value, open_h5, text_value
 from core.io.registry import FileFormat, register, split_member
 from core.models.shape_model import ShapeModel

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.io.atomic import atomic_path
 from core.errors import DataFileError, without_path
+from core.io.atomic import atomic_path
 from core.io.limits import DEFLATE_MAX_RATIO, check_declared_size
 from core.io.registry import file_suffix
 from core.types.trimesh import TriMesh, cell_arrays, triangles_of

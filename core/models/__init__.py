@@ -21,9 +21,9 @@ from typing import Any
 from core.models.base import ShapeModelEstimator, clone
 from core.models.lsf import LSF
 from core.models.pca import PCA
+from core.models.shape_model import ShapeModel
 from core.models.splocs import SPLOCS
 from core.models.varimax import Varimax
-from core.models.shape_model import ShapeModel
 
 MODELS: dict[str, type[ShapeModelEstimator]] = {
     "pca": PCA,

@@ -42,8 +42,8 @@ import scipy.sparse as sp
 
 from core.geometry.mesh import edges as mesh_edges
 from core.models._params import editor_rule, is_data_parameter, validate_params
-from core.runtime.progress import ProgressCallback
 from core.models.shape_model import ShapeModel
+from core.runtime.progress import ProgressCallback
 
 
 def check_shapes(X: np.ndarray, name: str = "X", min_shapes: int = 2) -> np.ndarray:

@@ -43,13 +43,12 @@ tissue maps by ``resources/make_demo.py``), placed on the image as the library m
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from core.geometry.toolkit import closest_points_on_surface, signed_surface_distance
-from core.geometry.mesh import volume as mesh_volume
 from core import RESOURCES_DIR
+from core.geometry.mesh import volume as mesh_volume
+from core.geometry.toolkit import closest_points_on_surface, signed_surface_distance
 
 #: AC and PC closer than this (mm) are refused: in adults they are ~23-28 mm apart.
 MIN_AC_PC_MM = 5.0

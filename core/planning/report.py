@@ -32,11 +32,19 @@ from typing import Any
 import numpy as np
 
 from core.errors import DataFileError
+from core.geometry.segmentation import voxelize
 from core.io import TriMesh, atomic_write_json, atomic_write_text, save_mesh
 from core.io.model_library import structure_info
-from core.planning.frames import (ACPCFrame, Trajectory, anchored_point, anchored_point_weights,
-                           path_distances, structure_row, trajectory_warnings, volume_centroid)
-from core.geometry.segmentation import voxelize
+from core.planning.frames import (
+    ACPCFrame,
+    Trajectory,
+    anchored_point,
+    anchored_point_weights,
+    path_distances,
+    structure_row,
+    trajectory_warnings,
+    volume_centroid,
+)
 
 REPORT_FORMAT = "ssm-studio-plan"
 REPORT_VERSION = 1

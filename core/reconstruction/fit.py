@@ -10,16 +10,15 @@ import time
 from typing import Callable
 
 import numpy as np
-
 from scipy.spatial import cKDTree
 
 from core.geometry.toolkit import surface_distance, vertex_normals
+from core.models.shape_model import ShapeModel
 from core.reconstruction.covariance import make_covariance
 from core.reconstruction.em import FitState, GMMFitter
 from core.reconstruction.pose import PosePrior, Similarity
 from core.reconstruction.result import FitResult
 from core.reconstruction.snapshot import ModelSnapshot, model_snapshot
-from core.models.shape_model import ShapeModel
 
 METHODS = ("gmm-aniso", "gmm-iso", "icp")
 POSES = ("similarity", "rigid", "none")

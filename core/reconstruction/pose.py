@@ -16,8 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.geometry.toolkit import rodrigues, skew, umeyama
-from core.geometry.toolkit import rotation_vector
+from core.geometry.toolkit import rodrigues, rotation_vector, skew, umeyama
 
 
 @dataclass(frozen=True)

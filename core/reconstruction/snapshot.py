@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.geometry.toolkit import vertex_face_table
 from core.geometry.mesh import mean_edge_length
+from core.geometry.toolkit import vertex_face_table
 from core.models.shape_model import ShapeModel
 
 

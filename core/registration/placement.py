@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.runtime.progress import ProgressCallback
 from core.models.shape_model import ShapeModel
+from core.runtime.progress import ProgressCallback
 
 
 def register_to_template(image, template=None, *, transform: str = "affine",

@@ -63,9 +63,9 @@ from typing import Any
 
 import numpy as np
 
-from core.io import DataFileError, atomic_path
 from core.errors import require_file
 from core.geometry.planes import PLANE_NAMES  # a point's plane is stored by its index
+from core.io import DataFileError, atomic_path
 from core.io.limits import coordinate_problem
 
 SESSION_FORMAT = "ssm-studio-session"

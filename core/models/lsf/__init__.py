@@ -10,8 +10,7 @@
 
 from core.models.lsf.estimator import LSF, drop_unexplaining
 from core.models.lsf.graph import graph_gradient, spectral_norm_sq
-from core.models.lsf.prox import (GROUP_NORMS, FactorNorm, project_l1_ball, prox_group,
-                                  prox_sparse_group)
+from core.models.lsf.prox import GROUP_NORMS, FactorNorm, project_l1_ball, prox_group, prox_sparse_group
 from core.models.lsf.solver import structured_factorisation
 from core.models.lsf.splitting import split_factors
 
