@@ -98,7 +98,7 @@ def test_contact_bands_sit_at_the_contacts_world_positions_in_a_slice(window):
 def test_warnings_in_red_when_the_target_lies_outside_its_structure(window):
     planning, panel, state = window.plan.planning, window.plan.panel, window.state
     _plan(window)
-    assert panel.warnings_label.text() == ""
+    assert "outside" not in panel.warnings_label.text()
     outside = state.active.surface_vertices()[:, 0].max() + 6.0
     target = planning.target_of(state.active).copy()
     target[0] = outside
@@ -110,6 +110,31 @@ def test_warnings_in_red_when_the_target_lies_outside_its_structure(window):
     # every surface point has x <= the extreme: at least 6 mm; at most the nearest vertex
     nearest_vertex = float(np.linalg.norm(state.active.surface_vertices() - target, axis=1).min())
     assert 6.0 - 0.05 <= shown <= nearest_vertex + 0.05
+
+
+def test_the_ventricles_are_warned_about_where_the_library_models_put_them(window):
+    """The GUI checks the path against the demo template's ventricles placed as the library
+    models are (as ``ssm-studio plan`` does): the same crossing depths as core's check of the
+    ventricles mapped by that placement; none once the template is placed elsewhere."""
+    from core.planning.frames import template_ventricles, trajectory_warnings
+    from core.planning.report import template_to_image
+
+    planning, panel, state = window.plan.planning, window.plan.panel, window.state
+    _plan(window)
+    placement = template_to_image(state)
+    assert placement is not None                                   # the demo's library model
+    expected = trajectory_warnings(planning.trajectory_of(state.active), None,
+                                   [template_ventricles(placement)])
+    shown = [w for w in planning.warnings_of(state.active) if w["kind"] == "crosses_ventricle"]
+    assert expected and [w["kind"] for w in expected] == ["crosses_ventricle"]
+    assert np.allclose(shown[0]["intervals_mm"], expected[0]["intervals_mm"], atol=1e-9)
+    assert "crosses the ventricles" in panel.warnings_label.text()
+    # the library model placed 40 mm to the side (as a placement would): the ventricles go
+    # with it, off this path
+    moved = state.active.placement.copy()
+    moved[0, 3] += 40.0
+    state.active.placement = moved
+    assert not [w for w in planning.warnings_of(state.active) if w["kind"] == "crosses_ventricle"]
 
 
 def test_a_session_with_a_lead_round_trips(window, tmp_path):

@@ -30,9 +30,16 @@ from app.model.events import EmitterGroup
 from app.model.history import UndoHistory
 from app.model.state import Structure, WorkspaceState
 from core.io.model_library import structure_info
-from core.planning.frames import ACPCFrame, PlanningError, Trajectory, trajectory_warnings
+from core.planning.frames import (
+    ACPCFrame,
+    PlanningError,
+    Surface,
+    Trajectory,
+    template_ventricles,
+    trajectory_warnings,
+)
 from core.planning.lead import PlacedLead, contact_readout, place_lead
-from core.planning.report import LeadChoice, PlannedStructure, model_target, plan_report
+from core.planning.report import LeadChoice, PlannedStructure, model_target, plan_report, template_to_image
 
 LANDMARKS = ("ac", "pc", "midline")
 LANDMARK_LABELS = {"ac": "AC", "pc": "PC", "midline": "Midline"}
@@ -61,6 +68,7 @@ class PlanningState:
                                    edited=("what",))
         self.history = UndoHistory(self._snapshot, self._restore, self.events.history)
         self._default_targets: dict = {}    # (structure, model, surface version) -> world
+        self._ventricles_cache: tuple = (None, None)    # (placement key, Surface)
         self.workspace.events.structure_changed.connect(self._on_structure)
         self.workspace.events.structures.connect(self._on_structures)
 
@@ -161,7 +169,19 @@ class PlanningState:
         if traj is None:
             return []
         own = self._planned(structure) if structure.model is not None else None
-        return trajectory_warnings(traj, own, self.planned_structures())
+        return trajectory_warnings(traj, own, self.planned_structures() + self._ventricles())
+
+    def _ventricles(self) -> list[Surface]:
+        """The demo template's ventricles where the library models put the template (the
+        placement of the first one in its space, as ``ssm-studio plan`` checks them); [] when
+        no structure comes from the template. Kept while that placement stays."""
+        placement = template_to_image(self.workspace)
+        if placement is None:
+            return []
+        key = placement.round(6).tobytes()
+        if self._ventricles_cache[0] != key:
+            self._ventricles_cache = (key, template_ventricles(placement))
+        return [self._ventricles_cache[1]]
 
     def target_is_default(self, structure: Structure) -> bool:
         return structure.id not in self.targets

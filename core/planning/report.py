@@ -154,16 +154,20 @@ def plan_from_session(session) -> tuple[list[PlannedStructure], ACPCFrame | None
 def template_to_image(session) -> np.ndarray | None:
     """Template world -> image world (4x4) of a session whose library models were placed
     automatically or by hand: ``placement @ inv(model.world_transform)`` of the first
-    structure with a placement and a model in the demo template's space (None without one)."""
+    structure with a placement and a model in the demo template's space (None without one).
+    ``session`` has ``structures`` (session records, or the GUI's structures whose ``model``
+    is the loaded :class:`~core.models.shape_model.ShapeModel`, read from its path otherwise)."""
     from core.io import load_model
     from core.io.model_library import MNI_TEMPLATE_SPACE
+    from core.models.shape_model import ShapeModel
 
     for rec in getattr(session, "structures", None) or []:
         placement = _field(rec, "placement")
         path = _field(rec, "model_path") or _field(rec, "model")
         if placement is None or path is None:
             continue
-        model = load_model(path)
+        loaded = _field(rec, "model")
+        model = loaded if isinstance(loaded, ShapeModel) else load_model(path)
         if structure_info(model, path).template_space == MNI_TEMPLATE_SPACE:
             return np.asarray(placement, dtype=np.float64) @ np.linalg.inv(model.world_transform)
     return None
