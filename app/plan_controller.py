@@ -151,8 +151,10 @@ class PlanController(QObject):
         # a statismo model's PPCA noise (core.io.statismo puts it in info) is the model's own
         # per-vertex uncertainty, added to the posterior's
         noise = float(s.model.info.get("noise_variance", 0.0) or 0.0)
+        # the fit itself (when the surface comes from one) makes the posterior pose-aware and
+        # honest about correlated residuals (as bench_uncertainty measures it)
         return fit_posterior(s.model, s.points.xyz, s.coef, s.pose, pose_mode=pose_mode,
-                             model_noise_var=noise)
+                             model_noise_var=noise, fit=s.last_fit)
 
     def set_uncertainty(self, shown: bool) -> None:
         self.show_uncertainty = bool(shown)
