@@ -3,10 +3,10 @@
 The user of SSM Studio draws contour points in 2D slice views. To evaluate the fit without a
 person, we intersect a held-out true surface with k slice planes (axial, coronal, sagittal or a
 mix; see :func:`slice_planes`), sample points at a fixed spacing along each contour
-(:func:`core.geometry.slicing.polylines`, :func:`core.geometry.slicing.sample_polyline`), add in-plane Gaussian
-noise (the user clicks in the slice, so the points stay in it), and estimate each point's
-normal as a user's drawing would give it: the contour tangent (central difference of the
-noisy neighbours along the contour) crossed with the slice normal, pointing outwards (the
+(:func:`core.geometry.slicing.polylines`, :func:`core.geometry.slicing.sample_polyline`), add
+in-plane Gaussian noise (the user clicks in the slice, so the points stay in it), and estimate
+each point's normal as a user's drawing would give it: the contour tangent (central difference
+of the noisy neighbours along the contour) crossed with the slice normal, pointing outwards (the
 slicing orients contours counter-clockwise around the plane normal).
 
 Also here, for tests and benchmarks without the demo data: :func:`synthetic_shapes` (a family
