@@ -102,7 +102,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     _, shapes, faces = corresponded_shapes(meshes)
     with StderrProgress("align") as progress:
         aligned = align(shapes, method=args.align, transform=args.transform, progress=progress)
-    folds = None
+    folds: Recorrespond | Realign | None = None
     if args.loo == "refit" and args.correspond:
         folds = Recorrespond([m for m, c in zip(raw, corr.meshes) if c is not None],
                              reference=_kept_index(corr), method=args.align,

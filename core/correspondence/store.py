@@ -125,7 +125,7 @@ def open_mesh(handle: MeshHandle) -> TriMesh:
         if mesh is None:
             from core.io import DataFileError
 
-            raise DataFileError(handle.path, problem)
+            raise DataFileError(handle.path, problem or "cannot be read")
         return mesh
     raise TypeError(f"not a mesh handle: {type(handle).__name__}")
 

@@ -104,7 +104,10 @@ def simulate_user(vertices: np.ndarray, faces: np.ndarray, k: int, *, orientatio
     rng = np.random.default_rng() if rng is None else rng
     if planes is None:
         planes = slice_planes(vertices, k, orientations, margin=margin, rng=rng)
-    all_pts, all_nrm, all_id, all_loop = [], [], [], []
+    all_pts: list[np.ndarray] = []
+    all_nrm: list[np.ndarray] = []
+    all_id: list[np.ndarray] = []
+    all_loop: list[np.ndarray] = []
     for plane_id, (origin, normal) in enumerate(planes):
         for line in polylines(vertices, faces, origin, normal):
             if not line.closed or line.length < 2 * spacing:

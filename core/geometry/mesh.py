@@ -137,9 +137,10 @@ def topology(faces: np.ndarray, n_vertices: int) -> dict:
     directed = _directed_edges(faces)
     misoriented = len(directed) - len(np.unique(directed, axis=0))
     euler = euler_characteristic(used, faces)
-    out: dict[str, int | None] = {"open_edges": int((counts == 1).sum()), "non_manifold_edges": int((counts > 2).sum()),
-           "non_manifold_vertices": int(n_fans - used), "misoriented_edges": int(misoriented),
-           "pieces": n_components(faces, n_vertices), "euler": int(euler)}
+    out: dict[str, int | None] = {
+        "open_edges": int((counts == 1).sum()), "non_manifold_edges": int((counts > 2).sum()),
+        "non_manifold_vertices": int(n_fans - used), "misoriented_edges": int(misoriented),
+        "pieces": n_components(faces, n_vertices), "euler": int(euler)}
     clean = not (out["open_edges"] or out["non_manifold_edges"] or out["non_manifold_vertices"]
                  or out["misoriented_edges"]) and out["pieces"] == 1
     out["genus"] = (2 - euler) // 2 if clean else None
