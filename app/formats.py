@@ -2,11 +2,11 @@
 
 Reading and choosing is :mod:`core.io` (``load_volume`` with ``series=``,
 :func:`core.io.dicom.list_series`). A DICOM folder with several series asks the user which
-one (``ask``: :func:`app.series_dialog.ask_series` in the window); the choice is remembered as one file of that series
-(``load_volume`` on a file reads the file's own series), so a saved session or a recent
-file reopens the same series without asking again. Window titles and messages name a DICOM
-image by its series description only, never by folder or file name (those often carry the
-patient's name or ID).
+one (``ask``: :func:`app.series_dialog.ask_series` in the window); the choice is remembered as
+one file of that series (``load_volume`` on a file reads the file's own series), so a saved
+session or a recent file reopens the same series without asking again. Window titles and
+messages name a DICOM image by its series description only, never by folder or file name (those
+often carry the patient's name or ID).
 """
 
 from __future__ import annotations

@@ -212,7 +212,8 @@ class MainWindow(QMainWindow):
     def load_second_image(self, path: str | os.PathLike, transform=None) -> bool:
         """Show a second image over the first: read, registered rigidly when the grids differ
         and resampled in a worker (progress, Cancel); False if it could not start."""
-        return self.features["second-image"].controller.load(path, transform, show_dialog=not self._quiet_errors())
+        return self.features["second-image"].controller.load(path, transform,
+                                                             show_dialog=not self._quiet_errors())
 
     def load_demo(self) -> None:
         """The demo image and model (raises DataFileError when resources/ is incomplete)."""

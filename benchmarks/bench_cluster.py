@@ -120,7 +120,8 @@ def part_a(n_shapes: int, chunk: int) -> None:
               f"{n_shapes / wall[name]:9.3f} {cpu[name] / n_shapes:12.3f} "
               f"{'yes' if same else 'NO':>18}")
     ratio = wall["process pool"] / wall["Dask LocalCluster"]
-    print(f"Dask/pool throughput ratio {ratio:.3f} (within 15%: {'yes' if abs(ratio - 1) <= 0.15 else 'no'}); "
+    print(f"Dask/pool throughput ratio {ratio:.3f} "
+          f"(within 15%: {'yes' if abs(ratio - 1) <= 0.15 else 'no'}); "
           f"load after {os.getloadavg()[0]:.1f}")
 
 
@@ -153,7 +154,8 @@ def synthetic_shapes(k: int, n: int, rng: np.random.Generator, noise: float = 0.
     for _ in range(k):
         s = base + np.einsum("m,mni->ni", rng.normal(0, 1.5, 3), modes) + rng.normal(0, noise, (n, 3))
         pose = np.eye(4)
-        pose[:3, :3] = rng.uniform(0.8, 1.2) * Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
+        scale = rng.uniform(0.8, 1.2)                       # drawn before the rotation's seed
+        pose[:3, :3] = scale * Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
         pose[:3, 3] = rng.normal(0, 50, 3)
         shapes.append(apply_transform(pose, s))
         poses.append(pose)

@@ -108,7 +108,8 @@ def main() -> None:
                 runs[mode].append(_run_session(mode, tree, args.jobs, args.pools))
         print(f"load after: {os.getloadavg()[0]:.2f}")
     print(f"\n{args.jobs} short jobs, n_jobs=2, median of {args.rounds} sessions each")
-    header = f"{'pool':<20}{'#':>3}{'start-up s':>12}{'wall s':>9}{'ms/job':>9}{'inline ms/job':>15}{'equal':>7}"
+    header = (f"{'pool':<20}{'#':>3}{'start-up s':>12}{'wall s':>9}{'ms/job':>9}"
+              f"{'inline ms/job':>15}{'equal':>7}")
     print(header)
     print("-" * len(header))
     for mode, sessions in runs.items():

@@ -385,7 +385,8 @@ def latency(shapes, faces, reps: int, with_rustcpd: bool, only: list[str] | None
           f" {reps} fits each, os.cpu_count()={os.cpu_count()}")
     print("(ours: fit_points defaults; rustcpd: register_atlas defaults, max_iterations=100, "
           "tolerance=1e-3, warm refits with initial_state=previous.state)")
-    print(f"{'method':>10} | {'cold p50':>9} | {'cold p99':>9} | {'warm p50':>9} | {'warm p99':>9} | iters cold/warm")
+    print(f"{'method':>10} | {'cold p50':>9} | {'cold p99':>9} | {'warm p50':>9} | {'warm p99':>9} "
+          "| iters cold/warm")
     methods = list(OURS) + (["rustcpd"] if with_rustcpd else [])
     for method in [m for m in methods if only is None or m in only]:
         cold, warm, it_c, it_w = [], [], [], []

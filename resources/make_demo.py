@@ -979,8 +979,9 @@ def make_ventricles(path: Path = VENTRICLES_FILE) -> Path:
     largest connected component that does not touch the box's faces (the ventricles are
     enclosed by tissue; the basal cisterns and sulci reach the box's edge), one binary
     opening (its largest piece, holes filled), meshed as the caudate (:func:`_mesh_mask`: Surface
-    Nets gives non-manifold edges on this mask), VENTRICLE_VERTICES vertices. ``core.planning.frames`` warns when a
-    trajectory crosses it (after the same placement as the library models).
+    Nets gives non-manifold edges on this mask), VENTRICLE_VERTICES vertices.
+    ``core.planning.frames`` warns when a trajectory crosses it (after the same placement as the
+    library models).
     """
     gm, wm = load_volume(GM_FILE), load_volume(WM_FILE)
     csf = 1.0 - (gm.data.astype(np.float32) + wm.data.astype(np.float32)) / 255.0

@@ -1,4 +1,5 @@
-"""A second image (other contrast, moved) brought onto the first image's grid (core.registration.coregistration).
+"""A second image (other contrast, moved) brought onto the first image's grid
+(core.registration.coregistration).
 
 Known truth: the second image is the demo T1 with its contrast inverted and remapped (like a
 T2: white matter dark, CSF bright), moved by a known rigid transform into scanner coordinates

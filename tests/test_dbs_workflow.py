@@ -371,7 +371,12 @@ def _check_rtstruct(rt_path, files, label_map, report):
         inside_fill, inside_truth = 0, 0
         for item in roi.ContourSequence:
             ds = source[item.ContourImageSequence[0].ReferencedSOPInstanceUID]
-            pts = np.asarray(item.ContourData, dtype=float).reshape(-1, 3) * _LPS
+            lps = np.asarray(item.ContourData, dtype=float).reshape(-1, 3)
+            # drawn on the image it references: in that image's plane (DICOM patient LPS)
+            normal = np.cross(*np.asarray(ds.ImageOrientationPatient, dtype=float).reshape(2, 3))
+            offset = (lps - np.asarray(ds.ImagePositionPatient, dtype=float)) @ normal
+            np.testing.assert_allclose(offset, 0.0, atol=1e-3)
+            pts = lps * _LPS
             ijk = pts @ inverse[:3, :3].T + inverse[:3, 3]
             k = int(round(ijk[0, 2]))
             assert np.allclose(ijk[:, 2], k, atol=1e-3)        # on its slice's plane

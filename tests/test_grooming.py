@@ -1,4 +1,5 @@
-"""Grooming before correspondence (core.correspondence.grooming) and the batch's per-shape handling of bad inputs."""
+"""Grooming before correspondence (core.correspondence.grooming) and the batch's per-shape
+handling of bad inputs."""
 
 from __future__ import annotations
 

@@ -132,7 +132,8 @@ def test_slider_edit_updates_the_residual_and_the_next_refit_says_it_refitted(ma
     window.factors_panel.set_factor_sd(0, 2.5)
     info = window.state.active.fit_info
     state = window.state
-    expected = np.mean(surface_distance(state.active.points.xyz, state.active.surface_vertices(), state.active.model.faces))
+    expected = np.mean(surface_distance(state.active.points.xyz, state.active.surface_vertices(),
+                                        state.active.model.faces))
     assert info.residual_mm == pytest.approx(expected) and info.residual_mm != pytest.approx(fitted)
     assert "after your edit" in window.fit_panel.result.text()
     click(window.workspace.views["axial"], window.state.crosshair + [0.0, -9.5, 0.0])
@@ -151,7 +152,8 @@ def test_without_automatic_refit_the_fit_is_marked_out_of_date(make_window):
     assert "Out of date" in window.fit_panel.result.text()
     window.fit_panel.refit_button.click()
     window.wait_for_refit(20000)
-    assert not window.state.active.fit_info.out_of_date and "Out of date" not in window.fit_panel.result.text()
+    assert not window.state.active.fit_info.out_of_date
+    assert "Out of date" not in window.fit_panel.result.text()
 
 
 def test_reopened_session_reads_out_its_fit(make_window, tmp_path):

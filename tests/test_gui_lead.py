@@ -68,7 +68,7 @@ def test_readout_lists_the_four_contacts_of_a_3389_with_their_structure(window):
 
 
 def test_contact_bands_sit_at_the_contacts_world_positions_in_a_slice(window):
-    planning, panel, state = window.plan.planning, window.plan.panel, window.state
+    planning, state = window.plan.planning, window.state
     volume = state.volume
     # a target on a voxel centre and a vertical trajectory; tip 0.25 mm past the target puts
     # contact 1's centre (0.25 below + 1.5 + 0.75 + 2 mm above) on the slice 4 mm above

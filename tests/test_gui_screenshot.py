@@ -175,7 +175,8 @@ def test_3d_planes_show_the_second_images_composite(qtbot, tmp_path, monkeypatch
                 volume.affine)
     assert window.load_second_image(path)
     qtbot.waitUntil(lambda: not window.features["second-image"].controller.is_running, timeout=30000)
-    model, layer = window.features["second-image"].controller.model, window.features["second-image"].controller.layer
+    controller = window.features["second-image"].controller
+    model, layer = controller.model, controller.layer
     model.set_mode("checkerboard")
     vv = window.workspace.volume_view
     vv.flush()

@@ -51,7 +51,8 @@ def test_second_image_blends_checkers_and_drawing_works_on_either(window, qtbot,
     state, view = window.state, window.workspace.views["axial"]
     plain = _pixels(view)
     _load(window, qtbot, second_path)
-    model, layer = window.features["second-image"].controller.model, window.features["second-image"].controller.layer
+    controller = window.features["second-image"].controller
+    model, layer = controller.model, controller.layer
     assert not model.coregistered.registered            # same grid: nothing to register
     np.testing.assert_array_equal(model.transform, np.eye(4))
     assert "t2like" in window.features["second-image"].panel.info.text()
@@ -113,7 +114,8 @@ def test_second_image_is_kept_with_the_session(window, qtbot, second_path, tmp_p
     model.clear()
     assert not model.loaded
     window.open_session(session)
-    qtbot.waitUntil(lambda: model.loaded and not window.features["second-image"].controller.is_running, timeout=30000)
+    qtbot.waitUntil(lambda: model.loaded and not window.features["second-image"].controller.is_running,
+                    timeout=30000)
     assert (model.mode, model.checker_mm, model.base) == ("checkerboard", 6.0, "second")
     np.testing.assert_allclose(model.transform, np.eye(4))
     assert not window.unsaved                # restored from the file: nothing to save
@@ -160,8 +162,8 @@ def test_second_image_shortcuts_are_in_help_and_the_readme(window):
 
     from app.actions import SHORTCUTS
 
-    keys = {window.registry["open-second"].shortcut().toString(), window.registry["second-checkerboard"].shortcut()
-            .toString(), window.registry["second-swap-base"].shortcut().toString()}
+    keys = {window.registry[name].shortcut().toString()
+            for name in ("open-second", "second-checkerboard", "second-swap-base")}
     assert keys == {"Ctrl+Shift+I", "K", "Ctrl+B"}
     listed = {k for k, _ in SHORTCUTS}
     assert keys <= listed

@@ -239,7 +239,8 @@ def test_place_here_moves_model_centre_to_crosshair(window):
     target = window.state.crosshair + np.array([20.0, -10.0, 5.0])
     window.state.set_crosshair(target)
     window.place_here()
-    assert window.state.active.surface_vertices().mean(axis=0) == pytest.approx(window.state.crosshair, abs=1e-6)
+    assert window.state.active.surface_vertices().mean(axis=0) == pytest.approx(window.state.crosshair,
+                                                                                abs=1e-6)
     window.undo()
     assert window.state.active.surface_vertices().mean(axis=0) == pytest.approx(
         window.state.active.model.world_instance().mean(axis=0), abs=1e-6)
@@ -327,7 +328,8 @@ def test_zoom_pan_keep_clicks_exact_and_window_drag_changes_contrast(window):
     assert view.zoom > 1.5
     QTest.mousePress(view, Qt.MouseButton.MiddleButton, NO_MOD, QPoint(*np.rint(centre).astype(int)))
     QTest.mouseMove(view, QPoint(int(centre[0]) + 40, int(centre[1]) + 25))
-    QTest.mouseRelease(view, Qt.MouseButton.MiddleButton, NO_MOD, QPoint(int(centre[0]) + 40, int(centre[1]) + 25))
+    QTest.mouseRelease(view, Qt.MouseButton.MiddleButton, NO_MOD,
+                       QPoint(int(centre[0]) + 40, int(centre[1]) + 25))
     window.set_tool("draw")
     target = window.state.crosshair + np.array([3.0, -4.0, 0.0])
     click(view, view.world_to_screen(target))

@@ -114,7 +114,8 @@ def test_session_round_trip_with_relative_paths(qtbot, tmp_path, state_dir):
     assert not window.windowTitle().endswith(" *") and "session.json" in window.windowTitle()
     doc = json.loads(session_file.read_text())
     assert doc["image"] == "data/t1.nii.gz" and doc["model"] == "data/model.npz"
-    points, coef, pose = window.state.active.points, window.state.active.coef.copy(), window.state.active.pose.copy()
+    active = window.state.active
+    points, coef, pose = active.points, active.coef.copy(), active.pose.copy()
     window.close()
 
     moved = tmp_path / "elsewhere"

@@ -72,7 +72,8 @@ def test_label_overlay_is_the_exported_map_and_its_volume_is_shown(window, qtbot
     assert shown == pytest.approx(labels.sum() * voxel)
     truth = mesh_volume(s.surface_vertices(), s.model.faces)
     assert abs(shown / truth - 1) < 0.05
-    qtbot.waitUntil(lambda: f"{shown:,.0f} mm³" in window.features["editing"].volume_label.text(), timeout=2000)
+    qtbot.waitUntil(lambda: f"{shown:,.0f} mm³" in window.features["editing"].volume_label.text(),
+                    timeout=2000)
     # fill colours the pixels inside; opacity 0 leaves the image as it was
     window.features["editing"].panel.outline.setChecked(False)
     x, y = view.world_to_screen(_inside_point(window, view)) + 3   # off the crosshair's lines
@@ -120,7 +121,8 @@ def test_brush_and_eraser_edit_the_label_map_with_undo_session_and_export(window
     # a 3 mm brush dragged 6 mm on 1 mm voxels: between the disc (29) and the swept area
     assert 29 <= added <= 29 + 7 * 6 + 10
     assert int(window.exports.label_map().sum()) == before + added
-    qtbot.waitUntil(lambda: f"+{added}/−0 by hand" in window.features["editing"].volume_label.text(), timeout=2000)
+    qtbot.waitUntil(lambda: f"+{added}/−0 by hand" in window.features["editing"].volume_label.text(),
+                    timeout=2000)
     # the eraser inside the structure removes voxels; Ctrl+brush erases too
     window.set_tool("eraser")
     inside = view.world_to_screen(_inside_point(window, view))

@@ -1,4 +1,5 @@
-"""Label maps -> training surfaces (core.correspondence.mesh_labels, ssm-studio mesh-labels) against analytic truth."""
+"""Label maps -> training surfaces (core.correspondence.mesh_labels, ssm-studio mesh-labels)
+against analytic truth."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ def _ellipsoid_map(spacing: float, oblique: bool, value: int = 11, seed: int = 0
     n = int(2 * RADII.max() / spacing) + 8
     affine = np.eye(4)
     affine[:3, :3] = grid_rot * spacing
-    affine[:3, 3] = centre - grid_rot @ np.full(3, (n - 1) / 2 * spacing) + rng.uniform(-0.5, 0.5, 3) * spacing
+    affine[:3, 3] = (centre - grid_rot @ np.full(3, (n - 1) / 2 * spacing)
+                     + rng.uniform(-0.5, 0.5, 3) * spacing)
     ijk = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
     world = ijk @ affine[:3, :3].T + affine[:3, 3]
     local = (world - centre) @ rot  # ellipsoid frame

@@ -445,7 +445,8 @@ def test_fit_reports_plausibility_and_coefficient_covariance(family):
         info = fit.plausibility()
         centre_fit = fit.pose[:3, :3] @ model.mean.mean(axis=0) + fit.pose[:3, 3]
         centre_placed = placed[:3, :3] @ model.mean.mean(axis=0) + placed[:3, 3]
-        assert info["placement_shift_mm"] == pytest.approx(np.linalg.norm(centre_fit - centre_placed), abs=1e-9)
+        assert info["placement_shift_mm"] == pytest.approx(np.linalg.norm(centre_fit - centre_placed),
+                                                           abs=1e-9)
         z = np.abs(fit.coef) / np.sqrt(model.coef_var)
         assert info["max_abs_coef_sd"] == pytest.approx(z.max())
         assert info["n_coef_beyond_3sd"] == int((z > 3).sum())

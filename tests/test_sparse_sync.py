@@ -22,7 +22,8 @@ def _random_transform(rng, kind):
     t = np.eye(4)
     r = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
     if kind == "affine":
-        r = r @ np.diag(rng.uniform(0.8, 1.2, 3)) @ Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
+        stretch = np.diag(rng.uniform(0.8, 1.2, 3))          # drawn before the second rotation
+        r = r @ stretch @ Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
     elif kind == "similarity":
         r = r * rng.uniform(0.8, 1.2)
     t[:3, :3] = r

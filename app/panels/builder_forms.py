@@ -7,12 +7,13 @@ docstring (tooltips, and ``{'a', 'b'}`` choices for string options), so the pane
 ``core.models`` when parameters are added or renamed there.
 
 Widget per parameter, from the class's declared constraints as summarised by
-``cls.parameter_rule(name)`` (``("int"|"float", low, high[, allow_none])``, ``("options", choices)``, ``("bool",)``) and
-otherwise from the default: bool -> QCheckBox; int -> QSpinBox (its minimum shows "auto
-(None)" when None is allowed); float -> QDoubleSpinBox for ordinary magnitudes, a QLineEdit for
-tolerances like 1e-8; options -> QComboBox; anything else (None, str, tuples) -> QLineEdit read
-back as a Python literal (empty means None). Data parameters (the mesh graph,
-``connectivity``) have no editor: the pipeline passes the training meshes' triangles.
+``cls.parameter_rule(name)`` (``("int"|"float", low, high[, allow_none])``,
+``("options", choices)``, ``("bool",)``) and otherwise from the default: bool -> QCheckBox;
+int -> QSpinBox (its minimum shows "auto (None)" when None is allowed); float -> QDoubleSpinBox for
+ordinary magnitudes, a QLineEdit for tolerances like 1e-8; options -> QComboBox; anything else
+(None, str, tuples) -> QLineEdit read back as a Python literal (empty means None). Data
+parameters (the mesh graph, ``connectivity``) have no editor: the pipeline passes the training
+meshes' triangles.
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 
 One row per mesh file: its name, vertex count, after correspondence the distance between the
 corresponded mesh and the original and what grooming repaired or dropped, and the problems
-found when loading (or why the correspondence failed). The widget only shows the entries the panel gives it and reports what
-the user asks for through signals; loading runs in the panel's worker.
+found when loading (or why the correspondence failed). The widget only shows the entries the
+panel gives it and reports what the user asks for through signals; loading runs in the panel's
+worker.
 """
 
 from __future__ import annotations

@@ -50,7 +50,8 @@ class FitPanel(QWidget):
         self.prior.setDecimals(2)
         self.prior.setSingleStep(0.25)
         self.prior.setValue(1.0)
-        self.prior.setToolTip("Weight of the Gaussian shape prior (0 = none; larger = closer to the mean shape)")
+        self.prior.setToolTip("Weight of the Gaussian shape prior "
+                              "(0 = none; larger = closer to the mean shape)")
         for combo in (self.method, self.pose):      # long item texts must not widen the panel
             combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
             combo.setMinimumContentsLength(14)

@@ -4,8 +4,9 @@
 
 - File > *Open second image…* (Ctrl+Shift+I): any image the app reads (NIfTI, NRRD,
   MetaImage, a DICOM series). Reading, the rigid registration onto the first image when the
-  grids differ (``core.registration.volumes`` through ``core.registration.coregistration``) and the resampling run
-  in a :class:`app.workers.DialogTask` (progress, Cancel: a cancelled load changes nothing);
+  grids differ (``core.registration.volumes`` through ``core.registration.coregistration``) and
+  the resampling run in a :class:`app.workers.DialogTask` (progress, Cancel: a cancelled load
+  changes nothing);
 - the composite layer in every slice view (:class:`app.views.second_image_layer.
   SecondImageLayer`): blend with an opacity, or checkerboard (View > K);
 - *Swap base image* (Ctrl+B): which image is drawn on (the other is shown over it), and the

@@ -7,8 +7,8 @@
   (``core.planning.lead.contact_extents``) projected on the slice, as wide as the lead,
   solid where the contact crosses the slice.
 - :class:`VolumePlanOverlay` keeps the 3D view's plan meshes (``VolumeView.set_overlay``): a
-  tube per trajectory, the lead's contacts as short cylinders on it, spheres at targets and entries, the landmarks, and the target's
-  uncertainty ellipsoid when shown.
+  tube per trajectory, the lead's contacts as short cylinders on it, spheres at targets and
+  entries, the landmarks, and the target's uncertainty ellipsoid when shown.
 - :class:`ProbeView` is the probe's-eye view: the image on the plane orthogonal to the
   trajectory at an adjustable depth (``core.geometry.planes.frame_along`` / ``sample_patch``), with the
   structures' cross-sections and the trajectory's centre.

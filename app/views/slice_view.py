@@ -172,7 +172,8 @@ class SliceView(QWidget):
             return 1.0, np.zeros(2)
         left, right, top, bottom = self._slice.extent()
         fit = min(self.width() / max(right - left, 1e-6), self.height() / max(top - bottom, 1e-6))
-        center = self.center if self.center is not None else np.array([(left + right) / 2, (top + bottom) / 2])
+        center = (self.center if self.center is not None
+                  else np.array([(left + right) / 2, (top + bottom) / 2]))
         return fit * 0.98 * self.zoom, center
 
     def plane_to_screen(self, uv: np.ndarray) -> np.ndarray:

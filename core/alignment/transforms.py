@@ -253,10 +253,9 @@ def _aligned_mean(each: Callable[[], Iterator[np.ndarray]], k: int, target: np.n
                   transform: str) -> np.ndarray:
     """Mean of the ``k`` shapes ``each()`` yields, each fitted to ``target`` (one at a time,
     summed in order: what ``aligned.mean(axis=0)`` of the stacked shapes computes)."""
-    total = None
+    total = np.zeros_like(target, dtype=np.float64)     # 0 + a == a: the same sums
     for x in each():
-        a = apply_transform(fit_transform(x, target, transform), x)
-        total = a.copy() if total is None else total + a
+        total = total + apply_transform(fit_transform(x, target, transform), x)
     return total / k
 
 
@@ -301,10 +300,11 @@ def procrustes_mean(shapes: Mapping, keys: list, transform: str = "similarity", 
                 raise ValueError(f"shape {key}: not a finite (N >= 4, 3) array")
             yield x
 
-    total = None
+    total: np.ndarray | None = None
     for x in each():
         c = x - x.mean(axis=0, keepdims=True)
         total = c.copy() if total is None else total + c
+    assert total is not None                            # k >= 2 shapes were checked above
     centred_mean = total / k
     distances = [((x - x.mean(axis=0, keepdims=True) - centred_mean) ** 2).sum() for x in each()]
     x0 = np.asarray(shapes[keys[int(np.argmin(distances))]], dtype=np.float64)

@@ -154,7 +154,7 @@ def exit_if_interrupted(code: int, as_program: bool) -> int:
         with contextlib.suppress(Exception):
             from multiprocessing import util
 
-            util._run_finalizers(0)
+            util._run_finalizers(0)  # type: ignore[attr-defined]  # private: not in typeshed
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
                 stream.flush()

@@ -1,13 +1,13 @@
 """Remove the pose of corresponded meshes: GPA or transformation synchronisation.
 
 Inputs must be corresponded (same vertex count, vertex i homologous; e.g. the output of
-``ssm-studio correspond``), in a format that keeps vertex order (STL inputs are refused). ``--method sync`` (default) makes all pairwise least-squares
-transforms transitively consistent with the spectral method of Bernard et al., CVPR 2015 (no
-reference shape); ``--method sync-sparse`` does the same on the graph of each shape's 10
-nearest (time and memory linear in the number of shapes: thousands of them); ``--method gpa``
-runs iterative generalised Procrustes analysis.
-``--transform``: similarity (default), rigid (rotation det +1 and translation), euclidean
-(orthogonal, reflections allowed) or affine.
+``ssm-studio correspond``), in a format that keeps vertex order (STL inputs are refused).
+``--method sync`` (default) makes all pairwise least-squares transforms transitively consistent
+with the spectral method of Bernard et al., CVPR 2015 (no reference shape);
+``--method sync-sparse`` does the same on the graph of each shape's 10 nearest (time and memory
+linear in the number of shapes: thousands of them); ``--method gpa`` runs iterative generalised
+Procrustes analysis. ``--transform``: similarity (default), rigid (rotation det +1 and translation),
+euclidean (orthogonal, reflections allowed) or affine.
 
 Writes ``DIR/<input name>`` (the aligned mesh) for every input and ``DIR/transforms.json``:
 per shape the 4x4 matrix that maps the input into the common frame (homogeneous column

@@ -8,9 +8,9 @@ each per shape as average and maximum vertex distance in mm, plus compactness. L
 folds run in ``--jobs`` processes. ``--loo fixed`` (default) reuses the shapes aligned (and
 corresponded) once with all of them; ``--loo refit`` is the true leave-one-out: every fold
 re-aligns its training shapes (and, with ``--correspond``, re-corresponds them and the left-out
-mesh). ``--noise-var`` fixes the sparse fit's sigma^2 for every method. ``--json`` writes all per-shape values, ``--plot`` the
-boxplots (one panel per measure, like the paper's Figure 4). A summary table (means over
-shapes) is printed.
+mesh). ``--noise-var`` fixes the sparse fit's sigma^2 for every method. ``--json`` writes all
+per-shape values, ``--plot`` the boxplots (one panel per measure, like the paper's Figure 4). A
+summary table (means over shapes) is printed.
 
 ``--scheduler ADDRESS`` (or ``local:N``) runs the folds (and the correspondence) as Dask
 tasks on a cluster. Nothing is written before the end: SIGINT/SIGTERM stop the workers and exit
@@ -102,7 +102,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     _, shapes, faces = corresponded_shapes(meshes)
     with StderrProgress("align") as progress:
         aligned = align(shapes, method=args.align, transform=args.transform, progress=progress)
-    folds = None
+    folds: Recorrespond | Realign | None = None
     if args.loo == "refit" and args.correspond:
         folds = Recorrespond([m for m, c in zip(raw, corr.meshes) if c is not None],
                              reference=_kept_index(corr), method=args.align,

@@ -1,13 +1,13 @@
 """Fit a shape model to contour points and write the fitted surface.
 
 Reads a model (.npz from ``ssm-studio build-model``, or a statismo/Scalismo .h5) and points in
-world RAS mm (CSV with header ``x,y,z[,nx,ny,nz]`` or a 3D Slicer markups .mrk.json), runs the reconstruction engine
-(``core.reconstruction.fit_points``: anisotropic or isotropic GMM, or ICP, with the model's
-Gaussian prior and a similarity/rigid/no pose) and writes the fitted mesh (.vtk, .vtp, .stl,
-.ply, .obj, .gii). ``--json`` also writes the coefficients, the pose, the per-iteration
-objective, the stopping reason, the mean point-to-surface residual and ``warnings``: why the
-fit looks implausible, by the same policy as the GUI (:mod:`core.reconstruction.plausibility`);
-they are also printed as one ``warning:`` line.
+world RAS mm (CSV with header ``x,y,z[,nx,ny,nz]`` or a 3D Slicer markups .mrk.json), runs the
+reconstruction engine (``core.reconstruction.fit_points``: anisotropic or isotropic GMM, or ICP,
+with the model's Gaussian prior and a similarity/rigid/no pose) and writes the fitted mesh
+(.vtk, .vtp, .stl, .ply, .obj, .gii). ``--json`` also writes the coefficients, the pose, the
+per-iteration objective, the stopping reason, the mean point-to-surface residual and
+``warnings``: why the fit looks implausible, by the same policy as the GUI
+(:mod:`core.reconstruction.plausibility`); they are also printed as one ``warning:`` line.
 """
 
 from __future__ import annotations

@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     image = session.image_path.name if session.image_path else None
     volume = load_volume(session.image_path) if session.image_path else None
     lead = LeadChoice(args.lead, args.lead_depth, args.lead_rotation) if args.lead else None
-    avoid = ()
+    avoid: tuple = ()
     placement = None if args.no_ventricles else template_to_image(session)
     if placement is not None:
         avoid = (template_ventricles(placement),)

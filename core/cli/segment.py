@@ -6,9 +6,9 @@ so oblique images are handled). The image may be NIfTI, NRRD, MetaImage or a DIC
 (a folder, or one of its files; ``--series UID`` picks one of a folder's series, otherwise
 the one with most files is used and named). The label map's format follows ``--out``:
 NIfTI (with the image's own sform, qform and codes when the image is NIfTI, so viewers that
-read the qform where nibabel reads the sform agree; else the affine as both), NRRD or MHA (the same geometry in LPS), or
-``.seg.nrrd``, a 3D Slicer Segmentation carrying the structure's ``--name`` and ``--color``.
-3D Slicer and ITK-SNAP open each aligned with the image.
+read the qform where nibabel reads the sform agree; else the affine as both), NRRD or MHA (the
+same geometry in LPS), or ``.seg.nrrd``, a 3D Slicer Segmentation carrying the structure's
+``--name`` and ``--color``. 3D Slicer and ITK-SNAP open each aligned with the image.
 
 ``--auto-place`` registers the image to the models' template first (``--template``, default the
 bundled MNI T1; affine, mutual information) and places the model through that transform
@@ -42,7 +42,7 @@ def _color(text: str) -> tuple[float, float, float]:
         values = ()
     if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
         raise argparse.ArgumentTypeError(f"'{text}' is not a colour (r,g,b in 0-1 or #rrggbb)")
-    return values  # type: ignore[return-value]
+    return values
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -47,6 +47,8 @@ class CPDResult:
         points = np.asarray(points, dtype=np.float64)
         if self.matrix is not None:
             return points @ self.matrix[:3, :3].T + self.matrix[:3, 3]
+        if self.source is None or self.coefficients is None or self.beta is None:
+            raise ValueError("this CPD result has neither a matrix nor a displacement field")
         out = np.empty_like(points)
         for start in range(0, len(points), chunk):
             z = points[start:start + chunk]

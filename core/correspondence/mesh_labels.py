@@ -182,14 +182,14 @@ def critical_voxels(mask: np.ndarray) -> np.ndarray:
         a, b = [d for d in range(3) if d != axis]
         offs = []
         for da, db in ((0, 0), (1, 0), (0, 1), (1, 1)):
-            o = [None, None, None]
-            o[a], o[b] = da, db
-            offs.append(part(o))
+            corner: list[int | None] = [None, None, None]
+            corner[a], corner[b] = da, db
+            offs.append(part(corner))
         p00, p10, p01, p11 = (m[o] for o in offs)
         crit = (p00 == p11) & (p10 == p01) & (p00 != p10)
         for o in offs:
             out[o] |= crit
-    cube = [(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    cube: list[tuple[int, ...]] = [(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)]
     values = {c: m[part(c)] for c in cube}
     for c in cube[:4]:  # the four antipodal pairs
         opposite = tuple(1 - x for x in c)
@@ -269,14 +269,14 @@ def repair_mask(mask: np.ndarray, spacing=None) -> tuple[np.ndarray, dict]:
         solid, info["contact_voxels_filled"] = well_composed(filled)
         if not solid.any():
             break
-        info["genus"] = cubical_genus(solid)
+        genus = info["genus"] = cubical_genus(solid)
         if best is None:
             # the genus a 1-voxel opening and closing of the whole label keeps
             smooth, _, _ = _largest_component(ndimage.binary_closing(opened, element))
             smooth, _ = well_composed(ndimage.binary_fill_holes(smooth, FACES))
             target = cubical_genus(smooth) if smooth.any() else None
         best = (solid, info)
-        if target is None or info["genus"] <= target:
+        if target is None or genus <= target:
             break
     if best is None:  # thinner than two voxels everywhere: the piece as it is, made well-composed
         solid, contacts = well_composed(ndimage.binary_fill_holes(m, FACES))
@@ -441,7 +441,7 @@ def label_map_surfaces(paths: list, label: str | int, *, n_vertices: int | None 
     so that one bad file does not stop the others (the builder's *Add label maps...*)."""
     from core.runtime.progress import report
 
-    out = []
+    out: list[tuple[str, TriMesh | None, str | None]] = []
     for i, path in enumerate(paths):
         report(progress, i / max(len(paths), 1), f"meshing {Path(path).name}")
         try:

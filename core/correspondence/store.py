@@ -13,8 +13,8 @@ cohort. So the per-shape data can live in two places:
   (:class:`InputFile`), write the groomed mesh (:class:`ScratchMesh`), and read the current
   correspondence of their shape (:class:`Row` of a :class:`VertexRows` file); the client
   keeps per-shape scalars only, and streams the GPA mean over the rows
-  (:func:`core.alignment.transforms.procrustes_mean`). Its memory stays flat in the number of shapes (measured in
-  ``benchmarks/bench_cluster.py --part C``).
+  (:func:`core.alignment.transforms.procrustes_mean`). Its memory stays flat in the number of
+  shapes (measured in ``benchmarks/bench_cluster.py --part C``).
 
 Jobs receive *handles* -- a :class:`~core.types.TriMesh` or array (in memory), or one of the
 small path records below -- and open them with :func:`open_mesh` / :func:`open_rows`, so one
@@ -125,7 +125,7 @@ def open_mesh(handle: MeshHandle) -> TriMesh:
         if mesh is None:
             from core.io import DataFileError
 
-            raise DataFileError(handle.path, problem)
+            raise DataFileError(handle.path, problem or "cannot be read")
         return mesh
     raise TypeError(f"not a mesh handle: {type(handle).__name__}")
 

@@ -32,7 +32,8 @@ class PlantedShapes:
     base: np.ndarray
 
 
-def grid_surface(n_u: int, n_v: int, kind: str = "torus", radii=(30.0, 12.0)) -> tuple[np.ndarray, np.ndarray]:
+def grid_surface(n_u: int, n_v: int, kind: str = "torus",
+                 radii=(30.0, 12.0)) -> tuple[np.ndarray, np.ndarray]:
     """A closed triangulated torus (n_u * n_v vertices) in mm; returns (vertices, faces)."""
     if kind != "torus":
         raise ValueError("only kind='torus' is supported")

@@ -61,7 +61,7 @@ def downsample(data: np.ndarray, affine: np.ndarray, spacing_mm: float) -> tuple
     return sitk_to_array(small), sitk_affine(small)
 
 
-def bias_field(shape: tuple[int, int, int], rng: np.random.Generator, strength: float = 0.3) -> np.ndarray:
+def bias_field(shape: tuple[int, ...], rng: np.random.Generator, strength: float = 0.3) -> np.ndarray:
     """A smooth multiplicative field exp(p(x)), p a random quadratic over the normalised grid."""
     axes = [np.linspace(-1.0, 1.0, n) for n in shape]
     x, y, z = np.meshgrid(*axes, indexing="ij", sparse=True)

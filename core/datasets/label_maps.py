@@ -195,7 +195,7 @@ def _plant_off_surface(mask: np.ndarray, rng, count: int, distance_vox: tuple[in
     """``count`` voxel positions ``distance_vox`` voxels outside the solid, away from other
     foreground (no 26-neighbour set), found by walking outward from boundary voxels."""
     _, outer = _boundary(mask)
-    found = []
+    found: list[np.ndarray] = []
     for _ in range(50 * count):
         if len(found) == count or len(outer) == 0:
             break

@@ -3,10 +3,10 @@
 The user of SSM Studio draws contour points in 2D slice views. To evaluate the fit without a
 person, we intersect a held-out true surface with k slice planes (axial, coronal, sagittal or a
 mix; see :func:`slice_planes`), sample points at a fixed spacing along each contour
-(:func:`core.geometry.slicing.polylines`, :func:`core.geometry.slicing.sample_polyline`), add in-plane Gaussian
-noise (the user clicks in the slice, so the points stay in it), and estimate each point's
-normal as a user's drawing would give it: the contour tangent (central difference of the
-noisy neighbours along the contour) crossed with the slice normal, pointing outwards (the
+(:func:`core.geometry.slicing.polylines`, :func:`core.geometry.slicing.sample_polyline`), add
+in-plane Gaussian noise (the user clicks in the slice, so the points stay in it), and estimate
+each point's normal as a user's drawing would give it: the contour tangent (central difference
+of the noisy neighbours along the contour) crossed with the slice normal, pointing outwards (the
 slicing orients contours counter-clockwise around the plane normal).
 
 Also here, for tests and benchmarks without the demo data: :func:`synthetic_shapes` (a family
@@ -104,7 +104,10 @@ def simulate_user(vertices: np.ndarray, faces: np.ndarray, k: int, *, orientatio
     rng = np.random.default_rng() if rng is None else rng
     if planes is None:
         planes = slice_planes(vertices, k, orientations, margin=margin, rng=rng)
-    all_pts, all_nrm, all_id, all_loop = [], [], [], []
+    all_pts: list[np.ndarray] = []
+    all_nrm: list[np.ndarray] = []
+    all_id: list[np.ndarray] = []
+    all_loop: list[np.ndarray] = []
     for plane_id, (origin, normal) in enumerate(planes):
         for line in polylines(vertices, faces, origin, normal):
             if not line.closed or line.length < 2 * spacing:

@@ -1,1 +1,2 @@
-"""Geometry at the bottom of the pipeline: transforms, meshes, slicing, planes, voxelisation and label maps."""
+"""Geometry at the bottom of the pipeline: transforms, meshes, slicing, planes, voxelisation and
+label maps."""

@@ -145,7 +145,7 @@ def brush_voxels(shape: Sequence[int], affine: np.ndarray, center: np.ndarray,
     normal). A brush smaller than a voxel still covers the voxel under the cursor.
     """
     affine = np.asarray(affine, dtype=np.float64)
-    shape = np.asarray(shape, dtype=np.int64)
+    size = np.asarray(shape, dtype=np.int64)
     center = np.asarray(center, dtype=np.float64)
     n = np.asarray(normal, dtype=np.float64)
     n = n / np.linalg.norm(n)
@@ -155,7 +155,7 @@ def brush_voxels(shape: Sequence[int], affine: np.ndarray, center: np.ndarray,
     c = inverse[:3, :3] @ center + inverse[:3, 3]
     half = np.ceil(reach / spacing).astype(np.int64)
     lo = np.maximum(np.floor(c).astype(np.int64) - half, 0)
-    hi = np.minimum(np.ceil(c).astype(np.int64) + half, shape - 1)
+    hi = np.minimum(np.ceil(c).astype(np.int64) + half, size - 1)
     if np.any(hi < lo):
         return np.zeros(0, dtype=np.int64)
     grid = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)],
@@ -165,9 +165,9 @@ def brush_voxels(shape: Sequence[int], affine: np.ndarray, center: np.ndarray,
     in_plane = np.linalg.norm(d - along[:, None] * n, axis=1)
     inside = (np.abs(along) <= thickness_mm / 2 + 1e-9) & (in_plane <= radius_mm + 1e-9)
     if not inside.any():  # tiny brush: the voxel under the cursor
-        nearest = np.clip(np.rint(c).astype(np.int64), 0, shape - 1)
-        return np.ravel_multi_index(tuple(nearest[:, None]), tuple(shape))
-    return np.ravel_multi_index(tuple(grid[inside].T), tuple(shape))
+        nearest = np.clip(np.rint(c).astype(np.int64), 0, size - 1)
+        return np.ravel_multi_index(tuple(nearest[:, None]), tuple(size))
+    return np.ravel_multi_index(tuple(grid[inside].T), tuple(size))
 
 
 def structure_label_map(vertices: np.ndarray | None, faces: np.ndarray | None,

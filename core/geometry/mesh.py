@@ -110,16 +110,16 @@ def vertex_fans(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     order = np.argsort(fe[manifold], kind="stable")
     pair_face = face_of[manifold][order].reshape(-1, 2)
     pair_slot = slot[manifold][order].reshape(-1, 2)
-    rows, cols = [], []
+    row_parts, col_parts = [], []
     for end in (0, 1):  # join the corners of each end vertex in the two faces
         ca = pair_face[:, 0] * 3 + ends[pair_slot[:, 0], end]
         va = faces[pair_face[:, 0], ends[pair_slot[:, 0], end]]
         # the same vertex's corner in the other face: whichever end of its slot it is
         other = ends[pair_slot[:, 1]]
         in_b = np.where(faces[pair_face[:, 1], other[:, 0]] == va, other[:, 0], other[:, 1])
-        rows.append(ca)
-        cols.append(pair_face[:, 1] * 3 + in_b)
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
+        row_parts.append(ca)
+        col_parts.append(pair_face[:, 1] * 3 + in_b)
+    rows, cols = np.concatenate(row_parts), np.concatenate(col_parts)
     graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_f, 3 * n_f))
     return connected_components(graph, directed=False)[1].reshape(n_f, 3)
 
@@ -137,9 +137,10 @@ def topology(faces: np.ndarray, n_vertices: int) -> dict:
     directed = _directed_edges(faces)
     misoriented = len(directed) - len(np.unique(directed, axis=0))
     euler = euler_characteristic(used, faces)
-    out = {"open_edges": int((counts == 1).sum()), "non_manifold_edges": int((counts > 2).sum()),
-           "non_manifold_vertices": int(n_fans - used), "misoriented_edges": int(misoriented),
-           "pieces": n_components(faces, n_vertices), "euler": int(euler)}
+    out: dict[str, int | None] = {
+        "open_edges": int((counts == 1).sum()), "non_manifold_edges": int((counts > 2).sum()),
+        "non_manifold_vertices": int(n_fans - used), "misoriented_edges": int(misoriented),
+        "pieces": n_components(faces, n_vertices), "euler": int(euler)}
     clean = not (out["open_edges"] or out["non_manifold_edges"] or out["non_manifold_vertices"]
                  or out["misoriented_edges"]) and out["pieces"] == 1
     out["genus"] = (2 - euler) // 2 if clean else None

@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import ndimage
 
 from core.io import Volume
@@ -66,11 +67,11 @@ class PlaneFrame:
                 "top": direction_letter(self.v), "bottom": direction_letter(-np.asarray(self.v))}
 
 
-def direction_letter(d: np.ndarray) -> str:
+def direction_letter(d: ArrayLike) -> str:
     """Anatomical letter (R L A P S I) of the dominant component of world direction ``d``."""
-    d = np.asarray(d, dtype=np.float64)
-    axis = int(np.argmax(np.abs(d)))
-    return _AXIS_LETTERS[(axis, 1 if d[axis] > 0 else -1)]
+    v = np.asarray(d, dtype=np.float64)
+    axis = int(np.argmax(np.abs(v)))
+    return _AXIS_LETTERS[(axis, 1 if v[axis] > 0 else -1)]
 
 
 # Radiological convention: patient Right on screen left, anterior/superior up; sagittal with

@@ -142,7 +142,7 @@ class Polyline:
 
 def _chains(keys: np.ndarray) -> list[tuple[list[int], bool]]:
     """Order segments (given by their end keys) into chains; returns (segment ids, closed)."""
-    next_of = {}
+    next_of: dict[int, int] = {}
     for idx, key in enumerate(keys[:, 0].tolist()):
         next_of.setdefault(key, idx)
     ends = keys[:, 1].tolist()

@@ -42,5 +42,6 @@ __all__ = [
     "POINT_SUFFIXES", "PointSet", "TriMesh", "VOLUME_SUFFIXES", "Volume", "atomic_path",
     "atomic_write_json", "atomic_write_text", "expand_mesh_paths", "file_suffix", "load_mesh",
     "load_meshes", "load_model", "load_points", "load_volume", "lookup", "register",
-    "save_mesh", "save_model", "save_points", "save_volume", "suffixes",
+    "read_statismo", "save_mesh", "save_model", "save_points", "save_volume", "suffixes",
+    "write_statismo",
 ]

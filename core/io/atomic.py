@@ -70,7 +70,7 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
     name), or, for names without a pid, when it is older than an hour.
     """
     path = Path(path)
-    removed = []
+    removed: list[Path] = []
     prefix = f".{_safe_name(path.name)}."
     try:
         candidates = [p for p in path.parent.iterdir() if p.name.startswith(prefix)]

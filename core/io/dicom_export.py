@@ -188,8 +188,8 @@ def mask_contours(mask: np.ndarray) -> list[np.ndarray]:
                 break
             loop.append(current)
         pts = np.array(loop, dtype=np.float64)
-        a, b = pts - np.roll(pts, 1, axis=0), np.roll(pts, -1, axis=0) - pts
-        turn = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+        d_in, d_out = pts - np.roll(pts, 1, axis=0), np.roll(pts, -1, axis=0) - pts
+        turn = d_in[:, 0] * d_out[:, 1] - d_in[:, 1] * d_out[:, 0]
         pts = pts[turn != 0]
         loops.append(pts / 2.0 - 1.0)      # undouble, undo the padding
     return loops
@@ -210,7 +210,7 @@ def _rtstruct_dataset(datasets: list):
     reference, new series and instance UIDs, and the referenced frame/study/series/images."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.sequence import Sequence
-    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, generate_uid
+    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, UID, ExplicitVRLittleEndian, generate_uid
 
     from core import __version__
 
@@ -218,7 +218,7 @@ def _rtstruct_dataset(datasets: list):
     now = datetime.datetime.now()
     sop_uid = generate_uid()
     meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = RT_STRUCTURE_SET_STORAGE
+    meta.MediaStorageSOPClassUID = UID(RT_STRUCTURE_SET_STORAGE)
     meta.MediaStorageSOPInstanceUID = sop_uid
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID

@@ -102,6 +102,14 @@ def _text(ds) -> Callable[[str], str]:
     return tag
 
 
+def _checked_floats(text: str) -> np.ndarray:
+    """The numbers of a spacing tag that :func:`check_image_tags` has accepted."""
+    values = _finite_floats(text)
+    if values is None:
+        raise ValueError(f"spacing '{text}' was not checked by check_image_tags")
+    return values
+
+
 def _vector(text: str, count: int, what: str, name: str, where: Path) -> np.ndarray:
     values = _finite_floats(text) if text else None
     if values is None or values.size != count or not np.all(np.isfinite(values)):
@@ -273,7 +281,7 @@ def read_enhanced(path: Path, where: Path) -> Volume:
     row, col = orientations_arr[0, :3], orientations_arr[0, 3:]
     normal = np.cross(row, col)
     gap = float(np.median(np.diff(positions_arr, axis=0) @ normal))
-    dy, dx = _finite_floats(spacings.pop())
+    dy, dx = _checked_floats(spacings.pop())
     return _volume(data, row, col, normal, positions_arr[0], (dx, dy, gap), where)
 
 
@@ -349,7 +357,7 @@ def read_mosaic(path: Path, where: Path) -> Volume:
     if not tag("0028|0030"):
         raise DataFileError(where, f"{name}: no PixelSpacing (0028,0030): the pixel size is "
                                    "unknown")
-    dy, dx = _finite_floats(tag("0028|0030"))
+    dy, dx = _checked_floats(tag("0028|0030"))
     normal = np.cross(row, col)
     csa_normal = _csa_values(csa, "SliceNormalVector")
     if len(csa_normal) == 3:
@@ -364,7 +372,7 @@ def read_mosaic(path: Path, where: Path) -> Volume:
     gap = 0.0
     for key in ("0018|0088", "0018|0050"):  # SpacingBetweenSlices, else SliceThickness
         if tag(key):
-            gap = float(_finite_floats(tag(key))[0])
+            gap = float(_checked_floats(tag(key))[0])
             if gap > 0:
                 break
     if gap <= 0:

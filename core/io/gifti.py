@@ -20,7 +20,7 @@ def load_gifti(path: Path) -> tuple[TriMesh, None]:
 
     try:
         if path.name.lower().endswith(".gz"):
-            img = nib.gifti.GiftiImage.from_bytes(_gunzip(path))
+            img: object = nib.gifti.GiftiImage.from_bytes(_gunzip(path))
         else:
             img = nib.load(str(path))
     except DataFileError:

@@ -25,6 +25,7 @@ import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -179,6 +180,12 @@ class H5Reader:
                     raise self.error(name, f"is encoded with HDF5 filter {code}, which needs a "
                                            "plugin: not read")
         return node
+
+    @overload
+    def read(self, name: str, *, kinds: str = ..., required_by: str) -> np.ndarray: ...
+
+    @overload
+    def read(self, name: str, *, kinds: str = ..., required_by: None = ...) -> np.ndarray | None: ...
 
     def read(self, name: str, *, kinds: str = "iuf", required_by: str | None = None
              ) -> np.ndarray | None:

@@ -26,6 +26,7 @@ import sys
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -90,8 +91,7 @@ def expand_mesh_paths(paths: list[str | os.PathLike]) -> list[Path]:
                             and any(f.name.lower().endswith(s) for s in MESH_SUFFIXES))
         else:
             files.append(p)
-    seen: set[Path] = set()
-    return [f for f in files if not (f in seen or seen.add(f))]
+    return list(dict.fromkeys(files))  # duplicates dropped, first occurrence kept
 
 
 def _hidden_or_temporary(name: str) -> bool:
@@ -111,22 +111,22 @@ def load_meshes(paths: Sequence[str | os.PathLike], progress: Callable | None = 
     batch goes on with the next file in a new child. ``vertex_order``: the meshes must keep
     their vertex numbering (corresponded shapes), so formats that cannot (STL) are refused.
     """
-    paths = [Path(p) for p in paths]
+    inputs = [Path(p) for p in paths]
     failures: dict[str, str] = {}
     todo = []
-    for path in paths:
+    for path in inputs:
         problem = vertex_order_problem(path) if vertex_order else None
         if problem:
             failures[str(path)] = problem
         else:
             todo.append(path)
     if isolate and _can_fork():
-        results = _load_in_children(todo, progress, len(paths))
+        results = _load_in_children(todo, progress, len(inputs))
     else:
         results = {}
         for i, path in enumerate(todo):
             if progress is not None:
-                progress(i / max(len(paths), 1), f"reading {path.name}")
+                progress(i / max(len(inputs), 1), f"reading {path.name}")
             results[path] = _load_one(path)
     loaded: list[tuple[Path, TriMesh]] = []
     for path in todo:
@@ -137,7 +137,7 @@ def load_meshes(paths: Sequence[str | os.PathLike], progress: Callable | None = 
             failures[str(path)] = outcome
     if progress is not None:
         progress(1.0, f"{len(loaded)} meshes read")
-    failures = {str(p): failures[str(p)] for p in paths if str(p) in failures}  # input order
+    failures = {str(p): failures[str(p)] for p in inputs if str(p) in failures}  # input order
     return loaded, failures
 
 
@@ -293,7 +293,7 @@ def load_mesh(path: str | os.PathLike) -> TriMesh:
                                   f"{', '.join(MESH_SUFFIXES)})")
     try:
         with warnings_as_notes(path):
-            mesh, space = fmt.read(path)
+            mesh, space = cast(tuple[TriMesh, str], fmt.read(path))
     except (MemoryError, RecursionError) as exc:
         raise DataFileError(path, f"cannot be read ({type(exc).__name__}: the file declares "
                                   "more data than can be held)") from None

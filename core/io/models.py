@@ -6,6 +6,7 @@ import json
 import os
 import zlib
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -77,7 +78,7 @@ def load_model(path: str | os.PathLike) -> ShapeModel:
     file = require_file(file)
     fmt = lookup(file, "model")
     if fmt is not None and fmt.read is not None and fmt.read is not load_model:
-        return fmt.read(path if member is not None else file)  # e.g. statismo .h5
+        return cast(ShapeModel, fmt.read(path if member is not None else file))  # e.g. statismo .h5
     if member is not None:
         raise DataFileError(file, f"'#{member}' names a model inside the file, but an .npz "
                                   "file holds one model")

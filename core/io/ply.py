@@ -6,6 +6,7 @@ VTK's PLY reader crashes on truncated files; this one checks every size against 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,7 +74,7 @@ def _parse_ply_header(path: Path, raw: bytes) -> tuple[str, list[_PlyElement], i
 
 
 def _ply_binary_element(path: Path, body: memoryview, pos: int, element: _PlyElement,
-                        order: str) -> tuple[dict[str, np.ndarray | list], int]:
+                        order: str) -> tuple[Mapping[str, np.ndarray | list], int]:
     """Read one element's records from binary PLY data starting at byte ``pos``."""
     props = element.properties
     n = element.count
@@ -89,7 +90,8 @@ def _ply_binary_element(path: Path, body: memoryview, pos: int, element: _PlyEle
     # checked afterwards; otherwise walk the records one by one.
     if n == 0:
         return {name: np.zeros((0, 3)) for name, _, _ in props}, pos
-    fields, probe = [], pos
+    fields: list[tuple] = []   # (name, dtype) or (name, dtype, (length,))
+    probe = pos
     for name, value_type, count_type in props:
         if count_type is None:
             fields.append((name, order + value_type))
@@ -129,7 +131,7 @@ def _ply_binary_element(path: Path, body: memoryview, pos: int, element: _PlyEle
 
 
 def _ply_ascii_element(path: Path, lines: list[bytes], start: int,
-                       element: _PlyElement) -> tuple[dict[str, np.ndarray | list], int]:
+                       element: _PlyElement) -> tuple[Mapping[str, np.ndarray | list], int]:
     n = element.count
     rows = lines[start:start + n]
     if len(rows) < n:
@@ -140,21 +142,22 @@ def _ply_ascii_element(path: Path, lines: list[bytes], start: int,
         lengths = {len(t) for t in tokens}
         if len(lengths) <= 1:
             table = np.array(tokens, dtype=np.float64).reshape(n, -1)
-            out, col = {}, 0
+            columns: dict[str, np.ndarray] = {}
+            col = 0
             for name, _, count_type in element.properties:
                 if count_type is None:
-                    out[name] = table[:, col]
+                    columns[name] = table[:, col]
                     col += 1
                 else:
                     length = int(table[0, col]) if n else 0
                     if n and np.any(table[:, col] != length):
                         break  # lists of different lengths: read row by row below
-                    out[name] = table[:, col + 1:col + 1 + length]
+                    columns[name] = table[:, col + 1:col + 1 + length]
                     col += 1 + length
             else:
                 if col == table.shape[1]:
-                    return out, start + n
-        out = {name: [] for name, _, _ in element.properties}
+                    return columns, start + n
+        out: dict[str, list] = {name: [] for name, _, _ in element.properties}
         for row in tokens:
             values = [float(v) for v in row]
             col = 0
@@ -223,8 +226,8 @@ def _integer_lists(path: Path, lists: np.ndarray | list) -> np.ndarray | list:
 
 
 def _read_ply_body(path: Path, raw: bytes, fmt: str, elements: list[_PlyElement],
-                   body_start: int) -> dict[str, dict]:
-    data: dict[str, dict] = {}
+                   body_start: int) -> dict[str, Mapping]:
+    data: dict[str, Mapping] = {}
     if fmt == "ascii":
         lines = [ln for ln in raw[body_start:].splitlines() if ln.strip()]
         line = 0

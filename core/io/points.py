@@ -14,6 +14,7 @@ import json
 import os
 import warnings
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -40,7 +41,7 @@ def load_points(path: str | os.PathLike) -> PointSet:
         raise DataFileError(path, f"unsupported point-set format '{file_suffix(path)}' (use .csv "
                                   "or .mrk.json)")
     with warnings_as_notes(path):
-        pts = fmt.read(path)
+        pts = cast(PointSet, fmt.read(path))
     if len(pts) == 0:
         raise DataFileError(path, "no points in file")
     problem = coordinate_problem(pts.points, "points")
@@ -161,10 +162,11 @@ def _load_points_fcsv(path: Path) -> PointSet:
             key, _, value = line[1:].partition("=")
             key, value = key.strip().lower(), value.strip()
             if key == "coordinatesystem":
-                space = {"0": "RAS", "ras": "RAS", "1": "LPS", "lps": "LPS"}.get(value.lower())
-                if space is None:
+                named = {"0": "RAS", "ras": "RAS", "1": "LPS", "lps": "LPS"}.get(value.lower())
+                if named is None:
                     raise DataFileError(path, f"unknown CoordinateSystem '{value[:20]}' on line "
                                               f"{number} (LPS or RAS)")
+                space = named
             elif key == "columns":
                 columns = [c.strip().lower() for c in value.split(",")]
             continue
@@ -224,7 +226,7 @@ def markups_name(path: str | os.PathLike) -> str | None:
 def _load_points_markups(path: Path) -> PointSet:
     doc = _read_json(path)
     markups = doc.get("markups") if isinstance(doc, dict) else None
-    if not isinstance(markups, list) or not markups:
+    if not isinstance(doc, dict) or not isinstance(markups, list) or not markups:
         raise DataFileError(path, "not a Slicer markups file (no 'markups' list)")
     points, normals, previews = [], [], 0
     for markup in markups:

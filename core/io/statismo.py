@@ -98,20 +98,23 @@ def _at(root: str, name: str) -> str:
     return f"{root.rstrip('/')}/{name}"
 
 
-def _numbers(h5: H5Reader, root: str, name: str, *, required: bool = True
-             ) -> np.ndarray | None:
-    return h5.read(_at(root, name), required_by="not a complete statismo model"
-                   if required else None)
+def _numbers(h5: H5Reader, root: str, name: str) -> np.ndarray:
+    return h5.read(_at(root, name), required_by="not a complete statismo model")
+
+
+def _optional_numbers(h5: H5Reader, root: str, name: str) -> np.ndarray | None:
+    return h5.read(_at(root, name))
 
 
 def _version(h5: H5Reader, root: str, representer: str) -> tuple[int, int]:
     """(major, minor) from the model's ``version`` group, else the file's (Scalismo reads
     ``/version``; scalismo-faces writes one per sub-model and one at the root)."""
     for base in dict.fromkeys((root, "/")):
-        raw = [h5.read(_at(base, f"version/{key}"), kinds="iufSUO")
-               for key in ("majorVersion", "minorVersion")]
-        if raw[0] is None or raw[1] is None:
+        major_raw, minor_raw = (h5.read(_at(base, f"version/{key}"), kinds="iufSUO")
+                                for key in ("majorVersion", "minorVersion"))
+        if major_raw is None or minor_raw is None:
             continue
+        raw = (major_raw, minor_raw)
         major, minor = (integer_value(value) for value in raw)
         if major is None or minor is None:
             held = ", ".join(f"{value.dtype} {value.shape}" for value in raw)
@@ -166,7 +169,7 @@ def _modelinfo(h5: H5Reader, root: str) -> dict:
             if kind in "SUO":
                 target[key] = text_value(h5.read(child, kinds="SUO"))
             elif kind in "iuf" and size <= _MODELINFO_LIMIT:
-                target[key] = h5.read(child).tolist()
+                target[key] = h5.read(child, required_by="modelinfo").tolist()  # present: above
 
     if h5.group(_at(root, "modelinfo")) is not None:
         visit(_at(root, "modelinfo"), out, 0)
@@ -309,7 +312,7 @@ def _representer_mesh(h5: H5Reader, root: str, name: str) -> tuple[np.ndarray, n
         raise DataFileError(path, f"representer '{name}' holds dataset type '{kind}', not "
                                   "a triangle surface (POLYGON_MESH)")
     pts = _numbers(h5, root, "representer/points")
-    cells = _numbers(h5, root, "representer/cells", required=False)
+    cells = _optional_numbers(h5, root, "representer/cells")
     if cells is None:
         raise DataFileError(path, "a point-set model without cells (representer/cells): "
                                   "only triangle surface models can be used")
@@ -366,7 +369,7 @@ def _model_info(h5: H5Reader, root: str, name: str, version: tuple[int, int],
                   "statismo_representer": name}
     if root != "/":
         info["statismo_submodel"] = root
-    noise = _numbers(h5, root, "model/noiseVariance", required=False)
+    noise = _optional_numbers(h5, root, "model/noiseVariance")
     if noise is not None and noise.size:
         nv = float(noise.reshape(-1)[0])
         if not np.isfinite(nv) or nv < 0:

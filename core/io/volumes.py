@@ -13,6 +13,7 @@ import inspect
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -61,7 +62,7 @@ def load_volume(path: str | os.PathLike, series: str | None = None,
                                   f"'{file_suffix(path) or path.name}')")
     try:
         with warnings_as_notes(path):
-            return fmt.read(path)
+            return cast(Volume, fmt.read(path))
     except MemoryError:
         raise DataFileError(path, "not enough memory to read this image") from None
 
@@ -76,7 +77,8 @@ def save_volume(path: str | os.PathLike, data: np.ndarray, affine: np.ndarray, *
     path = Path(path)
     fmt = lookup(path, "volume")
     if fmt is None or fmt.write is None:
-        writable = [s for s in suffixes("volume") if lookup(Path("x" + s), "volume").write]
+        writable = [s for s in suffixes("volume")
+                    if (known := lookup(Path("x" + s), "volume")) is not None and known.write]
         raise DataFileError(path, f"volumes are written as {', '.join(writable)}")
     if like is not None and "like" in inspect.signature(fmt.write).parameters:
         fmt.write(path, data, affine, like=like)

@@ -118,7 +118,7 @@ DATA_FORMS = ("array-like", "sparse matrix")
 
 def is_data_parameter(forms: list | None) -> bool:
     """True for parameters holding data (e.g. a mesh graph) rather than a setting."""
-    return bool(forms) and any(isinstance(f, str) and f in DATA_FORMS for f in forms)
+    return forms is not None and any(isinstance(f, str) and f in DATA_FORMS for f in forms)
 
 
 def editor_rule(forms: list | None) -> tuple | None:

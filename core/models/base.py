@@ -124,7 +124,7 @@ class ShapeModelEstimator:
 
     Subclasses set :attr:`method`, declare ``_parameter_constraints`` and implement
     ``_fit(X, progress) -> (mean (N, 3), factors (M, N, 3))``; the graph-based ones set
-    ``needs_graph`` and read ``self._edges`` (E, 2). This class validates the input, computes
+    ``needs_graph`` and read ``self._graph_edges()`` (E, 2). This class validates the input, computes
     the coefficient prior, orders and signs the factors and builds ``model_``.
     """
 
@@ -213,6 +213,12 @@ class ShapeModelEstimator:
     def _fit(self, X: np.ndarray, progress: ProgressCallback | None
              ) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
+
+    def _graph_edges(self) -> np.ndarray:
+        """The mesh graph's edges (E, 2) of a graph-based method (``needs_graph``), set by fit."""
+        if self._edges is None:
+            raise ValueError(f"method '{self.method}' needs the mesh graph: pass connectivity=...")
+        return self._edges
 
     def _set_model(self, mean: np.ndarray, factors: np.ndarray, X: np.ndarray) -> None:
         """Drop zero factors, compute the prior, sort and sign factors, build ``model_``."""

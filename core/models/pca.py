@@ -38,7 +38,7 @@ def pca_basis(Xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def n_modes_for_variance(variances: np.ndarray, fraction: float) -> int:
     """Smallest number of leading modes whose variance sum is >= ``fraction`` of the total."""
     cum = np.cumsum(variances) / max(float(variances.sum()), 1e-300)
-    return int(min(np.searchsorted(cum, fraction - 1e-12) + 1, len(variances)))
+    return min(int(np.searchsorted(cum, fraction - 1e-12)) + 1, len(variances))
 
 
 class PCA(ShapeModelEstimator):

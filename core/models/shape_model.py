@@ -23,7 +23,7 @@ import numpy as np
 
 def _frozen(array: np.ndarray) -> np.ndarray:
     """A read-only version of ``array`` (the array itself if no one can write to it)."""
-    base = array
+    base: np.ndarray | None = array
     while isinstance(base, np.ndarray):
         if base.flags.writeable:
             array = array.copy()

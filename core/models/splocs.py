@@ -173,7 +173,7 @@ class SPLOCS(ShapeModelEstimator):
             raise ValueError("the training shapes are identical: nothing to factorise")
         data = (X - mean) / scale  # (K, N, 3)
         flat = data.reshape(k, -1)
-        e = self._edges
+        e = self._graph_edges()
         length = np.linalg.norm(mean[e[:, 0]] - mean[e[:, 1]], axis=1)
         graph = edge_adjacency(e, n, np.maximum(length, 1e-12))
         diag = float(np.linalg.norm(np.ptp(mean, axis=0)))

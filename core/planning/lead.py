@@ -193,7 +193,7 @@ def contact_readout(placed: PlacedLead, structures, frame: ACPCFrame | None = No
         per = {name: float(d[i]) for name, d in distances.items()}
         row["signed_distance_mm"] = per
         if per:
-            best = min(per, key=per.get)
+            best = min(per, key=per.__getitem__)
             row["structure"] = best if per[best] < 0 else None
             row["nearest_structure"] = best
             row["distance_mm"] = per[best]

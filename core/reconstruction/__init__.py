@@ -57,9 +57,9 @@ ybar_j = sum_i p_ij y_i (pairs with p_ij < 1e-4 left out):
 Each step is accepted only if E decreases (else the step is halved, up to six times; issue
 11 defect 3: one undamped Gauss-Newton pose step does not guarantee descent). Convergence:
 relative change of E below ``tol``, or the largest vertex move below ``xtol`` ("auto":
-6.4e-4 r, 0.01 mm on a caudate) with a small change of E. A warm start (``init``) starts from the previous pose,
-coefficients, variance and eta; with an outlier term the variance is raised to cover every
-point (a newly placed point is not an outlier). ``placement`` (default
+6.4e-4 r, 0.01 mm on a caudate) with a small change of E. A warm start (``init``) starts from
+the previous pose, coefficients, variance and eta; with an outlier term the variance is raised
+to cover every point (a newly placed point is not an outlier). ``placement`` (default
 ``model.world_transform``) is the cold start and the centre of the pose prior (issue 11
 defect 1). All length defaults are relative to the model size (defect 7), so fitting a
 scaled problem gives the scaled result.

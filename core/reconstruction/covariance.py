@@ -74,6 +74,8 @@ class Anisotropic(Isotropic):
 
     def distances(self, diff: np.ndarray, normals: np.ndarray | None,
                   eta: float) -> dict[str, np.ndarray]:
+        if normals is None:
+            raise ValueError("the anisotropic covariance needs the vertex normals")
         full = np.einsum("pkc,pkc->pk", diff, diff)
         along = np.einsum("pkc,pkc->pk", diff, normals) ** 2
         return {"d": full + (eta - 1.0) * along, "full": full, "along": along}

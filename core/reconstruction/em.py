@@ -96,6 +96,9 @@ class GMMFitter:
     callback : callable(iteration, objective), may raise ``core.runtime.progress.Cancelled``
     """
 
+    state_: FitState        # set by fit
+    _last_geometry: tuple   # (pairs, sigma2, eta, geometry) of the last variance step
+
     def __init__(self, covariance, *, pose: str = "similarity", prior_weight: float = 1.0,
                  coef_bound: np.ndarray | None = None, pose_prior: PosePrior | None = None,
                  outlier_weight: float = 0.0, normal_weight: float = 2.0,
@@ -196,6 +199,7 @@ class GMMFitter:
         sigma2, w = state.sigma2, self.outlier_weight
         logits = -parts["d"] / (2.0 * sigma2)
         if self.user_normals_ is not None:  # agreement of the user's and the model's normals
+            assert nv is not None  # need_normals_ is set when the user gives normals
             logits = logits + self.normal_weight * (
                 np.einsum("pc,pkc->pk", self.user_normals_, nv[pairs.inv]) - 1.0)
         if self.covariance.hard:
@@ -273,6 +277,7 @@ class GMMFitter:
         b = (phi * np.sqrt(w_sel)[None, :, None]).reshape(n_factors, -1)
         lhs = b @ b.T
         if self.covariance.needs_normals:
+            assert ev.nv is not None  # need_normals_ is set when the covariance needs them
             n_b = ev.nv[sel] @ pose.rot  # normals in the base frame, R^T n
             along = np.einsum("mjc,jc->mj", phi, n_b)
             c_mat = along * np.sqrt((state.eta - 1.0) * w_sel)[None, :]

@@ -39,8 +39,9 @@ def residual_correlation(points: np.ndarray, vertices: np.ndarray,
 
     r_i = n_j . (y_i - x_j) at the nearest fitted vertex j; the statistic is the lag-one
     autocorrelation sum_i a_i a_nn(i) / sum_i a_i^2 (a = r - mean r, nn(i) the nearest other
-    point by its foot point y_i - r_i n_j, i.e. the contour neighbour). White noise gives ~0 (standard error 1/sqrt(P)); a
-    shape the model cannot reach leaves residuals that vary smoothly along the contours.
+    point by its foot point y_i - r_i n_j, i.e. the contour neighbour). White noise gives ~0
+    (standard error 1/sqrt(P)); a shape the model cannot reach leaves residuals that vary
+    smoothly along the contours.
     """
     if len(points) < 4:
         return 0.0, 0.0

@@ -95,11 +95,12 @@ class ModelSnapshot:
 
 def _is_frozen(array: np.ndarray) -> bool:
     """True when no one can write to ``array``'s memory (it and every base are read-only)."""
-    while isinstance(array, np.ndarray):
-        if array.flags.writeable:
+    base: object = array
+    while isinstance(base, np.ndarray):
+        if base.flags.writeable:
             return False
-        array = array.base
-    return array is None or isinstance(array, bytes)
+        base = base.base
+    return base is None or isinstance(base, bytes)
 
 
 def _content_key(array: np.ndarray) -> tuple:

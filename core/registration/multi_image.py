@@ -102,7 +102,7 @@ class MultiRegistrationResult:
                        "fixed": str(self.paths[pair["i"]]), "moving": str(self.paths[pair["j"]]),
                        "transform": mat(pair["transform"])} for pair in self.pairs],
             "common_grid": None if self.grid_affine is None else
-            {"affine": self.grid_affine.tolist(), "shape": list(self.grid_shape)},
+            {"affine": self.grid_affine.tolist(), "shape": list(self.grid_shape or ())},
             "template": self.outputs.get("template"),
             "timings": self.timings,
         }
@@ -290,7 +290,7 @@ def robust_synchronize(n: int, pairs: Sequence[tuple[int, int, np.ndarray]],
         for q in candidates:  # worst first; keep the graph connected
             trial = used.copy()
             trial[q] = False
-            edges = {(pairs[m][0], pairs[m][1]) for m in np.flatnonzero(trial)}
+            edges = {(pairs[int(m)][0], pairs[int(m)][1]) for m in np.flatnonzero(trial)}
             if _components(n, edges).max() == 0:
                 used = trial
                 dropped = True
@@ -340,8 +340,8 @@ def register_images(paths: Sequence[str | os.PathLike], transform: str = "affine
     progress : ``progress(fraction, message)``; may raise ``Cancelled``.
     """
     kind, k_nn = _check_options(transform, method, pairs)
-    paths = [str(p) for p in paths]
-    n = len(paths)
+    files = [str(p) for p in paths]
+    n = len(files)
     if n < 2:
         raise ValueError(f"at least 2 images are needed, got {n}")
     t_start = time.perf_counter()
@@ -349,30 +349,31 @@ def register_images(paths: Sequence[str | os.PathLike], transform: str = "affine
 
     # 1. inspect
     report(progress, 0.0, "reading images")
-    info, ok, image_errors = _inspect_images(paths, n_jobs, sub_progress(progress, 0.0, 0.05))
+    info, ok, image_errors = _inspect_images(files, n_jobs, sub_progress(progress, 0.0, 0.05))
     good = [k for k in range(n) if ok[k]]
     samples = {k: info[k]["samples"] for k in good}
     timings["inspect"] = time.perf_counter() - t_start
 
     # 2. pair graph and pairwise registrations
-    ref, graph = _pair_graph(method, kind, k_nn, reference, paths, good, ok, image_errors,
+    ref, graph = _pair_graph(method, kind, k_nn, reference, files, good, ok, image_errors,
                              samples)
     if method == "sync" and both_directions:
         # Each pair registered both ways: registrations onto one fixed image share its noise
         # and sampling, an error common to all of them that the reverse direction balances.
         graph = graph + [(j, i) for i, j in graph]
     t0 = time.perf_counter()
-    pair_list = _register_pairs(graph, paths, transform, registration, n_jobs,
+    pair_list = _register_pairs(graph, files, transform, registration, n_jobs,
                                 sub_progress(progress, 0.05, 0.85))
     timings["pairwise"] = time.perf_counter() - t0
 
     # 3. synchronise (or chain to the reference)
     if method == "reference":
+        assert ref is not None  # _pair_graph returns the reference method's reference image
         transforms = _chain_to_reference(pair_list, ref, n, ok, image_errors)
     else:
         transforms = _synchronise_pairs(pair_list, good, samples, n, ok, image_errors,
                                         transform, outlier_mm)
-    result = MultiRegistrationResult(paths=paths, method=method, transform=transform,
+    result = MultiRegistrationResult(paths=files, method=method, transform=transform,
                                      transforms=transforms, ok=ok, image_errors=image_errors,
                                      pairs=[{k: pr[k] for k in _PAIR_FIELDS} for pr in pair_list],
                                      reference=ref)
@@ -384,7 +385,7 @@ def register_images(paths: Sequence[str | os.PathLike], transform: str = "affine
     # 4. resample and average
     if out_dir is not None:
         t0 = time.perf_counter()
-        result.outputs = _resample_and_average(Path(out_dir), paths, placed, transforms,
+        result.outputs = _resample_and_average(Path(out_dir), files, placed, transforms,
                                                {k: info[k]["scale"] for k in placed},
                                                affine, shape, n_jobs,
                                                sub_progress(progress, 0.85, 1.0))

@@ -62,6 +62,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from core.errors import require_file
 from core.geometry.planes import PLANE_NAMES  # a point's plane is stored by its index
@@ -561,7 +562,7 @@ def _located(doc: dict[str, Any], key: str, base: Path | None, source: Path) -> 
     return relative if relative is not None else absolute
 
 
-def _packed(a: np.ndarray, dtype: str = "<f8") -> dict[str, Any]:
+def _packed(a: ArrayLike, dtype: str = "<f8") -> dict[str, Any]:
     """An array as {"dtype", "shape", "base64"}: exact and fast (used by the recovery file)."""
     a = np.ascontiguousarray(a, dtype=dtype)
     return {"dtype": dtype, "shape": list(a.shape),

@@ -112,4 +112,4 @@ class Volume:
         """nibabel-style orientation codes of the voxel axes, e.g. ('R', 'A', 'S')."""
         import nibabel as nib
 
-        return tuple(nib.aff2axcodes(self.affine))  # type: ignore[return-value]
+        return tuple(nib.aff2axcodes(self.affine))

@@ -170,7 +170,7 @@ class LSF(ShapeModelEstimator):
 
     def _factor_norm(self, mean: np.ndarray) -> FactorNorm:
         n = len(mean)
-        E = graph_gradient(mean, self._edges, graph=self.graph,
+        E = graph_gradient(mean, self._graph_edges(), graph=self.graph,
                            threshold=float(self.graph_threshold))
         return FactorNorm(E, c1=self.lambda_1 / np.sqrt(3 * n), c2=self.lambda_2 / np.sqrt(3 * n),
                           cg=self.lambda_group / np.sqrt(n),
@@ -198,7 +198,7 @@ class LSF(ShapeModelEstimator):
         factors = (P[:, :, keep] * A[keep].std(axis=1, ddof=1)).transpose(2, 0, 1) * scale
         n_before = len(factors)
         if self.split and len(factors):
-            factors = split_factors(factors, edge_adjacency(self._edges, n),
+            factors = split_factors(factors, edge_adjacency(self._graph_edges(), n),
                                     threshold=float(self.split_threshold),
                                     min_energy=float(self.split_min_energy))
         self.n_split_ = len(factors) - n_before

@@ -48,7 +48,7 @@ def initial_factors(Xf: np.ndarray, n: int, m: int, rng: np.random.Generator) ->
     P = np.zeros((n, 3, m))
     energy = np.einsum("ik,ik->i", Xf, Xf)
     prob = energy / energy.sum() if energy.sum() > 0 else None
-    replace = m > np.count_nonzero(energy) if prob is not None else m > 3 * n
+    replace = bool(m > np.count_nonzero(energy)) if prob is not None else m > 3 * n
     coords = rng.choice(3 * n, size=m, replace=replace, p=prob)
     P.reshape(3 * n, m)[coords, np.arange(m)] = 1.0
     return P
