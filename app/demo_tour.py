@@ -13,7 +13,9 @@
    template, which is their template), a few contours on each (the simulated user draws a
    synthetic individual: the model's own shape at +1 SD of its first factor, as the demo has
    no held-out STN), AC, PC and a midline point at the template's commissures, and per side
-   an entry 60 mm above the model's target with a Medtronic 3389 lead, tip at the target.
+   an entry 60 mm above the model's target with a Medtronic 3389 lead whose tip sits
+   :data:`STN_LEAD_DEPTH` past the target (contact 1 at the dorsolateral target, contacts 0-2
+   in the STN, as STN leads are usually placed).
 
 Any key stops the tour and leaves the session as it is, editable. ``--record DIR`` writes a
 PNG of the window after every step (``DIR/frame_0001.png``, ...) and quits at the end.
@@ -41,6 +43,9 @@ TEMPLATE_MIDLINE = np.array([0.0, -10.0, 40.0])
 #: entry from target (mm, before the side's sign on x): a usual frontal STN approach
 STN_ENTRY_OFFSET = np.array([20.0, 25.0, 55.0])
 STN_LEAD = "medtronic-3389"
+# mm past the target: the 3389's contact 1 (centre 2.75 mm from the tip) at the dorsolateral
+# target; on the demo STNs contacts 0-2 then lie inside (tip at the target: only contact 0)
+STN_LEAD_DEPTH = 3.0
 
 
 def truth_surface():
@@ -210,7 +215,7 @@ class DemoTour(QObject):
         elif kind == "lead":
             from core.planning.report import LeadChoice
 
-            w.plan.planning.set_lead(w.state.active, LeadChoice(step[1]))
+            w.plan.planning.set_lead(w.state.active, LeadChoice(step[1], STN_LEAD_DEPTH))
         # a frame after each step, but only every RECORD_EVERY-th contour point (a 3D
         # render under software OpenGL costs ~0.5 s)
         if self.record is not None and kind != "wait_fit" and \

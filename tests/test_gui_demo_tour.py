@@ -68,9 +68,15 @@ def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
         assert len(s.points) >= 6 and s.points.n_slices() == 2
         placed = planning.placed_lead_of(s)
         assert placed is not None and placed.lead.key == "medtronic-3389"
-        np.testing.assert_allclose(placed.tip, planning.target_of(s), atol=1e-9)
+        # the tip STN_LEAD_DEPTH past the target along the trajectory (entry -> target)
+        traj = planning.trajectory_of(s)
+        direction = (traj.target - traj.entry) / np.linalg.norm(traj.target - traj.entry)
+        np.testing.assert_allclose(placed.tip, planning.target_of(s)
+                                   + demo_tour.STN_LEAD_DEPTH * direction, atol=1e-9)
         rows = planning.contact_rows(s)
         assert len(rows) == 4 and rows[0]["nearest_structure"] == s.label
+        # contacts 0 and 1 (the deepest two) inside the fitted STN
+        assert all(r["structure"] == s.label for r in rows[:2]), rows
     # left lead on the left (RAS x < 0), right on the right
     assert planning.placed_lead_of(stn[0]).tip[0] < 0 < planning.placed_lead_of(stn[1]).tip[0]
     frames = sorted((tmp_path / "rec").glob("frame_*.png"))
