@@ -46,6 +46,7 @@ from core.evaluation.simulated_user import pca_model, simulate_user  # noqa: E40
 from core.geometry.toolkit import vertex_normals  # noqa: E402
 from core.planning.frames import anchored_point_weights, volume_centroid  # noqa: E402
 from core.reconstruction import fit_points  # noqa: E402
+from core.reconstruction import uncertainty  # noqa: E402
 from core.reconstruction.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior  # noqa: E402
 
 TUNING_CASES = (0, 1, 2, 3)
@@ -130,7 +131,7 @@ def family_coverage(kinds, stored: bool = False, residual: float | None = None):
                 normals = vertex_normals(fit.vertices, faces)
                 err = np.abs(np.einsum("ij,ij->i", truth - fit.vertices, normals))
                 cell["cover"].append(float(np.mean(err <= 2 * sd)))
-                cell["z"].append(err / np.maximum(sd, 1e-12) * SD_CALIBRATION)
+                cell["z"].append(err / np.maximum(sd, 1e-12) * uncertainty.SD_CALIBRATION)
                 cell["pose"].append(post.pose_dominates)
                 cell["warn"].append(bool(fit.warnings))
                 cell["err"].append(float(np.linalg.norm(fit.vertices - truth, axis=1).mean()))
@@ -192,17 +193,22 @@ def main(argv=None) -> int:
                         help="--families tune: print the SD widening of the calibration rule")
     parser.add_argument("--residual", type=float, default=None,
                         help="out-of-span residual variance factor (default: the module's)")
+    parser.add_argument("--sd-factor", type=float, default=None,
+                        help="SD widening to use instead of SD_CALIBRATION (e.g. the rule's value "
+                             "for --residual, from --families tune --calibrate --residual F)")
     args = parser.parse_args(argv)
     if args.families:
         from recon_families import REPORT, TUNING
 
         kinds = TUNING if args.families == "tune" else REPORT
+        if args.sd_factor is not None:
+            uncertainty.SD_CALIBRATION = args.sd_factor
         t0 = time.perf_counter()
         rows, times = family_coverage(kinds, stored=args.stored, residual=args.residual)
         if args.calibrate:
             z = np.concatenate([np.concatenate(r["z"]) for r in rows.values() if r["z"]])
             print(f"kinds {kinds}: SD_CALIBRATION = {cell_calibration(rows):.3f} (every cell "
-                  f">= {100 * CALIBRATION_TARGET:.0f} % on average; in use {SD_CALIBRATION}); "
+                  f">= {100 * CALIBRATION_TARGET:.0f} % on average; in use {uncertainty.SD_CALIBRATION}); "
                   f"pooled 95th percentile of |error| / SD / 2 = {np.percentile(z, 95) / 2:.3f}")
         print_family_coverage(rows, f"Posterior coverage on unseen shapes, {args.families} kinds "
                               f"{kinds}, placement {'stored' if args.stored else 'at the points'}"
