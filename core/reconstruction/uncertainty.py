@@ -52,6 +52,13 @@ delta = Sigma (G^T r / s_n^2 - Lambda (theta_fit - theta_prior)), and ``vertex_s
 root mean squared error about the fitted surface, sqrt(u^T Sigma u + (u^T delta)^2) (the
 band is drawn about the fit, not about the mode).
 
+One contour (all points in one plane) cannot tell which side of it the shape's centre lies:
+a section at height h from the centre and one at -h look alike (a ring, an ellipsoid, a
+tube cut once). The posterior is then a mixture of the fitted mode and its mirror, shifted
+by -2 h along the plane's normal, with weight ``MIRROR_WEIGHT``; its variance about the fit
+adds w (n_j . shift)^2 at each vertex, counted as pose (``pose_dominates``; ``message`` asks
+for a second, crossing contour when the shift exceeds the mean SD).
+
 Optionally (``residual_var_factor``, Lüthi et al. 2018, Gaussian process morphable models)
 the parameters are augmented by a low-rank Gaussian-process residual of normal displacement
 on the mean surface, for the part of a new shape outside the model's span: it is small near
@@ -115,6 +122,7 @@ class FitPosterior:
     warnings: tuple[str, ...] = ()
     n_residual: int = 0  # trailing parameters: the out-of-span residual's low-rank basis
     offset: np.ndarray | None = None  # (M + K + R,) the posterior's mode minus the fit
+    mirror: np.ndarray | None = None  # (3,) sqrt(weight) x the mirror mode's shift (world mm)
 
     @property
     def coef_cov(self) -> np.ndarray:
@@ -130,12 +138,14 @@ class FitPosterior:
     def variance_shares(self) -> tuple[float, float]:
         """(shape, pose): mean over the vertices of the normal variance from the shape's
         block of the covariance alone (coefficients and out-of-span residual) and from the
-        pose's block alone (mm^2)."""
+        pose's block alone (mm^2); the mirror mode of a single contour counts as pose."""
         u = np.einsum("na,nap->np", self.normals, self.jacobians)
         out = []
         for idx in self._blocks():
             ub = u[:, idx]
             out.append(float(((ub @ self.cov[np.ix_(idx, idx)]) * ub).sum(axis=1).mean()))
+        if self.mirror is not None:  # which side of a single contour: a pose ambiguity
+            out[1] += float(((self.normals @ self.mirror) ** 2).mean())
         return out[0], out[1]
 
     @property
@@ -153,7 +163,9 @@ class FitPosterior:
         what = "the pose" if self.pose_dominates else "the shape"
         text = (f"surface SD mean {sd.mean():.2f} mm, max {sd.max():.2f} mm; mostly {what} is "
                 f"uncertain (pose {100 * pose / max(shape + pose, 1e-300):.0f} % of the variance)")
-        return "; ".join([text, *self.warnings])
+        side = (["one contour: the shape may lie on either side of it; draw a second, crossing "
+                 "one"] if self.mirror is not None and np.linalg.norm(self.mirror) > sd.mean() else [])
+        return "; ".join([text, *side, *self.warnings])
 
     def vertex_sd(self) -> np.ndarray:
         """(N,) posterior SD (mm) of the fitted surface along its normal at each vertex."""
@@ -161,6 +173,8 @@ class FitPosterior:
         var = ((u @ self.cov) * u).sum(axis=1) + self.model_noise_var
         if self.offset is not None:  # mean squared error about the fit, not about the mode
             var = var + (u @ self.offset) ** 2
+        if self.mirror is not None:
+            var = var + (self.normals @ self.mirror) ** 2
         return SD_CALIBRATION * np.sqrt(np.maximum(var, 0.0))
 
     def point_covariance(self, indices, weights) -> np.ndarray:
@@ -170,6 +184,8 @@ class FitPosterior:
         cov = jac @ self.cov @ jac.T + self.model_noise_var * np.eye(3)
         if self.offset is not None:
             cov = cov + np.outer(jac @ self.offset, jac @ self.offset)
+        if self.mirror is not None:
+            cov = cov + np.outer(self.mirror, self.mirror)
         return SD_CALIBRATION ** 2 * 0.5 * (cov + cov.T)
 
 
@@ -386,8 +402,33 @@ def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose:
                                 np.zeros(k) if dev is None else dev, np.zeros(r)])
         offset = cov @ (g.T @ resid / noise_var - full_prior @ theta)
     jac = np.concatenate([jac, normals[:, :, None] * (scale * psi)[:, None, :]], axis=2)
+    mirror = _mirror_shift(world, points) if MIRROR_WEIGHT > 0 else None
+    mirror = None if mirror is None else np.sqrt(MIRROR_WEIGHT) * mirror
     return FitPosterior(model, world, normals, jac, cov, noise_var, float(model_noise_var),
-                        tuple(getattr(fit, "warnings", ()) or ()), r, offset)
+                        tuple(getattr(fit, "warnings", ()) or ()), r, offset, mirror)
+
+
+#: Weight of the mirror mode of a single contour (:func:`_mirror_shift`): 0.5, the two
+#: sides equally likely (the points do not say which). Not tuned: added after the report
+#: kinds' worst shapes (a ring or an ellipsoid cut once, fitted on the wrong side of the cut)
+#: showed the failure; on the tuning kinds it leaves SD_CALIBRATION's rule unchanged (1.351)
+#: and their mean coverage at 96.9 % (96.5 % without).
+MIRROR_WEIGHT = 0.5
+
+
+def _mirror_shift(world: np.ndarray, points: np.ndarray) -> np.ndarray | None:
+    """(3,) the shift to the mirror mode when all points lie in one plane (one contour): a
+    section at signed height h from the shape's centre and one at -h look alike, so the
+    shape's centre may equally lie on the other side, moved by -2 h along the plane's
+    normal. None when the points span three dimensions."""
+    if len(points) < 3:
+        return None
+    centred = points - points.mean(axis=0)
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    if sv[2] > 1e-3 * sv[0]:
+        return None
+    h = float((world.mean(axis=0) - points.mean(axis=0)) @ vt[2])
+    return -2.0 * h * vt[2]
 
 
 def section_sd(vertices: np.ndarray, faces: np.ndarray, sd: np.ndarray, origin,
