@@ -207,3 +207,29 @@ def test_residual_basis_and_out_of_span_term():
     shape_plain, _ = plain.variance_shares()
     shape_gp, pose_gp = with_gp.variance_shares()
     assert shape_gp > shape_plain and pose_gp == 0.0
+
+
+def test_one_contour_has_a_mirror_mode_counted_as_pose(monkeypatch):
+    """All points in one plane: the section of a shape whose centre lies h above the cut looks
+    like the one h below, so the posterior adds the mirror mode's shift (-2 h along the
+    plane's normal, weight MIRROR_WEIGHT) to the SD, as pose; a crossing contour removes it."""
+    from core.reconstruction.uncertainty import MIRROR_WEIGHT
+
+    model = _smooth_model()
+    v = model.mean
+    ring = np.abs(v[:, 2] - 4.0) < 1.0  # vertices near the plane z = 4, the shape's centre at 0
+    pts = v[ring].copy()
+    pts[:, 2] = 4.0
+    post = fit_posterior(model, pts, np.zeros(4), np.eye(4), pose_mode="none")
+    np.testing.assert_allclose(np.abs(post.mirror), [0, 0, np.sqrt(MIRROR_WEIGHT) * 8.0], atol=0.3)
+    pole = int(np.argmax(v[:, 2]))  # normal along z: the mirror moves it by 8 mm
+    with monkeypatch.context() as m:
+        m.setattr("core.reconstruction.uncertainty.MIRROR_WEIGHT", 0.0)
+        plain = fit_posterior(model, pts, np.zeros(4), np.eye(4), pose_mode="none")
+    assert plain.mirror is None
+    added = (post.vertex_sd()[pole] ** 2 - plain.vertex_sd()[pole] ** 2) / SD_CALIBRATION ** 2
+    assert added == pytest.approx(MIRROR_WEIGHT * 64.0, rel=0.08)
+    _, pose_var = post.variance_shares()
+    assert pose_var > 0 and post.pose_dominates and "either side" in post.message()
+    crossing = np.concatenate([pts, v[np.abs(v[:, 0]) < 0.8]])
+    assert fit_posterior(model, crossing, np.zeros(4), np.eye(4), pose_mode="none").mirror is None
