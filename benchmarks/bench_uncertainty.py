@@ -193,6 +193,10 @@ def main(argv=None) -> int:
                         help="--families tune: print the SD widening of the calibration rule")
     parser.add_argument("--residual", type=float, default=None,
                         help="out-of-span residual variance factor (default: the module's)")
+    parser.add_argument("--mirror-weight", type=float, default=None,
+                        help="weight of the mirror mode of one contour / parallel slices")
+    parser.add_argument("--no-parallel-mirror", action="store_true",
+                        help="the mirror mode for a single contour only")
     parser.add_argument("--sd-factor", type=float, default=None,
                         help="SD widening to use instead of SD_CALIBRATION (e.g. the rule's value "
                              "for --residual, from --families tune --calibrate --residual F)")
@@ -203,6 +207,9 @@ def main(argv=None) -> int:
         kinds = TUNING if args.families == "tune" else REPORT
         if args.sd_factor is not None:
             uncertainty.SD_CALIBRATION = args.sd_factor
+        if args.mirror_weight is not None:
+            uncertainty.MIRROR_WEIGHT = args.mirror_weight
+        uncertainty.MIRROR_PARALLEL = not args.no_parallel_mirror
         t0 = time.perf_counter()
         rows, times = family_coverage(kinds, stored=args.stored, residual=args.residual)
         if args.calibrate:

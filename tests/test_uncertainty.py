@@ -210,9 +210,10 @@ def test_residual_basis_and_out_of_span_term():
 
 
 def test_one_contour_has_a_mirror_mode_counted_as_pose(monkeypatch):
-    """All points in one plane: the section of a shape whose centre lies h above the cut looks
-    like the one h below, so the posterior adds the mirror mode's shift (-2 h along the
-    plane's normal, weight MIRROR_WEIGHT) to the SD, as pose; a crossing contour removes it."""
+    """All points in one plane (or in parallel slices of one view): the section of a shape
+    whose centre lies h above the cut looks like the one h below, so the posterior adds the
+    mirror mode's shift (-2 h along the plane's normal, weight MIRROR_WEIGHT) to the SD, as
+    pose; a crossing contour removes it."""
     from core.reconstruction.uncertainty import MIRROR_WEIGHT
 
     model = _smooth_model()
@@ -231,5 +232,10 @@ def test_one_contour_has_a_mirror_mode_counted_as_pose(monkeypatch):
     assert added == pytest.approx(MIRROR_WEIGHT * 64.0, rel=0.08)
     _, pose_var = post.variance_shares()
     assert pose_var > 0 and post.pose_dominates and "either side" in post.message()
+    assert "either side" not in fit_posterior(model, np.zeros((0, 3)), np.zeros(4), np.eye(4)).message()
+    # two parallel axial slices at z = 3 and 5: mirrored about z = 4, the same shift
+    two = [v[np.abs(v[:, 2] - z) < 1.0] * [1, 1, 0] + [0, 0, z] for z in (3.0, 5.0)]
+    parallel = fit_posterior(model, np.concatenate(two), np.zeros(4), np.eye(4), pose_mode="none")
+    np.testing.assert_allclose(parallel.mirror, post.mirror, atol=0.3)
     crossing = np.concatenate([pts, v[np.abs(v[:, 0]) < 0.8]])
     assert fit_posterior(model, crossing, np.zeros(4), np.eye(4), pose_mode="none").mirror is None
