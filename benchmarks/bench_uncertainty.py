@@ -22,11 +22,17 @@ similarity); coverage is the share of vertices where the true surface lies withi
 SD along the fitted normal. Cells: mean coverage / worst shape, and how often the posterior
 says the pose dominates. ``--stored`` leaves the model at its stored placement instead (the
 fits' warnings are counted). ``core.reconstruction.uncertainty.SD_CALIBRATION`` is set from
-``--families tune --calibrate`` (the tuning kinds only).
+``--families tune --calibrate`` (the tuning kinds only): the smallest factor at which every
+(kind, layout) cell covers >= 93 % on average. Per layout the table also gives the mean of
+the cells, the worst cell and the worst shape, and the posterior's time per fit. Variants
+side by side: ``--residual F`` (the GP out-of-span residual; calibrate it with ``--families
+tune --calibrate --residual F`` and pass the factor printed as ``--sd-factor``),
+``--mirror-weight W`` and ``--no-parallel-mirror`` (the mirror mode of one contour).
 
     python benchmarks/bench_uncertainty.py [--cases N] [--tune]
     python benchmarks/bench_uncertainty.py --families tune --calibrate
     python benchmarks/bench_uncertainty.py --families report [--stored]
+    python benchmarks/bench_uncertainty.py --families report --residual 1 --sd-factor 1.071
 """
 
 from __future__ import annotations
@@ -45,8 +51,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from core.evaluation.simulated_user import pca_model, simulate_user  # noqa: E402
 from core.geometry.toolkit import vertex_normals  # noqa: E402
 from core.planning.frames import anchored_point_weights, volume_centroid  # noqa: E402
-from core.reconstruction import fit_points  # noqa: E402
-from core.reconstruction import uncertainty  # noqa: E402
+from core.reconstruction import fit_points, uncertainty  # noqa: E402
 from core.reconstruction.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior  # noqa: E402
 
 TUNING_CASES = (0, 1, 2, 3)

@@ -56,9 +56,10 @@ One contour (all points in one plane) cannot tell which side of it the shape's c
 a section at height h from the centre and one at -h look alike (a ring, an ellipsoid, a
 tube cut once); nor can parallel slices of one view (mirrored about their middle plane).
 The posterior is then a mixture of the fitted mode and its mirror, shifted by -2 h along
-the planes' normal (h: the centre's height above the middle plane), with weight ``MIRROR_WEIGHT``; its variance about the fit
-adds w (n_j . shift)^2 at each vertex, counted as pose (``pose_dominates``; ``message`` asks
-for a crossing contour when the shift exceeds the mean SD).
+the planes' normal (h: the centre's height above the middle plane), with weight
+``MIRROR_WEIGHT``; its variance about the fit adds w (n_j . shift)^2 at each vertex, counted
+as pose (``pose_dominates``; ``message`` asks for a crossing contour when the shift exceeds
+the mean SD).
 
 Optionally (``residual_var_factor``, Lüthi et al. 2018, Gaussian process morphable models)
 the parameters are augmented by a low-rank Gaussian-process residual of normal displacement
