@@ -145,7 +145,7 @@ def test_coverage_on_turned_unseen_shapes_per_contour_layout():
     shapes turned by up to 25 degrees and shifted N(0, 10 mm) per axis, placed at the points
     (Place here), 1 axial / 2 parallel / 3 orthogonal contours (2 mm spacing, 0.2 mm noise).
     The true surface lies within 2 SD at >= 88 % of vertices on average per layout (the
-    report kinds give 88-96 % per layout, benchmarks/RESULTS.md), and the mode offset (the
+    report kinds give 92-97 % per layout, benchmarks/RESULTS.md), and the mode offset (the
     fit's 3 degree pose prior held it off the posterior's mode) adds coverage."""
     from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
     from core.geometry.toolkit import random_rotation, vertex_normals
