@@ -138,3 +138,104 @@ def test_pose_aware_posterior_covers_turned_shapes_and_says_the_pose_is_uncertai
     placed = fit_points(model, user.points, user.normals, placement="points")
     again = fit_posterior(model, user.points, placed.coef, placed.pose, fit=placed)
     assert again.vertex_sd().mean() < 0.25 * post.vertex_sd().mean()
+
+
+def test_coverage_on_turned_unseen_shapes_per_contour_layout():
+    """Issue 27 item 7, a small fixed known-truth case of the benchmark's kind: held-out
+    shapes turned by up to 25 degrees and shifted N(0, 10 mm) per axis, placed at the points
+    (Place here), 1 axial / 2 parallel / 3 orthogonal contours (2 mm spacing, 0.2 mm noise).
+    The true surface lies within 2 SD at >= 88 % of vertices on average per layout (the
+    report kinds give 92-97 % per layout, benchmarks/RESULTS.md), and the mode offset (the
+    fit's 3 degree pose prior held it off the posterior's mode) adds coverage."""
+    from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
+    from core.geometry.toolkit import random_rotation, vertex_normals
+
+    shapes, faces = synthetic_shapes(26, subdivisions=3, seed=11, size=(3.0, 6.0, 14.0))
+    model = pca_model(shapes[6:], faces, n_factors=10)
+    rng = np.random.default_rng(27)
+    truths = []
+    for shape in shapes[:6]:
+        centre = shape.mean(axis=0)
+        truths.append((shape - centre) @ random_rotation(rng, 25.0).T + centre
+                      + rng.normal(scale=10.0, size=3))
+    for orientation, k in (("axial", 1), ("axial", 2), ("mixed", 3)):
+        cover, bare_cover = [], []
+        for h, truth in enumerate(truths):
+            user = simulate_user(truth, faces, k, orientations=orientation, spacing=2.0, noise=0.2,
+                                 rng=np.random.default_rng(100 * h + k))
+            fit = fit_points(model, user.points, user.normals, placement="points")
+            post = fit_posterior(model, user.points, fit.coef, fit.pose, pose_mode=fit.pose_mode,
+                                 fit=fit)
+            assert post.offset is not None and post.offset.shape == (post.cov.shape[0],)
+            err = np.abs(np.einsum("ij,ij->i", truth - fit.vertices, vertex_normals(fit.vertices, faces)))
+            sd = post.vertex_sd()
+            cover.append(np.mean(err <= 2 * sd))
+            u = np.einsum("na,nap->np", post.normals, post.jacobians)
+            bare = SD_CALIBRATION * np.sqrt(((u @ post.cov) * u).sum(axis=1))
+            bare_cover.append(np.mean(err <= 2 * bare))
+        assert np.mean(cover) >= 0.88, (orientation, k, cover)
+        if k >= 2:  # measured: +1.9 / +1.7 points (2 parallel / 3 orthogonal)
+            assert np.mean(cover) >= np.mean(bare_cover) + 0.01, (k, cover, bare_cover)
+
+
+def test_residual_basis_and_out_of_span_term():
+    """The Nystrom factor reproduces the Gaussian kernel between nearby vertices and keeps
+    each vertex's unit variance; the residual term (``residual_var_factor``) widens the band
+    most far from the points (it is conditioned on them) and counts as shape uncertainty."""
+    from core.reconstruction.uncertainty import residual_basis
+
+    model = _smooth_model()
+    length = 4.0
+    psi = residual_basis(model.mean, length, rank=200)
+    assert residual_basis(model.mean, length, rank=200) is psi  # cached per model
+    np.testing.assert_allclose((psi ** 2).sum(axis=1), 1.0, rtol=1e-9)
+    d = np.linalg.norm(model.mean[:, None] - model.mean[None], axis=2)
+    near = (d > 0) & (d < 3.0)
+    exact = np.exp(-d[near] ** 2 / (2 * length ** 2))
+    assert np.abs((psi @ psi.T)[near] - exact).max() < 0.05
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=4) * np.sqrt(model.coef_var)
+    top = model.mean[:, 2] > 8.0  # a cap of points around the +z pole
+    pts = model.instance(a)[top] + rng.normal(scale=0.1, size=(top.sum(), 1)) * model.mean[top] / 10
+    plain = fit_posterior(model, pts, a, np.eye(4), pose_mode="none")
+    with_gp = fit_posterior(model, pts, a, np.eye(4), pose_mode="none", residual_var_factor=4.0)
+    assert with_gp.n_residual > 0 and plain.n_residual == 0
+    added = with_gp.vertex_sd() ** 2 - plain.vertex_sd() ** 2
+    assert np.all(added > -1e-9)
+    far = model.mean[:, 2] < -8.0
+    assert added[far].mean() > 3 * added[top].mean()
+    shape_plain, _ = plain.variance_shares()
+    shape_gp, pose_gp = with_gp.variance_shares()
+    assert shape_gp > shape_plain and pose_gp == 0.0
+
+
+def test_one_contour_has_a_mirror_mode_counted_as_pose(monkeypatch):
+    """All points in one plane (or in parallel slices of one view): the section of a shape
+    whose centre lies h above the cut looks like the one h below, so the posterior adds the
+    mirror mode's shift (-2 h along the plane's normal, weight MIRROR_WEIGHT) to the SD, as
+    pose; a crossing contour removes it."""
+    from core.reconstruction.uncertainty import MIRROR_WEIGHT
+
+    model = _smooth_model()
+    v = model.mean
+    ring = np.abs(v[:, 2] - 4.0) < 1.0  # vertices near the plane z = 4, the shape's centre at 0
+    pts = v[ring].copy()
+    pts[:, 2] = 4.0
+    post = fit_posterior(model, pts, np.zeros(4), np.eye(4), pose_mode="none")
+    np.testing.assert_allclose(np.abs(post.mirror), [0, 0, np.sqrt(MIRROR_WEIGHT) * 8.0], atol=0.3)
+    pole = int(np.argmax(v[:, 2]))  # normal along z: the mirror moves it by 8 mm
+    with monkeypatch.context() as m:
+        m.setattr("core.reconstruction.uncertainty.MIRROR_WEIGHT", 0.0)
+        plain = fit_posterior(model, pts, np.zeros(4), np.eye(4), pose_mode="none")
+    assert plain.mirror is None
+    added = (post.vertex_sd()[pole] ** 2 - plain.vertex_sd()[pole] ** 2) / SD_CALIBRATION ** 2
+    assert added == pytest.approx(MIRROR_WEIGHT * 64.0, rel=0.08)
+    _, pose_var = post.variance_shares()
+    assert pose_var > 0 and post.pose_dominates and "either side" in post.message()
+    assert "either side" not in fit_posterior(model, np.zeros((0, 3)), np.zeros(4), np.eye(4)).message()
+    # two parallel axial slices at z = 3 and 5: mirrored about z = 4, the same shift
+    two = [v[np.abs(v[:, 2] - z) < 1.0] * [1, 1, 0] + [0, 0, z] for z in (3.0, 5.0)]
+    parallel = fit_posterior(model, np.concatenate(two), np.zeros(4), np.eye(4), pose_mode="none")
+    np.testing.assert_allclose(parallel.mirror, post.mirror, atol=0.3)
+    crossing = np.concatenate([pts, v[np.abs(v[:, 0]) < 0.8]])
+    assert fit_posterior(model, crossing, np.zeros(4), np.eye(4), pose_mode="none").mirror is None
