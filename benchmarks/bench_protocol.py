@@ -24,7 +24,8 @@ population, averaged over a family's populations. The rule: defaults are chosen 
 half only and reported on the report half.
 
 Run: ``.venv/bin/python benchmarks/bench_protocol.py [--families F ...] [--populations 3]
-[--shapes 7] [--jobs 2] [--json OUT]``
+[--first-seed 0] [--shapes 7] [--jobs 2] [--json OUT]``; ``--merge A.json B.json``: the
+tables of several runs' populations together.
 """
 
 from __future__ import annotations
@@ -145,15 +146,16 @@ def extract_round1(folder: str) -> None:
 
 
 def run(families: list[str], n_populations: int, n_shapes: int, jobs: int, folder: str,
-        progress=print, on_result=None) -> dict:
+        progress=print, on_result=None, first_seed: int = 0) -> dict:
     """Every option on every population: {family: {seed: {option: result}}};
     ``on_result(results)`` after each finished run (the JSON is written as the run goes)."""
     import multiprocessing as mp
 
+    seeds = range(first_seed, first_seed + n_populations)
     tasks = [(kind, family, seed, n_shapes, folder if kind == "round 1" else None)
-             for family in families for seed in range(n_populations)
+             for family in families for seed in seeds
              for kind in ("defaults", "round 1", *[o for o in OPTIONS if o != "defaults"])]
-    results: dict = {f: {s: {} for s in range(n_populations)} for f in families}
+    results: dict = {f: {s: {} for s in seeds} for f in families}
     t0 = time.perf_counter()
     with mp.get_context("forkserver").Pool(jobs, maxtasksperchild=4) as pool:
         for i, (family, seed, out) in enumerate(pool.imap_unordered(_task, tasks)):
@@ -204,17 +206,46 @@ def table(summary: dict, half: tuple, title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def report(summary: dict, header: str) -> None:
+    """The two tables and each family's best option, printed."""
+    print(header)
+    print(table(summary, TUNING, "TUNING half (defaults may be chosen on these)"))
+    print(table(summary, REPORT, "REPORT half (reported, never tuned on)"))
+    for half in (TUNING, REPORT):
+        for f in half:
+            if f in summary:
+                print(f"{f}: best overall {summary[f]['winner']}, best product option "
+                      f"{summary[f]['best_product_option']}")
+
+
+def merged(paths: list[Path]) -> dict:
+    """The runs of several ``--json`` files (e.g. different ``--first-seed``) together."""
+    results: dict = {}
+    for path in paths:
+        for family, pops in json.loads(path.read_text())["runs"].items():
+            for seed, out in pops.items():
+                results.setdefault(family, {}).setdefault(f"{path.name}:{seed}", {}).update(out)
+    return results
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=FAMILIES)
-    parser.add_argument("--populations", type=int, default=3, help="populations a family (seeds 0..)")
+    parser.add_argument("--populations", type=int, default=3, help="populations a family")
+    parser.add_argument("--first-seed", type=int, default=0, help="seeds first-seed, first-seed + 1, ...")
     parser.add_argument("--shapes", type=int, default=7, help="shapes a population")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (each run on 1 core)")
-    parser.add_argument("--json", type=Path, default=None, help="write the results here")
+    parser.add_argument("--json", type=Path, default=None, help="write the results here (as they come)")
+    parser.add_argument("--merge", type=Path, nargs="+", default=None,
+                        help="no run: the tables of these --json files' runs together")
     args = parser.parse_args(argv)
+    if args.merge:
+        report(summarise(merged(args.merge)), f"merged: {', '.join(str(p) for p in args.merge)}\n")
+        return
     for name in ("OMP_NUM_THREADS", "RAYON_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(name, "1")  # each job on one core
     t0 = time.perf_counter()
+
     def dump(results: dict) -> None:
         if args.json:
             args.json.write_text(json.dumps({
@@ -225,18 +256,12 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="round1_") as folder:
         extract_round1(folder)
         results = run(args.families, args.populations, args.shapes, args.jobs, folder,
-                      progress=lambda s: print(s, flush=True), on_result=dump)
-    summary = summarise(results)
-    print(f"\n{args.populations} populations a family, {args.shapes} shapes each, {args.jobs} jobs, "
-          f"{time.perf_counter() - t0:.0f} s, load {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
-          f"spread mean / p95 (mm), averaged over populations; * a shape dropped\n")
-    print(table(summary, TUNING, "TUNING half (defaults may be chosen on these)"))
-    print(table(summary, REPORT, "REPORT half (reported, never tuned on)"))
-    for half in (TUNING, REPORT):
-        for f in half:
-            if f in summary:
-                print(f"{f}: best overall {summary[f]['winner']}, best product option "
-                      f"{summary[f]['best_product_option']}")
+                      progress=lambda s: print(s, flush=True), on_result=dump,
+                      first_seed=args.first_seed)
+    report(summarise(results),
+           f"\n{args.populations} populations a family, {args.shapes} shapes each, {args.jobs} jobs, "
+           f"{time.perf_counter() - t0:.0f} s, load {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
+           f"spread mean / p95 (mm), averaged over populations; * a shape dropped\n")
 
 if __name__ == "__main__":
     main()
