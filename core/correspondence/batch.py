@@ -70,6 +70,9 @@ class CorrespondenceResult:
     poses : dict
         Mesh name -> how its rigid pose was settled, for the shapes whose best fit to the
         reference turned them from their input orientation (:func:`_recheck_switched`).
+    safeguard : dict
+        What the safeguard (:mod:`core.correspondence.safeguard`) tried, its criterion's
+        values and what it kept: ``{"enabled", "stages": [...]}``.
     """
 
     meshes: list
@@ -87,6 +90,7 @@ class CorrespondenceResult:
     refinement: list = field(default_factory=list)
     unreadable: dict = field(default_factory=dict)
     poses: dict = field(default_factory=dict)
+    safeguard: dict = field(default_factory=dict)
 
     def to_report(self, names: list[str] | None = None) -> dict:
         """JSON-ready summary (per shape: residual, grooming, error; reference and why)."""
@@ -111,6 +115,7 @@ class CorrespondenceResult:
             "failures": self.failures,
             "timings": self.timings,
             "params": self.params,
+            "safeguard": self.safeguard,
         }
 
 
@@ -744,7 +749,7 @@ def establish_correspondence(meshes: list[TriMesh | InputFile | str | os.PathLik
                              on_provisional: Callable[[int, TriMesh], None] | None = None,
                              on_unreadable: Callable[[int, str], None] | None = None,
                              scratch: str | os.PathLike | None = None, keep_meshes: bool = True,
-                             **cpd_params) -> CorrespondenceResult:
+                             safeguard: bool = True, **cpd_params) -> CorrespondenceResult:
     """Express every training mesh with the vertices and faces of one reference mesh.
 
     Parameters
@@ -799,15 +804,26 @@ def establish_correspondence(meshes: list[TriMesh | InputFile | str | os.PathLik
     keep_meshes : bool
         False: ``result.meshes`` holds None for every input (the shapes went to
         ``on_shape``); all the rest of the result is there.
+    safeguard : bool
+        Keep the remesh and each refinement pass only where the model's leave-one-out
+        generalisation against the raw inputs says it helps
+        (:mod:`core.correspondence.safeguard`; ``result.safeguard`` says what was kept).
+        With it the last pass's outputs reach ``on_shape`` once the pass is judged.
     **cpd_params
         Overrides of :data:`DEFAULT_CPD_PARAMS`.
     """
     params = _check_params(cpd_params, selection)
     if len(meshes) == 0:
         raise ValueError("no meshes to correspond")
+    record: dict = {"enabled": bool(safeguard), "stages": []}
+    if safeguard:
+        from core.correspondence.safeguard import choose_remesh
+
+        groom, trial = choose_remesh(list(meshes), reference, groom, vertices, n_jobs, cpd_params)
+        record["stages"] += [trial] if trial else []
     store = None if scratch is None else Scratch(scratch)
     try:
-        return _establish(list(meshes), reference, params, store, n_references=n_references,
+        return _establish(list(meshes), reference, params, store, record, n_references=n_references,
                           n_jobs=n_jobs, progress=progress, selection=selection,
                           selection_shapes=selection_shapes, groom=groom, vertices=vertices,
                           refine=refine, on_shape=on_shape, on_provisional=on_provisional,
@@ -817,7 +833,7 @@ def establish_correspondence(meshes: list[TriMesh | InputFile | str | os.PathLik
             store.remove()
 
 
-def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
+def _establish(meshes: list, reference, params: dict, store: Scratch | None, record: dict, *,
                n_references: int, n_jobs: int | None, progress, selection: str,
                selection_shapes: int, groom: bool | dict, vertices: int | None, refine: int,
                on_shape: Callable | None, on_provisional: Callable | None,
@@ -844,8 +860,8 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
     # only has to give the mean shape, so it skips labelling and fairing (plain
     # CPD-then-project; the refinement labels and fairs every shape).
     first = dict(params, pair_residual=selection == "residual" and len(candidates) > 1)
-    if refine >= 1 and len(usable) >= 4:
-        first["labelling"] = False
+    if refine >= 1 and len(usable) >= 4 and not record["enabled"]:
+        first["labelling"] = False  # (a safeguard's rollback needs the labelled result)
     chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
                                                    first, n_jobs, progress, selection,
                                                    selection_shapes)
@@ -885,10 +901,17 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
     if on_provisional is not None and refine > 0:
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
-    passes = _pass_params(params)
-    changes = _refine(corresponded, ref_faces, prepared, passes, n_jobs,
-                      progress, refine, timings,
-                      on_last_pass=final if on_shape is not None else None)
+    if record["enabled"]:
+        from core.correspondence.safeguard import RefinementGuard, raw_mesh
+
+        guard = RefinementGuard(lambda k: raw_mesh(handles[k]))
+        changes = guard.refine(corresponded, ref_faces, params, refine, lambda p: _refine(
+            corresponded, ref_faces, prepared, _pass_params(p), n_jobs, progress, 1, timings))
+        record["stages"] += [guard.record] if refine > 0 else []
+    else:
+        changes = _refine(corresponded, ref_faces, prepared, _pass_params(params), n_jobs,
+                          progress, refine, timings,
+                          on_last_pass=final if on_shape is not None else None)
     for k in sorted(corresponded) if on_shape is not None else ():
         if k not in streamed:  # shapes no refinement pass touched (refine=0, < 3 shapes)
             stream(k, corresponded[k])
@@ -897,6 +920,7 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, *,
                      keep_meshes)
     result.unreadable = unread
     result.poses = poses
+    result.safeguard = record
     return result
 
 
