@@ -816,6 +816,8 @@ def establish_correspondence(meshes: list[TriMesh | InputFile | str | os.PathLik
     if len(meshes) == 0:
         raise ValueError("no meshes to correspond")
     record: dict = {"enabled": bool(safeguard), "stages": []}
+    if cpd_params.get("labelling"):  # given: the first pass labels too (popped by _establish)
+        record["labelling"] = True
     if safeguard:
         from core.correspondence.safeguard import choose_remesh
 
@@ -860,7 +862,7 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, rec
     # only has to give the mean shape, so it skips labelling and fairing (plain
     # CPD-then-project; the refinement labels and fairs every shape).
     first = dict(params, pair_residual=selection == "residual" and len(candidates) > 1)
-    if refine >= 1 and len(usable) >= 4 and not record["enabled"]:
+    if refine >= 1 and len(usable) >= 4 and not record["enabled"] and not record.pop("labelling", 0):
         first["labelling"] = False  # (a safeguard's rollback needs the labelled result)
     chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
                                                    first, n_jobs, progress, selection,
