@@ -842,6 +842,7 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, rec
                on_unreadable: Callable | None, keep_meshes: bool) -> CorrespondenceResult:
     """:func:`establish_correspondence` with its per-shape data in ``store`` (or memory)."""
     t_start = time.perf_counter()
+    labelled = record.pop("labelling", False)
     names = [_mesh_name(m, i) for i, m in enumerate(meshes)]
     handles = [m if isinstance(m, (TriMesh, InputFile)) else InputFile(str(m)) for m in meshes]
     report(progress, 0.0, "grooming")
@@ -862,7 +863,7 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, rec
     # only has to give the mean shape, so it skips labelling and fairing (plain
     # CPD-then-project; the refinement labels and fairs every shape).
     first = dict(params, pair_residual=selection == "residual" and len(candidates) > 1)
-    if refine >= 1 and len(usable) >= 4 and not record["enabled"] and not record.pop("labelling", 0):
+    if refine >= 1 and len(usable) >= 4 and not (record["enabled"] or labelled):
         first["labelling"] = False  # (a safeguard's rollback needs the labelled result)
     chosen, scores, results, rest, split = _select(candidates, external, prepared, names, usable,
                                                    first, n_jobs, progress, selection,
