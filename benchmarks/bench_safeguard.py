@@ -1,0 +1,168 @@
+"""Does the correspondence safeguard pick the option with the lower true spread? (issue 27, item 3)
+
+For every known-truth population (``core.datasets.shapes`` kinds in two tessellation styles,
+and the families of ``core.datasets.families`` when present: the TUNING ones by default,
+``--report`` for the REPORT ones), runs ``establish_correspondence``:
+
+- ``before``: the defaults without the safeguard (remesh + one normal-offsets pass);
+- ``after``: the defaults with the safeguard (:mod:`core.correspondence.safeguard`);
+- ``r0 remesh`` / ``r0 plain``: reference-based only (``refine=0``), with and without the
+  remesh (``r0 plain`` is plain reference-based correspondence);
+- ``r1 offsets`` / ``r1 cpd``: one refinement pass from the labelled reference-based result
+  with the remesh choice the safeguard kept (the states the safeguard judged);
+- ``nogroom cpd``: ``groom=False, refine_deformation="cpd"``.
+
+Per population it prints the safeguard's criterion (leave-one-out generalisation against the
+raw inputs, mm) for each option it judged, the options' true spreads (mean distance of
+homologous output vertices' material points from their mean, mm), its pick and whether the
+pick had the lowest true spread among the options judged; then the hit rate, and per family
+the mean of the populations' mean and p95 spreads for every run.
+
+    PYTHONPATH=. python benchmarks/bench_safeguard.py --jobs 2 [--report] [--seeds 2] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from core.correspondence import establish_correspondence  # noqa: E402
+from core.datasets.shapes import known_homology_shapes, unevenly_decimated  # noqa: E402
+
+KINDS = ("bean", "tube", "ring")
+STYLES = ("uneven", "even")
+
+
+def populations(report: bool, seeds: int, n_shapes: int, only: list[str] | None):
+    """(family label, seed, population) of the chosen half."""
+    out = []
+    if not report:
+        for kind in KINDS:
+            for style in STYLES:
+                label = f"{kind}-{style}"
+                for seed in range(seeds):
+                    if only and label not in only:
+                        continue
+                    if style == "even":
+                        pop = known_homology_shapes(kind, n_shapes, seed=100 + seed,
+                                                    n_points=(1500, 2500), retessellate=True)
+                    else:
+                        pop = unevenly_decimated(known_homology_shapes(
+                            kind, n_shapes, seed=100 + seed, n_points=(3000, 4500)), seed=seed)
+                    out.append((label, seed, pop))
+    try:
+        from core.datasets import families
+    except ImportError:
+        return out
+    for fam in (families.REPORT if report else families.TUNING):
+        for seed in range(seeds):
+            if only and fam not in only:
+                continue
+            out.append((fam, seed, families.population(fam, n_shapes, 100 + seed)))
+    return out
+
+
+def _spread(pop, result) -> tuple[float, float]:
+    s = pop.spread([m.vertices if m is not None else None for m in result.meshes])
+    return float(s.mean()), float(np.percentile(s, 95))
+
+
+def evaluate(pop, n_jobs: int) -> dict:
+    """Every run of the module docstring on one population: spreads, the record, the checks."""
+    runs: dict = {}
+
+    def run(label: str, **kw):
+        t = time.perf_counter()
+        res = establish_correspondence(pop.meshes, n_jobs=n_jobs, **kw)
+        runs[label] = dict(zip(("mean", "p95"), _spread(pop, res)), seconds=time.perf_counter() - t)
+        return res
+
+    run("before", safeguard=False)
+    guarded = run("after")
+    run("r0 remesh", refine=0, safeguard=False)
+    run("r0 plain", refine=0, groom={"remesh": False}, safeguard=False)
+    stages = {s["stage"]: s for s in guarded.safeguard["stages"]}
+    kept_remesh = stages.get("remesh", {}).get("kept", "remesh") == "remesh"
+    groom = {} if kept_remesh else {"remesh": False}
+    run("r1 offsets", groom=groom, labelling=True, safeguard=False)
+    run("r1 cpd", groom=groom, labelling=True, refine_deformation="cpd", safeguard=False)
+    run("nogroom cpd", groom=False, refine_deformation="cpd", safeguard=False)
+    checks = []
+    if "remesh" in stages:
+        st = stages["remesh"]
+        truth = {"remesh": runs["r0 remesh"]["mean"], "no remesh": runs["r0 plain"]["mean"]}
+        checks.append(_check("remesh", st["criterion_mm"], truth, st["kept"]))
+    if "refinement" in stages and stages["refinement"]["passes"]:
+        p = stages["refinement"]["passes"][0]
+        before = runs["r0 remesh" if kept_remesh else "r0 plain"]["mean"]
+        crit = {"none": p["before_mm"], **p["criterion_mm"]}
+        truth = {"none": before, "normal_offsets": runs["r1 offsets"]["mean"],
+                 "cpd": runs["r1 cpd"]["mean"]}
+        kept = "none" if p["kept"].startswith("none") else p["kept"]
+        checks.append(_check("refinement", crit, {k: truth[k] for k in crit}, kept))
+    return {"runs": runs, "checks": checks, "safeguard": guarded.safeguard}
+
+
+def _check(stage: str, criterion: dict, truth: dict, kept: str) -> dict:
+    best = min(truth, key=truth.get)
+    return {"stage": stage, "criterion_mm": criterion, "truth_mm": truth, "kept": kept,
+            "best": best, "right": kept == best}
+
+
+RUNS = ("before", "after", "r0 plain", "r0 remesh", "r1 offsets", "r1 cpd", "nogroom cpd")
+
+
+def summary(results: list[dict]) -> None:
+    checks = [c for r in results for c in r["checks"]]
+    hits = sum(c["right"] for c in checks)
+    print(f"\nsafeguard hit rate: {hits}/{len(checks)} decisions "
+          f"({100 * hits / max(len(checks), 1):.0f} %)")
+    print("\nper family, mean over populations of the spread mean / p95 (mm):")
+    print(f"{'family':18s}" + "".join(f"{r:>18s}" for r in RUNS))
+    for fam in dict.fromkeys(r["family"] for r in results):
+        rows = [r for r in results if r["family"] == fam]
+        cells = [f"{np.mean([x['runs'][k]['mean'] for x in rows]):.3f}/"
+                 f"{np.mean([x['runs'][k]['p95'] for x in rows]):.3f}" for k in RUNS]
+        a, p = (np.mean([x["runs"]["after"][q] for x in rows]) for q in ("mean", "p95"))
+        b, bp = (np.mean([x["runs"]["r0 plain"][q] for x in rows]) for q in ("mean", "p95"))
+        flag = "" if a <= 1.05 * b and p <= 1.05 * bp else "   after > 1.05 x r0 plain"
+        print(f"{fam:18s}" + "".join(f"{c:>18s}" for c in cells) + flag)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--shapes", type=int, default=8)
+    ap.add_argument("--report", action="store_true", help="the REPORT families (else TUNING)")
+    ap.add_argument("--only", nargs="*", help="family labels to run")
+    ap.add_argument("--json", type=Path, help="write every result here")
+    args = ap.parse_args()
+    results = []
+    for fam, seed, pop in populations(args.report, args.seeds, args.shapes, args.only):
+        out = evaluate(pop, args.jobs)
+        out.update(family=fam, seed=seed)
+        results.append(out)
+        runs = out["runs"]
+        print(f"\n{fam} seed {seed}: " + ", ".join(f"{k} {runs[k]['mean']:.3f}/{runs[k]['p95']:.3f}"
+                                               for k in RUNS), flush=True)
+        for c in out["checks"]:
+            print(f"  {c['stage']:10s} criterion " + ", ".join(f"{k} {v:.4f}" for k, v in
+                                                           c["criterion_mm"].items())
+                  + " | truth " + ", ".join(f"{k} {v:.3f}" for k, v in c["truth_mm"].items())
+                  + f" | kept {c['kept']} | {'right' if c['right'] else 'WRONG'}", flush=True)
+        if args.json:
+            args.json.write_text(json.dumps(results, indent=1))
+    summary(results)
+
+
+if __name__ == "__main__":
+    main()
