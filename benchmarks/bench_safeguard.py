@@ -79,21 +79,23 @@ def evaluate(pop, n_jobs: int) -> dict:
     """Every run of the module docstring on one population: spreads, the record, the checks."""
     runs: dict = {}
 
-    def run(label: str, **kw):
+    def run(label: str, judge: bool = False, **kw):
         t = time.perf_counter()
         res = establish_correspondence(pop.meshes, n_jobs=n_jobs, **kw)
         runs[label] = dict(zip(("mean", "p95"), _spread(pop, res)), seconds=time.perf_counter() - t)
+        if judge:
+            runs[label]["criteria"] = _criteria(pop, res)
         return res
 
     run("before", safeguard=False)
     guarded = run("after")
-    run("r0 remesh", refine=0, safeguard=False)
-    run("r0 plain", refine=0, groom={"remesh": False}, safeguard=False)
+    run("r0 remesh", True, refine=0, safeguard=False)
+    run("r0 plain", True, refine=0, groom={"remesh": False}, safeguard=False)
     stages = {s["stage"]: s for s in guarded.safeguard["stages"]}
     kept_remesh = stages.get("remesh", {}).get("kept", "remesh") == "remesh"
     groom = {} if kept_remesh else {"remesh": False}
-    run("r1 offsets", groom=groom, labelling=True, safeguard=False)
-    run("r1 cpd", groom=groom, labelling=True, refine_deformation="cpd", safeguard=False)
+    run("r1 offsets", True, groom=groom, labelling=True, safeguard=False)
+    run("r1 cpd", True, groom=groom, labelling=True, refine_deformation="cpd", safeguard=False)
     run("nogroom cpd", groom=False, refine_deformation="cpd", safeguard=False)
     checks = []
     if "remesh" in stages:
@@ -108,7 +110,39 @@ def evaluate(pop, n_jobs: int) -> dict:
                  "cpd": runs["r1 cpd"]["mean"]}
         kept = "none" if p["kept"].startswith("none") else p["kept"]
         checks.append(_check("refinement", crit, {k: truth[k] for k in crit}, kept))
-    return {"runs": runs, "checks": checks, "safeguard": guarded.safeguard}
+    base = "r0 remesh" if kept_remesh else "r0 plain"
+    return {"runs": runs, "checks": checks, "safeguard": guarded.safeguard,
+            "offline": _offline(runs, base)}
+
+
+def _criteria(pop, result) -> dict:
+    """Candidate criteria on one run's correspondences (lower is better)."""
+    from core.correspondence.batch import _compactness
+    from core.correspondence.safeguard import loo_generalisation
+
+    shapes = [m.vertices for m in result.meshes]
+    loo = loo_generalisation(shapes, result.faces, pop.meshes)
+    return {"surface": loo["value"], "point": loo["point_mm"],
+            "compactness": _compactness(np.stack(shapes))}
+
+
+def _offline(runs: dict, base: str) -> dict:
+    """Per candidate criterion: was its remesh pick, and its refinement pick (the
+    safeguard's rule: offsets if lower than before, else cpd if lower), the truth's best?"""
+    out = {}
+    for name in runs["r0 plain"]["criteria"]:
+        c = {k: runs[k]["criteria"][name] for k in ("r0 remesh", "r0 plain", "r1 offsets", "r1 cpd")}
+        t = {k: runs[k]["mean"] for k in c}
+        rem = "r0 remesh" if c["r0 remesh"] < c["r0 plain"] else "r0 plain"
+        pick = base
+        if c["r1 offsets"] < c[base]:
+            pick = "r1 offsets"
+        elif c["r1 cpd"] < c[base]:
+            pick = "r1 cpd"
+        tried = [base, "r1 offsets"] + (["r1 cpd"] if pick != "r1 offsets" else [])
+        out[name] = {"remesh": rem == min(("r0 remesh", "r0 plain"), key=t.get),
+                     "refinement": pick == min(tried, key=t.get)}
+    return out
 
 
 def _check(stage: str, criterion: dict, truth: dict, kept: str) -> dict:
@@ -125,6 +159,10 @@ def summary(results: list[dict]) -> None:
     hits = sum(c["right"] for c in checks)
     print(f"\nsafeguard hit rate: {hits}/{len(checks)} decisions "
           f"({100 * hits / max(len(checks), 1):.0f} %)")
+    for name in results[0]["offline"] if results else ():
+        for stage in ("remesh", "refinement"):
+            got = [r["offline"][name][stage] for r in results]
+            print(f"offline, criterion {name:12s} {stage:10s}: {sum(got)}/{len(got)} right")
     print("\nper family, mean over populations of the spread mean / p95 (mm):")
     print(f"{'family':18s}" + "".join(f"{r:>18s}" for r in RUNS))
     for fam in dict.fromkeys(r["family"] for r in results):
