@@ -6,7 +6,8 @@ every fitted vertex is known), built from a different generator and base shape:
 - ``ovoid``: a bent, tapered ovoid (30 x 18 x 14 mm) on a Fibonacci-lattice sphere (uneven,
   ~1,800 vertices), with random bend and taper, 4 planted local bumps along the normal (4 mm
   wide, about 1 mm high) at random places and a global wobble (random low-order radial
-  harmonics): the kind issue 27 used, none of the benchmark's own shapes;
+  harmonics): the kind issue 27 used, none of the benchmark's own shapes (the maths is
+  ``core.datasets.families.ovoid_shape``, the protocol's ``ovoid`` family);
 - ``bean``, ``tube``, ``twist``, ``ring``: the base surfaces of
   ``core.datasets.shapes`` (a bent tapered bean, a long bent tube, the twisted bean, a
   torus thicker on one side) on one lattice each, with independent broad bumps (like
@@ -27,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.datasets.families import normal_bumps, ovoid_shape
 from core.geometry.toolkit import random_rotation, vertex_normals
 from core.models.shape_model import ShapeModel
 from core.evaluation.simulated_user import pca_model
@@ -65,22 +67,7 @@ def _sphere_lattice(n_points: int, rng: np.random.Generator) -> tuple[np.ndarray
 
 def _bumps(x: np.ndarray, normals: np.ndarray, rng, n: int, height: float, width: float):
     centres = x[rng.choice(len(x), n, replace=False)]
-    d2 = ((x[:, None, :] - centres[None]) ** 2).sum(axis=2)
-    return x + (np.exp(-d2 / (2 * width ** 2)) @ (rng.normal(size=n) * height))[:, None] * normals
-
-
-def _ovoid(m: np.ndarray, faces: np.ndarray, rng) -> np.ndarray:
-    t = m[:, 0]
-    taper = 1.0 - (0.25 + 0.1 * rng.normal()) * t
-    x = np.column_stack([15.0 * t, 9.0 * m[:, 1] * taper, 7.0 * m[:, 2] * taper])
-    x[:, 1] += (0.12 + 0.05 * rng.normal()) * 15.0 * t ** 2  # bend
-    x[:, 2] += 0.04 * rng.normal() * 15.0 * t ** 2
-    normals = vertex_normals(x, faces)
-    # global wobble: radial harmonics of degree 1-3 in the lattice parameter
-    wobble = sum(rng.normal() * 0.35 * m[:, a] * m[:, b] for a in range(3) for b in range(a, 3))
-    wobble = wobble + 0.3 * rng.normal() * np.sin(3 * np.arctan2(m[:, 1], m[:, 2]))
-    x = x + wobble[:, None] * normals
-    return _bumps(x, vertex_normals(x, faces), rng, 4, 1.0, 2.0)
+    return normal_bumps(x, normals, centres, rng.normal(size=n) * height, width)
 
 
 def _synthetic_base(kind: str, m: np.ndarray, faces: np.ndarray, rng) -> np.ndarray:
@@ -123,7 +110,7 @@ def family(kind: str, n_train: int = 40, n_held_out: int = 6, n_factors: int = 1
     n = n_train + n_held_out
     if kind == "ovoid":
         m, faces = _sphere_lattice(1800, rng)
-        shapes = np.stack([_ovoid(m, faces, rng) for _ in range(n)])
+        shapes = np.stack([ovoid_shape(m, faces, rng) for _ in range(n)])
     elif kind in ("bean", "tube", "twist"):
         m, faces = _sphere_lattice(1800, rng)
         shapes = np.stack([_synthetic_base(kind, m, faces, rng) for _ in range(n)])
