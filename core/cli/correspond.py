@@ -202,8 +202,8 @@ def run(args: argparse.Namespace) -> int:
                 vertices=args.vertices, refine=args.refine, on_shape=write_shape,
                 on_provisional=write_provisional,
                 on_unreadable=lambda i, problem: unreadable.__setitem__(names[i], problem),
-                scratch=args.out / SCRATCH_NAME, keep_meshes=False,
-                safeguard=not args.no_safeguard, **params)
+                scratch=args.out / SCRATCH_NAME, keep_meshes=False, safeguard=not args.no_safeguard,
+                **params)
     except (KeyboardInterrupt, Terminated) as exc:
         readable = [p for p in paths if str(p) not in unreadable]
         _write_interrupted_report(args, readable, written, unreadable, exc, provisional)

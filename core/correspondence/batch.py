@@ -904,17 +904,8 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, rec
     if on_provisional is not None and refine > 0:
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
-    if record["enabled"]:
-        from core.correspondence.safeguard import RefinementGuard, raw_mesh
-
-        guard = RefinementGuard(lambda k: raw_mesh(handles[k]))
-        changes = guard.refine(corresponded, ref_faces, params, refine, lambda p: _refine(
-            corresponded, ref_faces, prepared, _pass_params(p), n_jobs, progress, 1, timings))
-        record["stages"] += [guard.record] if refine > 0 else []
-    else:
-        changes = _refine(corresponded, ref_faces, prepared, _pass_params(params), n_jobs,
-                          progress, refine, timings,
-                          on_last_pass=final if on_shape is not None else None)
+    changes = _refine_guarded(record, handles, corresponded, ref_faces, prepared, params, n_jobs,
+                              progress, refine, timings, final if on_shape is not None else None)
     for k in sorted(corresponded) if on_shape is not None else ():
         if k not in streamed:  # shapes no refinement pass touched (refine=0, < 3 shapes)
             stream(k, corresponded[k])
@@ -925,6 +916,24 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, rec
     result.poses = poses
     result.safeguard = record
     return result
+
+
+def _refine_guarded(record: dict, handles: list, vertices: MutableMapping, faces: np.ndarray,
+                    prepared: list, params: dict, n_jobs: int, progress, passes: int,
+                    timings: dict, on_last_pass: Callable | None) -> list[float]:
+    """:func:`_refine`, each pass judged by the safeguard when it is on
+    (:class:`core.correspondence.safeguard.RefinementGuard`, its record into ``record``;
+    the last pass's results then stream once judged, not as they arrive)."""
+    if not record["enabled"]:
+        return _refine(vertices, faces, prepared, _pass_params(params), n_jobs, progress, passes,
+                       timings, on_last_pass=on_last_pass)
+    from core.correspondence.safeguard import RefinementGuard, raw_mesh
+
+    guard = RefinementGuard(lambda k: raw_mesh(handles[k]))
+    changes = guard.refine(vertices, faces, params, passes, lambda p: _refine(
+        vertices, faces, prepared, _pass_params(p), n_jobs, progress, 1, timings))
+    record["stages"] += [guard.record] if passes > 0 else []
+    return changes
 
 
 def _drop_flagged(results: dict, usable: list[int], corresponded: MutableMapping, prepared: list,
