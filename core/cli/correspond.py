@@ -7,9 +7,9 @@ fairing on the target surface (``core.correspondence``), after grooming every in
 common ``--vertices``; each step reported per shape and switchable off) and followed by
 ``--refine`` groupwise passes to the mean shape; the remesh and each pass are kept only
 where the model's leave-one-out generalisation against the raw inputs says they help
-(``core.correspondence.safeguard``; ``--no-safeguard`` keeps them regardless). ``--reference auto`` takes the most typical
-input (coarse, repaired and unrepresentative ones excluded; the reason is in the report), or
-the most compact of ``--n-references`` candidates; ``--reference PATH`` uses that mesh (it
+(``core.correspondence.safeguard``; ``--no-safeguard`` keeps them regardless).
+``--reference auto`` takes the most typical input (coarse, repaired and unrepresentative ones
+excluded; the reason is in the report), or the most compact of ``--n-references`` candidates; ``--reference PATH`` uses that mesh (it
 must be one closed surface).
 
 Writes ``DIR/<input name>`` for every input that succeeded (same format as the input; .vtk for
@@ -200,10 +200,9 @@ def run(args: argparse.Namespace) -> int:
                 paths, reference, n_references=args.n_references, n_jobs=args.jobs,
                 progress=progress, selection=args.selection, groom=groom,
                 vertices=args.vertices, refine=args.refine, on_shape=write_shape,
-                on_provisional=write_provisional,
+                on_provisional=write_provisional, safeguard=not args.no_safeguard,
                 on_unreadable=lambda i, problem: unreadable.__setitem__(names[i], problem),
-                scratch=args.out / SCRATCH_NAME, keep_meshes=False, safeguard=not args.no_safeguard,
-                **params)
+                scratch=args.out / SCRATCH_NAME, keep_meshes=False, **params)
     except (KeyboardInterrupt, Terminated) as exc:
         readable = [p for p in paths if str(p) not in unreadable]
         _write_interrupted_report(args, readable, written, unreadable, exc, provisional)
