@@ -53,10 +53,10 @@ def populations(report: bool, seeds: int, n_shapes: int, only: list[str] | None)
                         continue
                     if style == "even":
                         pop = known_homology_shapes(kind, n_shapes, seed=100 + seed,
-                                                    n_points=(1500, 2500), retessellate=True)
+                                                    n_points=(1000, 1600), retessellate=True)
                     else:
                         pop = unevenly_decimated(known_homology_shapes(
-                            kind, n_shapes, seed=100 + seed, n_points=(3000, 4500)), seed=seed)
+                            kind, n_shapes, seed=100 + seed, n_points=(2000, 3000)), seed=seed)
                     out.append((label, seed, pop))
     try:
         from core.datasets import families
@@ -178,7 +178,7 @@ def summary(results: list[dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--shapes", type=int, default=8)
     ap.add_argument("--report", action="store_true", help="the REPORT families (else TUNING)")
     ap.add_argument("--only", nargs="*", help="family labels to run")

@@ -9,8 +9,8 @@ common ``--vertices``; each step reported per shape and switchable off) and foll
 where the model's leave-one-out generalisation against the raw inputs says they help
 (``core.correspondence.safeguard``; ``--no-safeguard`` keeps them regardless).
 ``--reference auto`` takes the most typical input (coarse, repaired and unrepresentative ones
-excluded; the reason is in the report), or the most compact of ``--n-references`` candidates; ``--reference PATH`` uses that mesh (it
-must be one closed surface).
+excluded; the reason is in the report), or the most compact of ``--n-references``
+candidates; ``--reference PATH`` uses that mesh (it must be one closed surface).
 
 Writes ``DIR/<input name>`` for every input that succeeded (same format as the input; .vtk for
 formats that cannot be written or cannot keep vertex order, such as STL: the report's
