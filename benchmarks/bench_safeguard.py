@@ -4,7 +4,7 @@ For every known-truth population (``core.datasets.shapes`` kinds in two tessella
 and the families of ``core.datasets.families`` when present: the TUNING ones by default,
 ``--report`` for the REPORT ones), runs ``establish_correspondence``:
 
-- ``before``: the defaults without the safeguard (remesh + one normal-offsets pass);
+- ``before``: round 2's defaults (every input remeshed, one normal-offsets pass, no safeguard);
 - ``after``: the defaults with the safeguard (:mod:`core.correspondence.safeguard`);
 - ``r0 remesh`` / ``r0 plain``: reference-based only (``refine=0``), with and without the
   remesh (``r0 plain`` is plain reference-based correspondence);
@@ -39,6 +39,7 @@ from core.datasets.shapes import known_homology_shapes, unevenly_decimated  # no
 
 KINDS = ("bean", "tube", "ring")
 STYLES = ("uneven", "even")
+QUICK = ("bean-uneven", "tube-uneven", "global", "concave", "coarse", "labels_1mm")
 
 
 def populations(report: bool, seeds: int, n_shapes: int, only: list[str] | None):
@@ -87,7 +88,7 @@ def evaluate(pop, n_jobs: int) -> dict:
             runs[label]["criteria"] = _criteria(pop, res)
         return res
 
-    run("before", safeguard=False)
+    run("before", groom={"keep_tessellation_above": None}, safeguard=False)  # round 2's defaults
     guarded = run("after")
     run("r0 remesh", True, refine=0, safeguard=False)
     run("r0 plain", True, refine=0, groom={"remesh": False}, safeguard=False)
