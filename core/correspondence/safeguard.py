@@ -134,10 +134,11 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
             values[label] = {"value": None, "error": str(exc)}
             continue
         values[label] = _criterion_of(res, raw)
-    keep = _better(values.get("remesh", {}).get("value"), values.get("no remesh", {}).get("value"))
+    keep = _better(values["remesh"], values["no remesh"])
     record = {"stage": "remesh", "tried": ["remesh", "no remesh"], "shapes": [raw[j].name for j in
                                                                                range(len(pick))],
               "criterion_mm": {k: v.get("value") for k, v in values.items()},
+              "failed": {k: v.get("failed") for k, v in values.items()},
               "kept": "remesh" if keep else "no remesh"}
     return (groom if keep else dict(options, remesh=False)), record
 
@@ -145,16 +146,19 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
 def _criterion_of(result, raw: Sequence[TriMesh]) -> dict:
     ok = [j for j, m in enumerate(result.meshes) if m is not None]
     if len(ok) < 3:
-        return {"value": None, "error": "fewer than 3 shapes corresponded"}
-    return loo_generalisation([result.meshes[j].vertices for j in ok], result.faces,
-                              [raw[j] for j in ok])
+        return {"value": None, "error": "fewer than 3 shapes corresponded", "failed": len(raw) - len(ok)}
+    return dict(loo_generalisation([result.meshes[j].vertices for j in ok], result.faces,
+                                   [raw[j] for j in ok]), failed=len(raw) - len(ok))
 
 
-def _better(with_stage: float | None, without: float | None) -> bool:
-    """Keep the stage: its criterion is known and lower than without it (or without it failed)."""
-    if with_stage is None:
+def _better(with_stage: dict, without: dict) -> bool:
+    """Keep the stage: fewer shapes failed with it, or as many and its criterion is lower
+    (a criterion over fewer shapes is no comparison)."""
+    if with_stage.get("value") is None:
         return False
-    return without is None or with_stage < without
+    if without.get("value") is None or with_stage["failed"] != without["failed"]:
+        return without.get("value") is None or with_stage["failed"] < without["failed"]
+    return with_stage["value"] < without["value"]
 
 
 class RefinementGuard:
