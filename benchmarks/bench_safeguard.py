@@ -129,16 +129,20 @@ def _criteria(pop, result) -> dict:
 
 def _offline(runs: dict, base: str) -> dict:
     """Per candidate criterion: was its remesh pick, and its refinement pick (the
-    safeguard's rule: offsets if lower than before, else cpd if lower), the truth's best?"""
+    safeguard's rule: offsets if lower than before by the margin, else cpd if so), the
+    truth's best? (The refinement from the remesh choice the run's safeguard kept.)"""
+    from core.correspondence.safeguard import KEEP_MARGIN
+
+    keep = 1.0 - KEEP_MARGIN
     out = {}
     for name in runs["r0 plain"]["criteria"]:
         c = {k: runs[k]["criteria"][name] for k in ("r0 remesh", "r0 plain", "r1 offsets", "r1 cpd")}
         t = {k: runs[k]["mean"] for k in c}
-        rem = "r0 remesh" if c["r0 remesh"] < c["r0 plain"] else "r0 plain"
+        rem = "r0 remesh" if c["r0 remesh"] < keep * c["r0 plain"] else "r0 plain"
         pick = base
-        if c["r1 offsets"] < c[base]:
+        if c["r1 offsets"] < keep * c[base]:
             pick = "r1 offsets"
-        elif c["r1 cpd"] < c[base]:
+        elif c["r1 cpd"] < keep * c[base]:
             pick = "r1 cpd"
         tried = [base, "r1 offsets"] + (["r1 cpd"] if pick != "r1 offsets" else [])
         out[name] = {"remesh": rem == min(("r0 remesh", "r0 plain"), key=t.get),
