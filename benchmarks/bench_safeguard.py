@@ -123,7 +123,7 @@ def _criteria(pop, result) -> dict:
 
     shapes = [m.vertices for m in result.meshes]
     loo = loo_generalisation(shapes, result.faces, pop.meshes)
-    return {"surface": loo["value"], "point": loo["point_mm"],
+    return {"point+raw": loo["value"], "surface": loo["surface_mm"],
             "compactness": _compactness(np.stack(shapes))}
 
 
