@@ -32,8 +32,8 @@ recorded in ``CorrespondenceResult.safeguard`` and so in ``correspondence.json``
 - a refinement pass: the criterion on at most :data:`MODEL_SHAPES` shapes before and after
   the pass; a pass that does not lower it by more than :data:`KEEP_MARGIN` is rolled back
   (the shapes' previous correspondences restored); the other deformation (``"cpd"`` for
-  ``"normal_offsets"`` and the reverse) is then tried from the same start once, and kept if it helps; when no pass
-  helps, refinement stops there.
+  ``"normal_offsets"`` and the reverse) is then tried from the same start once, and kept if
+  it helps; when no pass helps, refinement stops there.
 """
 
 from __future__ import annotations
