@@ -150,10 +150,14 @@ def _offline(runs: dict, base: str) -> dict:
     return out
 
 
+TIE = 0.03  # options whose true spreads differ by less than this share: a tie, either is right
+
+
 def _check(stage: str, criterion: dict, truth: dict, kept: str) -> dict:
     best = min(truth, key=truth.get)
+    tie = truth[kept] <= (1.0 + TIE) * truth[best]
     return {"stage": stage, "criterion_mm": criterion, "truth_mm": truth, "kept": kept,
-            "best": best, "right": kept == best}
+            "best": best, "right": kept == best, "within_tie": bool(tie)}
 
 
 RUNS = ("before", "after", "r0 plain", "r0 remesh", "r1 offsets", "r1 cpd", "nogroom cpd")
@@ -164,6 +168,8 @@ def summary(results: list[dict]) -> None:
     hits = sum(c["right"] for c in checks)
     print(f"\nsafeguard hit rate: {hits}/{len(checks)} decisions "
           f"({100 * hits / max(len(checks), 1):.0f} %)")
+    near = sum(c["within_tie"] for c in checks)
+    print(f"picks within {100 * TIE:.0f} % of the best option's true spread: {near}/{len(checks)}")
     for name in results[0]["offline"] if results else ():
         for stage in ("remesh", "refinement"):
             got = [r["offline"][name][stage] for r in results]
