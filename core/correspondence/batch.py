@@ -946,36 +946,44 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, rec
     if on_provisional is not None and refine > 0:
         for k in sorted(corresponded):
             on_provisional(k, TriMesh(corresponded[k], ref_faces, names[k]))
-    changes = _refine_guarded(record, handles, corresponded, ref_faces, prepared, params, n_jobs,
-                              progress, refine, timings, final if on_shape is not None else None)
+    changes, again = _refine_guarded(record, handles, corresponded, ref_faces, prepared, params, n_jobs,
+                                     progress, refine, timings, final if on_shape is not None else None)
     for k in sorted(corresponded) if on_shape is not None else ():
-        if k not in streamed:  # shapes no refinement pass touched (refine=0, < 3 shapes)
+        if k not in streamed or again:  # untouched by a pass (refine=0, < 3 shapes), or rolled back
+            streamed.discard(k)
             stream(k, corresponded[k])
     result = _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures,
                      timings, scores, params, grooming, why, changes, t_start, n_jobs, progress,
                      keep_meshes)
-    result.unreadable = unread
-    result.poses = poses
-    result.safeguard = record
+    result.unreadable, result.poses, result.safeguard = unread, poses, record
     return result
 
 
 def _refine_guarded(record: dict, handles: list, vertices: MutableMapping, faces: np.ndarray,
                     prepared: list, params: dict, n_jobs: int, progress, passes: int,
-                    timings: dict, on_last_pass: Callable | None) -> list[float]:
+                    timings: dict, on_last_pass: Callable | None) -> tuple[list[float], bool]:
     """:func:`_refine`, each pass judged by the safeguard when it is on
-    (:class:`core.correspondence.safeguard.RefinementGuard`, its record into ``record``;
-    the last pass's results then stream once judged, not as they arrive)."""
+    (:class:`core.correspondence.safeguard.RefinementGuard`, its record into ``record``).
+    Returns the changes and whether the shapes must stream again: with the safeguard, the
+    first pass's results stream as they arrive (an interrupted run keeps them), and when
+    that pass is rolled back or another follows, the kept results replace them."""
     if not record["enabled"]:
         return _refine(vertices, faces, prepared, _pass_params(params), n_jobs, progress, passes,
-                       timings, on_last_pass=on_last_pass)
+                       timings, on_last_pass=on_last_pass), False
     from core.correspondence.safeguard import RefinementGuard, raw_mesh
 
     guard = RefinementGuard(lambda k: raw_mesh(handles[k]))
-    changes = guard.refine(vertices, faces, params, passes, lambda p: _refine(
-        vertices, faces, prepared, _pass_params(p), n_jobs, progress, 1, timings))
+    calls = []
+
+    def run_pass(p: dict) -> list[float]:
+        calls.append(p["refine_deformation"])
+        return _refine(vertices, faces, prepared, _pass_params(p), n_jobs, progress, 1, timings,
+                       on_last_pass=on_last_pass)
+    changes = guard.refine(vertices, faces, params, passes, run_pass)
     record["stages"] += [guard.record] if passes > 0 else []
-    return changes
+    passes_done = guard.record["passes"]
+    kept_first = len(calls) == 1 and bool(passes_done) and passes_done[0]["kept"] == calls[0]
+    return changes, bool(calls) and not kept_first
 
 
 def _drop_flagged(results: dict, usable: list[int], corresponded: MutableMapping, prepared: list,
