@@ -5,10 +5,12 @@ nonrigid Coherent Point Drift (rustcpd engine), a linear assignment on the CPD p
 fairing on the target surface (``core.correspondence``), after grooming every input
 (``core.correspondence.grooming``: largest piece kept, small holes filled, orientation fixed, remeshed to a
 common ``--vertices``; each step reported per shape and switchable off) and followed by
-``--refine`` groupwise passes to the mean shape. ``--reference auto`` takes the most typical
-input (coarse, repaired and unrepresentative ones excluded; the reason is in the report), or
-the most compact of ``--n-references`` candidates; ``--reference PATH`` uses that mesh (it
-must be one closed surface).
+``--refine`` groupwise passes to the mean shape; the remesh and each pass are kept only
+where the model's leave-one-out generalisation against the raw inputs says they help
+(``core.correspondence.safeguard``; ``--no-safeguard`` keeps them regardless).
+``--reference auto`` takes the most typical input (coarse, repaired and unrepresentative ones
+excluded; the reason is in the report), or the most compact of ``--n-references``
+candidates; ``--reference PATH`` uses that mesh (it must be one closed surface).
 
 Writes ``DIR/<input name>`` for every input that succeeded (same format as the input; .vtk for
 formats that cannot be written or cannot keep vertex order, such as STL: the report's
@@ -82,6 +84,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        ("fill-holes", "fill small holes"), ("fix-orientation", "fix face orientation"),
                        ("remesh", "remesh to the common vertex count")):
         parser.add_argument(f"--no-{step}", action="store_true", help=f"grooming: do not {what}")
+    parser.add_argument("--no-safeguard", action="store_true",
+                        help="keep the remesh and every refinement pass even where the model's "
+                             "leave-one-out generalisation against the raw inputs says they do "
+                             "not help (core.correspondence.safeguard; the report's 'safeguard' "
+                             "says what was tried and kept)")
     parser.add_argument("--selection", choices=("compactness", "residual"), default="compactness",
                         help="how --reference auto ranks candidates (default compactness)")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
@@ -193,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
                 paths, reference, n_references=args.n_references, n_jobs=args.jobs,
                 progress=progress, selection=args.selection, groom=groom,
                 vertices=args.vertices, refine=args.refine, on_shape=write_shape,
-                on_provisional=write_provisional,
+                on_provisional=write_provisional, safeguard=not args.no_safeguard,
                 on_unreadable=lambda i, problem: unreadable.__setitem__(names[i], problem),
                 scratch=args.out / SCRATCH_NAME, keep_meshes=False, **params)
     except (KeyboardInterrupt, Terminated) as exc:

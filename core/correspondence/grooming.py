@@ -53,6 +53,10 @@ DEFAULT_GROOMING = {
     "remove_small_handles": True,  # handles thinner than about one mean edge length
     "max_hole_edges": None,     # loops up to this many edges are filled (None: max(6, sqrt(N) / 2))
     "max_hole_perimeter": 0.3,  # ... and loops up to this share of the bounding box diagonal
+    "keep_tessellation_above": None,  # an input with at least this share of ``vertices``
+    # keeps its own tessellation (None: every input is remeshed). The correspondence batch
+    # sets 0.5 and remeshes only the reference (issue 27: the targets' remesh took away the
+    # density cue CPD matched; batch.remesh_reference).
 }
 
 
@@ -504,7 +508,10 @@ def groom_mesh(mesh: TriMesh, options: dict | None = None) -> tuple[TriMesh, Gro
         report.genus -= report.removed_handles
     if abs(meshops.volume(v, f)) <= 1e-9 * max(float(np.ptp(v, axis=0).max()), 1e-300) ** 3:
         raise GroomingError("the surface encloses no volume (flat or collapsed)")
-    if opt["remesh"] and needs_remesh(v, f, int(opt["vertices"])):
+    keep = opt["keep_tessellation_above"]
+    if keep is not None and len(v) >= float(keep) * int(opt["vertices"]):
+        pass  # kept as it is: a correspondence target needs no common count
+    elif opt["remesh"] and needs_remesh(v, f, int(opt["vertices"])):
         v, f = remesh(v, f, int(opt["vertices"]))
         report.remeshed = True
         if meshops.topology(f, len(v))["genus"] != report.genus:

@@ -29,6 +29,17 @@ tangential error of the order of the feature's size. On the known-homology bench
 (``benchmarks/bench_correspondence.py --only spread``) this fit in the refinement pass
 lowered the spread below CPD's (README, Measured).
 
+Where it hurts (issue 27, ``benchmarks/bench_safeguard.py``, 6 shapes, true spread mean mm,
+reference-based then after one pass of this fit / of nonrigid CPD): the "global" family
+(bending, tapering, twisting) 2.06 -> 2.66 / 1.26, "concave" 0.55 -> 1.19 / 0.56; where it
+helps: uneven beans 1.82 -> 0.79 / 1.89, uneven tubes 2.54 -> 0.66 / 2.33, label maps at 1 mm
+0.78 -> 0.54 / 0.79. Not yet shown which part is the cause; what is known: the offsets move
+the template only along its normals, so a tangential error of the template (the mean of the
+reference-based pass, blurred where that pass is inconsistent) is carried to every shape,
+and a global bend or twist, mostly tangential at a shape's ends, is left to the affine map,
+which cannot bend. The safeguard (:mod:`core.correspondence.safeguard`) rolls such a pass
+back and tries CPD instead.
+
 All lengths are in the units of the points given (:func:`core.correspondence.pair`
 normalises each target to unit RMS radius).
 """

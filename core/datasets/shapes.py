@@ -28,6 +28,9 @@ Two kinds of population:
   size varies between subjects; the independent bumps, smaller, add per-subject variation.
   What population-based correspondence methods are built for.
 
+:func:`unevenly_decimated` gives each shape of a population an uneven tessellation instead
+(a random quadric decimation).
+
 ``retessellate=True`` replaces each shape's lattice by an independent even remesh of its
 surface (material points carried by barycentric interpolation): the lattice's vertex
 density follows the material parameter, a cue of the truth that CPD's density matching uses
@@ -222,6 +225,30 @@ def _retessellated(faces: np.ndarray, shape: np.ndarray, base: np.ndarray,
 
     vertices, new_faces = remesh(shape, faces, n_vertices)
     return vertices, new_faces, material_points(vertices, TriMesh(shape, faces), base)
+
+
+def unevenly_decimated(population: KnownHomologyShapes, *, seed: int = 0,
+                       reduction: tuple[float, float] = (0.3, 0.85)) -> KnownHomologyShapes:
+    """The population with every shape decimated by its own random share (quadric decimation,
+    Garland & Heckbert 1997, in VTK: denser where the surface curves, uneven triangles) and
+    its vertices shuffled again; the material points carried over by barycentric
+    interpolation. The uneven tessellation style of issue 27's reviewer population."""
+    import pyvista as pv
+
+    rng = np.random.default_rng(seed)
+    meshes, material = [], []
+    for mesh, mat in zip(population.meshes, population.material):
+        faces = np.asarray(mesh.faces)
+        poly = pv.PolyData(np.asarray(mesh.vertices, float),
+                           np.column_stack([np.full(len(faces), 3), faces]).ravel())
+        out = poly.decimate(float(rng.uniform(*reduction)))
+        v = np.asarray(out.points, dtype=np.float64)
+        f = np.asarray(out.faces).reshape(-1, 4)[:, 1:]
+        perm = rng.permutation(len(v))
+        v, f = v[perm], np.argsort(perm)[f]
+        meshes.append(TriMesh(v, f, mesh.name))
+        material.append(material_points(v, mesh, mat))
+    return KnownHomologyShapes(population.kind, meshes, material)
 
 
 def material_points(points: np.ndarray, mesh: TriMesh, material: np.ndarray) -> np.ndarray:

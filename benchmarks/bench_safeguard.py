@@ -1,0 +1,217 @@
+"""Does the correspondence safeguard pick the option with the lower true spread? (issue 27, item 3)
+
+For every known-truth population (``core.datasets.shapes`` kinds in two tessellation styles,
+and the families of ``core.datasets.families`` when present: the TUNING ones by default,
+``--report`` for the REPORT ones), runs ``establish_correspondence``:
+
+- ``before``: round 2's defaults (every input remeshed, one normal-offsets pass, no safeguard);
+- ``after``: the defaults with the safeguard (:mod:`core.correspondence.safeguard`);
+- ``r0 remesh`` / ``r0 plain``: reference-based only (``refine=0``), with and without the
+  remesh (``r0 plain`` is plain reference-based correspondence);
+- ``r1 offsets`` / ``r1 cpd``: one refinement pass from the labelled reference-based result
+  with the remesh choice the safeguard kept (the states the safeguard judged);
+- ``nogroom cpd``: ``groom=False, refine_deformation="cpd"``.
+
+Per population it prints the safeguard's criterion (leave-one-out generalisation against the
+raw inputs, mm) for each option it judged, the options' true spreads (mean distance of
+homologous output vertices' material points from their mean, mm), its pick and whether the
+pick had the lowest true spread among the options judged; then the hit rate, and per family
+the mean of the populations' mean and p95 spreads for every run.
+
+    PYTHONPATH=. python benchmarks/bench_safeguard.py --jobs 2 [--report] [--seeds 2] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from core.correspondence import establish_correspondence  # noqa: E402
+from core.datasets.shapes import known_homology_shapes, unevenly_decimated  # noqa: E402
+
+KINDS = ("bean", "tube", "ring")
+STYLES = ("uneven", "even")
+QUICK = ("bean-uneven", "tube-uneven", "global", "concave", "coarse", "labels_1mm")
+
+
+def populations(report: bool, seeds: int, n_shapes: int, only: list[str] | None):
+    """(family label, seed, population) of the chosen half."""
+    out = []
+    if not report:
+        for kind in KINDS:
+            for style in STYLES:
+                label = f"{kind}-{style}"
+                for seed in range(seeds):
+                    if only and label not in only:
+                        continue
+                    if style == "even":
+                        pop = known_homology_shapes(kind, n_shapes, seed=100 + seed,
+                                                    n_points=(1000, 1600), retessellate=True)
+                    else:
+                        pop = unevenly_decimated(known_homology_shapes(
+                            kind, n_shapes, seed=100 + seed, n_points=(2000, 3000)), seed=seed)
+                    out.append((label, seed, pop))
+    try:
+        from core.datasets import families
+    except ImportError:
+        return out
+    for fam in (families.REPORT if report else families.TUNING):
+        for seed in range(seeds):
+            if only and fam not in only:
+                continue
+            out.append((fam, seed, families.population(fam, n_shapes, 100 + seed)))
+    return out
+
+
+def _spread(pop, result) -> tuple[float, float]:
+    s = pop.spread([m.vertices if m is not None else None for m in result.meshes])
+    return float(s.mean()), float(np.percentile(s, 95))
+
+
+def evaluate(pop, n_jobs: int) -> dict:
+    """Every run of the module docstring on one population: spreads, the record, the checks."""
+    runs: dict = {}
+
+    def run(label: str, judge: bool = False, **kw):
+        t = time.perf_counter()
+        res = establish_correspondence(pop.meshes, n_jobs=n_jobs, **kw)
+        runs[label] = dict(zip(("mean", "p95"), _spread(pop, res)), seconds=time.perf_counter() - t)
+        if judge:
+            runs[label]["criteria"] = _criteria(pop, res)
+        return res
+
+    run("before", groom={"keep_tessellation_above": None}, safeguard=False)  # round 2's defaults
+    guarded = run("after")
+    run("r0 remesh", True, refine=0, safeguard=False)
+    run("r0 plain", True, refine=0, groom={"remesh": False}, safeguard=False)
+    stages = {s["stage"]: s for s in guarded.safeguard["stages"]}
+    kept_remesh = stages.get("remesh", {}).get("kept", "remesh") == "remesh"
+    groom = {} if kept_remesh else {"remesh": False}
+    run("r1 offsets", True, groom=groom, labelling=True, safeguard=False)
+    run("r1 cpd", True, groom=groom, labelling=True, refine_deformation="cpd", safeguard=False)
+    run("nogroom cpd", groom=False, refine_deformation="cpd", safeguard=False)
+    checks = []
+    if "remesh" in stages:
+        st = stages["remesh"]
+        truth = {"remesh": runs["r0 remesh"]["mean"], "no remesh": runs["r0 plain"]["mean"]}
+        checks.append(_check("remesh", st["criterion_mm"], truth, st["kept"]))
+    if "refinement" in stages and stages["refinement"]["passes"]:
+        p = stages["refinement"]["passes"][0]
+        before = runs["r0 remesh" if kept_remesh else "r0 plain"]["mean"]
+        crit = {"none": p["before_mm"], **p["criterion_mm"]}
+        truth = {"none": before, "normal_offsets": runs["r1 offsets"]["mean"],
+                 "cpd": runs["r1 cpd"]["mean"]}
+        kept = "none" if p["kept"].startswith("none") else p["kept"]
+        checks.append(_check("refinement", crit, {k: truth[k] for k in crit}, kept))
+    base = "r0 remesh" if kept_remesh else "r0 plain"
+    return {"runs": runs, "checks": checks, "safeguard": guarded.safeguard,
+            "offline": _offline(runs, base)}
+
+
+def _criteria(pop, result) -> dict:
+    """Candidate criteria on one run's correspondences (lower is better)."""
+    from core.correspondence.batch import _compactness
+    from core.correspondence.safeguard import loo_generalisation
+
+    shapes = [m.vertices for m in result.meshes]
+    loo = loo_generalisation(shapes, result.faces, pop.meshes)
+    return {"point+raw": loo["value"], "surface": loo["surface_mm"],
+            "compactness": _compactness(np.stack(shapes))}
+
+
+def _offline(runs: dict, base: str) -> dict:
+    """Per candidate criterion: was its remesh pick, and its refinement pick (the
+    safeguard's rule: offsets if lower than before by the margin, else cpd if so), the
+    truth's best? (The refinement from the remesh choice the run's safeguard kept.)"""
+    from core.correspondence.safeguard import KEEP_MARGIN
+
+    keep = 1.0 - KEEP_MARGIN
+    out = {}
+    for name in runs["r0 plain"]["criteria"]:
+        c = {k: runs[k]["criteria"][name] for k in ("r0 remesh", "r0 plain", "r1 offsets", "r1 cpd")}
+        t = {k: runs[k]["mean"] for k in c}
+        rem = "r0 remesh" if c["r0 remesh"] < keep * c["r0 plain"] else "r0 plain"
+        pick = base
+        if c["r1 offsets"] < keep * c[base]:
+            pick = "r1 offsets"
+        elif c["r1 cpd"] < keep * c[base]:
+            pick = "r1 cpd"
+        tried = [base, "r1 offsets"] + (["r1 cpd"] if pick != "r1 offsets" else [])
+        out[name] = {"remesh": rem == min(("r0 remesh", "r0 plain"), key=t.get),
+                     "refinement": pick == min(tried, key=t.get)}
+    return out
+
+
+TIE = 0.03  # options whose true spreads differ by less than this share: a tie, either is right
+
+
+def _check(stage: str, criterion: dict, truth: dict, kept: str) -> dict:
+    best = min(truth, key=truth.get)
+    tie = truth[kept] <= (1.0 + TIE) * truth[best]
+    return {"stage": stage, "criterion_mm": criterion, "truth_mm": truth, "kept": kept,
+            "best": best, "right": kept == best, "within_tie": bool(tie)}
+
+
+RUNS = ("before", "after", "r0 plain", "r0 remesh", "r1 offsets", "r1 cpd", "nogroom cpd")
+
+
+def summary(results: list[dict]) -> None:
+    checks = [c for r in results for c in r["checks"]]
+    hits = sum(c["right"] for c in checks)
+    print(f"\nsafeguard hit rate: {hits}/{len(checks)} decisions "
+          f"({100 * hits / max(len(checks), 1):.0f} %)")
+    near = sum(c["within_tie"] for c in checks)
+    print(f"picks within {100 * TIE:.0f} % of the best option's true spread: {near}/{len(checks)}")
+    for name in results[0]["offline"] if results else ():
+        for stage in ("remesh", "refinement"):
+            got = [r["offline"][name][stage] for r in results]
+            print(f"offline, criterion {name:12s} {stage:10s}: {sum(got)}/{len(got)} right")
+    print("\nper family, mean over populations of the spread mean / p95 (mm):")
+    print(f"{'family':18s}" + "".join(f"{r:>18s}" for r in RUNS))
+    for fam in dict.fromkeys(r["family"] for r in results):
+        rows = [r for r in results if r["family"] == fam]
+        cells = [f"{np.mean([x['runs'][k]['mean'] for x in rows]):.3f}/"
+                 f"{np.mean([x['runs'][k]['p95'] for x in rows]):.3f}" for k in RUNS]
+        a, p = (np.mean([x["runs"]["after"][q] for x in rows]) for q in ("mean", "p95"))
+        b, bp = (np.mean([x["runs"]["r0 plain"][q] for x in rows]) for q in ("mean", "p95"))
+        flag = "" if a <= 1.05 * b and p <= 1.05 * bp else "   after > 1.05 x r0 plain"
+        print(f"{fam:18s}" + "".join(f"{c:>18s}" for c in cells) + flag)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--shapes", type=int, default=8)
+    ap.add_argument("--report", action="store_true", help="the REPORT families (else TUNING)")
+    ap.add_argument("--only", nargs="*", help="family labels to run")
+    ap.add_argument("--json", type=Path, help="write every result here")
+    args = ap.parse_args()
+    results = []
+    for fam, seed, pop in populations(args.report, args.seeds, args.shapes, args.only):
+        out = evaluate(pop, args.jobs)
+        out.update(family=fam, seed=seed)
+        results.append(out)
+        runs = out["runs"]
+        print(f"\n{fam} seed {seed}: " + ", ".join(f"{k} {runs[k]['mean']:.3f}/{runs[k]['p95']:.3f}"
+                                               for k in RUNS), flush=True)
+        for c in out["checks"]:
+            print(f"  {c['stage']:10s} criterion " + ", ".join(f"{k} {v:.4f}" for k, v in
+                                                           c["criterion_mm"].items())
+                  + " | truth " + ", ".join(f"{k} {v:.3f}" for k, v in c["truth_mm"].items())
+                  + f" | kept {c['kept']} | {'right' if c['right'] else 'WRONG'}", flush=True)
+        if args.json:
+            args.json.write_text(json.dumps(results, indent=1))
+    summary(results)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""The correspondence safeguard (core.correspondence.safeguard, issue 27 item 3): its criterion
+ranks true correspondences above slid ones, a stage the truth shows hurts is rolled back and one
+that helps is kept, and ``correspondence.json`` records what was tried and kept."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from core.correspondence.safeguard import RefinementGuard, loo_generalisation
+from core.datasets.factors import ellipsoid_surface, planted_shapes
+from core.geometry.toolkit import closest_points_on_surface
+from core.types import TriMesh
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """Shapes on one tessellation (vertex i homologous across them), and the same shapes
+    with every vertex slid along the surface by a smooth field of its own (about 2 mm)."""
+    base, faces = ellipsoid_surface(3)
+    shapes = planted_shapes(base, faces, n_shapes=8, amplitude=2.5, random_state=3).shapes
+    rng = np.random.default_rng(0)
+    slid = []
+    for s in shapes:
+        direction = rng.normal(size=3)
+        field = np.outer(np.sin(s[:, 0] / 8.0 + rng.uniform(0, 6)), direction / np.linalg.norm(direction))
+        slid.append(closest_points_on_surface(s + 2.5 * field, s, faces)[0])
+    raw = [TriMesh(s, faces, f"s{k}") for k, s in enumerate(shapes)]
+    return list(shapes), slid, faces, raw
+
+
+def test_the_criterion_prefers_true_correspondences_to_slid_ones(truth):
+    shapes, slid, faces, raw = truth
+    good = loo_generalisation(shapes, faces, raw)
+    bad = loo_generalisation(slid, faces, raw)
+    assert len(good["folds"]) == len(shapes)
+    assert good["value"] < 0.8 * bad["value"]
+
+
+def _spread(current: dict, shapes: list) -> float:
+    return float(np.mean([np.linalg.norm(current[k] - shapes[k], axis=1).mean() for k in current]))
+
+
+def test_a_pass_that_helps_is_kept_and_one_that_hurts_is_rolled_back(truth):
+    shapes, slid, faces, raw = truth
+    # helps: the pass brings every shape to its true correspondence
+    current = {k: v.copy() for k, v in enumerate(slid)}
+    guard = RefinementGuard(lambda k: raw[k])
+
+    def helps(params):
+        for k in current:
+            current[k] = shapes[k].copy()
+        return [1.0]
+    guard.refine(current, faces, {"refine_deformation": "normal_offsets"}, 1, helps)
+    assert guard.record["passes"][0]["kept"] == "normal_offsets"
+    assert _spread(current, shapes) == 0.0
+    # hurts: every pass slides the true correspondences; both deformations are tried, both
+    # rolled back (the shapes as before, exactly), and refinement stops there
+    current = {k: v.copy() for k, v in enumerate(shapes)}
+    guard = RefinementGuard(lambda k: raw[k])
+    tried = []
+
+    def hurts(params):
+        tried.append(params["refine_deformation"])
+        for k in current:
+            current[k] = slid[k].copy()
+        return [2.0]
+    guard.refine(current, faces, {"refine_deformation": "normal_offsets"}, 2, hurts)
+    entry, = guard.record["passes"]
+    assert entry["kept"].startswith("none") and tried == ["normal_offsets", "cpd"]
+    assert set(entry["criterion_mm"]) == {"normal_offsets", "cpd"}
+    assert all(v > guard.record["before_mm"] for v in entry["criterion_mm"].values())
+    assert all(np.array_equal(current[k], shapes[k]) for k in current)
+
+
+def _uneven_beans(seed: int, points: tuple[int, int], decimation_seed: int):
+    from core.datasets.shapes import known_homology_shapes, unevenly_decimated
+
+    return unevenly_decimated(known_homology_shapes("bean", 6, seed=seed, n_points=points),
+                              seed=decimation_seed)
+
+
+@pytest.fixture(scope="module")
+def uneven_beans():
+    """Six beans with known homologies, each its own random quadric decimation (uneven),
+    where a refinement pass helps (bench_safeguard's bean-uneven population: true spread
+    1.82 mm reference-based, 0.79 after a normal-offsets pass)."""
+    return _uneven_beans(100, (2000, 3000), 0)
+
+
+def _true_spread(pop, result) -> float:
+    return float(pop.spread([m.vertices for m in result.meshes]).mean())
+
+
+def _stages(result) -> dict:
+    return {s["stage"]: s for s in result.safeguard["stages"]}
+
+
+def test_the_safeguard_keeps_a_pass_that_helps(uneven_beans):
+    from core.correspondence import establish_correspondence
+
+    pop = uneven_beans
+    guarded = establish_correspondence(pop.meshes, n_jobs=1)
+    stages = _stages(guarded)
+    assert set(stages["remesh"]["criterion_mm"]) == {"remesh", "no remesh"}
+    groom = {} if stages["remesh"]["kept"] == "remesh" else {"remesh": False}
+    before = establish_correspondence(pop.meshes, n_jobs=1, refine=0, groom=groom, safeguard=False)
+    entry = stages["refinement"]["passes"][0]
+    assert entry["kept"] in ("normal_offsets", "cpd")
+    assert entry["criterion_mm"][entry["kept"]] < stages["refinement"]["before_mm"]
+    assert _true_spread(pop, guarded) < 0.7 * _true_spread(pop, before)  # the truth: it helps
+    report = guarded.to_report()
+    assert report["safeguard"]["enabled"] and len(report["safeguard"]["stages"]) == 2
+
+
+def test_the_safeguard_rolls_back_a_pass_that_hurts():
+    """A population of the "global" tuning family (bending, tapering, twisting): a
+    normal-offsets pass hurts it (bench_safeguard: true spread 2.06 mm reference-based, 2.66
+    after it); the safeguard rolls it back (and keeps a CPD pass, which helps: 1.26)."""
+    from core.correspondence import establish_correspondence
+    from core.datasets.families import population
+
+    pop = population("global", 6, 100)
+    guarded = establish_correspondence(pop.meshes, n_jobs=1)
+    stages = _stages(guarded)
+    entry = stages["refinement"]["passes"][0]
+    assert "normal_offsets" in entry["criterion_mm"] and entry["kept"] != "normal_offsets"
+    groom = {} if stages["remesh"]["kept"] == "remesh" else {"remesh": False}
+    forced = establish_correspondence(pop.meshes, n_jobs=1, groom=groom, labelling=True,
+                                      safeguard=False)
+    before = establish_correspondence(pop.meshes, n_jobs=1, groom=groom, refine=0, safeguard=False)
+    assert _true_spread(pop, forced) > 1.1 * _true_spread(pop, before)  # the truth: it hurts
+    assert _true_spread(pop, guarded) < _true_spread(pop, forced)
+
+
+def test_correspondence_json_records_the_safeguard(tmp_path, uneven_beans):
+    from core.cli import main
+    from core.io import save_mesh
+
+    paths = []
+    for m in uneven_beans.meshes[:5]:
+        path = tmp_path / "in" / f"{m.name}.vtk"
+        path.parent.mkdir(exist_ok=True)
+        save_mesh(path, m)
+        paths.append(str(path))
+    out = tmp_path / "corr"
+    assert main(["correspond", *paths, "--out", str(out), "--jobs", "1"]) == 0
+    record = json.loads((out / "correspondence.json").read_text())["safeguard"]
+    assert record["enabled"]
+    stages = {s["stage"]: s for s in record["stages"]}
+    assert stages["remesh"]["kept"] in ("remesh", "no remesh")
+    assert all(v > 0 for v in stages["remesh"]["criterion_mm"].values())
+    assert stages["refinement"]["before_mm"] > 0 and stages["refinement"]["passes"]
+    out2 = tmp_path / "corr2"
+    assert main(["correspond", *paths, "--out", str(out2), "--jobs", "1", "--no-safeguard",
+                 "--refine", "0"]) == 0
+    record = json.loads((out2 / "correspondence.json").read_text())["safeguard"]
+    assert record == {"enabled": False, "stages": []}
