@@ -104,8 +104,10 @@ def test_cli_correspond_takes_the_refinement_deformation(tmp_path):
         save_mesh(paths[-1], mesh)
     for how in ("cpd", "normal_offsets"):
         out = tmp_path / how
+        # without the safeguard the pass is always kept (with it, it may be rolled back:
+        # tests/test_safeguard.py)
         assert main(["correspond", *paths, "--out", str(out), "--jobs", "1",
-                     "--refine-deformation", how]) == 0
+                     "--refine-deformation", how, "--no-safeguard"]) == 0
         report = json.loads((out / "correspondence.json").read_text())
         assert report["params"]["refine_deformation"] == how
         assert len(report["refinement_change_mm"]) == 1
