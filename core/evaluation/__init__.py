@@ -10,28 +10,28 @@ parts as scikit-learn separates metrics from model selection and from displays:
 """
 
 from core.evaluation.measures import (
-                                      compactness,
-                                      reconstruction_errors,
-                                      residual_variance,
-                                      sparse_fit,
-                                      specificity,
-                                      vertex_errors,
+    compactness,
+    reconstruction_errors,
+    residual_variance,
+    sparse_fit,
+    specificity,
+    vertex_errors,
 )
 from core.evaluation.plotting import (
-                                      LABELS,
-                                      PER_SHAPE_MEASURES,
-                                      plot_metrics,
-                                      summary_rows,
-                                      summary_table,
-                                      to_json,
+    LABELS,
+    PER_SHAPE_MEASURES,
+    plot_metrics,
+    summary_rows,
+    summary_table,
+    to_json,
 )
 from core.evaluation.protocol import (
-                                      LEAVE_ONE_OUT,
-                                      MEASURES,
-                                      Realign,
-                                      Recorrespond,
-                                      evaluate_methods,
-                                      evaluate_model,
+    LEAVE_ONE_OUT,
+    MEASURES,
+    Realign,
+    Recorrespond,
+    evaluate_methods,
+    evaluate_model,
 )
 from core.runtime.progress import Cancelled
 
