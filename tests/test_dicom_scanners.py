@@ -36,6 +36,7 @@ MOSAIC = REAL / "siemens_mosaic_1volume.IMA"
 SHARED = next((p for p in (HERE.parents[1] / "shared", HERE.parents[2] / "shared")
                if p.is_dir()), HERE.parents[1] / "shared") / "data" / "real" / "dicom"
 SIEMENS_2D = SHARED / "siemens_flash2d_35slices"
+SIEMENS_4 = REAL / "siemens_flash2d_4slices"   # its first 4 slices, kept with the tests
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0])
 ENHANCED_MR = "1.2.840.10008.5.1.4.1.1.4.1"
 
@@ -59,6 +60,8 @@ def _corners(shape):
 
 def test_siemens_2d_series_matches_its_slice_tags():
     """35 sagittal slices (patient decubitus left): each voxel where its own file puts it."""
+    if not SIEMENS_2D.is_dir():
+        pytest.skip(f"the whole series is not here ({SIEMENS_2D.name}: ../shared beside the clone)")
     files = sorted(SIEMENS_2D.iterdir())
     slices = [_read(f) for f in files]
     row, col = (np.array(slices[0].ImageOrientationPatient[:3], float),
@@ -395,7 +398,7 @@ def test_gui_choice_without_dialog_names_the_others(tmp_path):
 def _siemens_slices(tmp: Path, change, which=None) -> Path:
     """The first 4 slices (along the normal) of the real Siemens series, ``change(ds)`` applied
     to every one (or to slice ``which``)."""
-    files = sorted(SIEMENS_2D.iterdir())
+    files = sorted(SIEMENS_4.iterdir())
     slices = [(f, _read(f)) for f in files]
     row = np.array(slices[0][1].ImageOrientationPatient[:3], float)
     col = np.array(slices[0][1].ImageOrientationPatient[3:], float)

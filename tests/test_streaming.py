@@ -6,6 +6,8 @@ path's. The memory test counts the mesh-sized blocks the client holds (tracemall
 
 from __future__ import annotations
 
+import gc
+
 import json
 import tracemalloc
 
@@ -116,6 +118,7 @@ def _blocks_held_at_the_last_output(meshes, n_vertices: int, **kw) -> int:
     counts = []
 
     def on_shape(index, mesh):
+        gc.collect()  # live blocks only (cycles of finished inline jobs are garbage already)
         counts.append(_mesh_blocks(n_vertices * 3 * 8))
 
     tracemalloc.start()
@@ -135,13 +138,22 @@ def test_the_streaming_client_holds_no_mesh_per_shape(tmp_path):
     population = known_homology_shapes("bean", 12, seed=7, n_points=(100, 120))
     paths = _write(population.meshes, tmp_path / "in")
     n_vertices = len(load_mesh(paths[0]).vertices)  # the reference's: every output has it
+    # the last pass streams as it runs without the safeguard (with it, every output streams
+    # once the passes are judged: checked flat below)
     small = _blocks_held_at_the_last_output(paths[:3], n_vertices, groom=False,
-                                            scratch=tmp_path / "s3", keep_meshes=False)
+                                            scratch=tmp_path / "s3", keep_meshes=False,
+                                            safeguard=False)
     large = _blocks_held_at_the_last_output(paths, n_vertices, groom=False,
-                                            scratch=tmp_path / "s12", keep_meshes=False)
-    held = _blocks_held_at_the_last_output(_read_back(paths), n_vertices, groom=False)
+                                            scratch=tmp_path / "s12", keep_meshes=False,
+                                            safeguard=False)
+    held = _blocks_held_at_the_last_output(_read_back(paths), n_vertices, groom=False,
+                                           safeguard=False)
     assert large <= small + 2
     assert held >= large + 2 * 9  # inputs and correspondences of 9 more shapes
+    # the safeguard's rollback copy sits beside the rows file, not in the client's memory
+    guarded = _blocks_held_at_the_last_output(paths, n_vertices, groom=False,
+                                              scratch=tmp_path / "g12", keep_meshes=False)
+    assert guarded <= small + 2
 
 
 def test_correspond_command_writes_what_the_library_computes(tmp_path):

@@ -43,6 +43,7 @@ from collections.abc import Callable, Mapping, MutableMapping, Sequence
 
 import numpy as np
 
+from core.correspondence.store import VertexRows
 from core.types import TriMesh
 
 MODEL_SHAPES = 24   # shapes of the generalisation model (evenly spread over the data set)
@@ -128,10 +129,18 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
     elif not isinstance(reference, TriMesh) and not (isinstance(reference, (str, os.PathLike))
                                                      and os.path.isfile(str(reference))):
         ref = "auto"  # a name of an input, or "auto": the subset's own choice
-    try:
-        raw = [raw_mesh(meshes[i]) for i in pick]
-    except ValueError:
-        return groom, None  # an unreadable input: the batch reports it; no trial
+    raw = []
+    for i in list(pick):
+        try:
+            raw.append(raw_mesh(meshes[i]))
+        except ValueError:  # an unreadable input: the batch reports it; the trial goes without
+            if isinstance(ref, int) and not isinstance(ref, bool):
+                if pick.index(i) == ref:
+                    return groom, None  # the reference itself: the batch refuses it
+                ref -= int(pick.index(i) < ref)
+            pick.remove(i)
+    if len(raw) < MIN_SHAPES:
+        return groom, None
     if vertices is None and all(isinstance(m, TriMesh) for m in meshes):
         vertices = default_vertex_count(list(meshes))
     options = dict(groom) if isinstance(groom, dict) else {}
@@ -221,17 +230,36 @@ class RefinementGuard:
         Returns (record entry, new criterion or None when rolled back, mean change)."""
         first = params["refine_deformation"]
         other = "cpd" if first == "normal_offsets" else "normal_offsets"
-        snapshot = {k: np.array(vertices[k]) for k in sorted(vertices)}
-        tried: dict[str, float] = {}
-        for deformation in (first, other):
-            change = run_pass(dict(params, refine_deformation=deformation))
-            tried[deformation] = self.criterion(vertices, faces, keys)
-            if tried[deformation] < (1.0 - KEEP_MARGIN) * best:
-                return ({"before_mm": best, "criterion_mm": tried, "kept": deformation},
-                        tried[deformation], float(change[0]) if change else 0.0)
-            for k, v in snapshot.items():  # rolled back
-                vertices[k] = v
-        return {"before_mm": best, "criterion_mm": tried, "kept": "none (rolled back)"}, None, 0.0
+        snapshot = _snapshot(vertices)
+        try:
+            tried: dict[str, float] = {}
+            for deformation in (first, other):
+                change = run_pass(dict(params, refine_deformation=deformation))
+                tried[deformation] = self.criterion(vertices, faces, keys)
+                if tried[deformation] < (1.0 - KEEP_MARGIN) * best:
+                    return ({"before_mm": best, "criterion_mm": tried, "kept": deformation},
+                            tried[deformation], float(change[0]) if change else 0.0)
+                for k in snapshot:  # rolled back
+                    vertices[k] = snapshot[k]
+            return ({"before_mm": best, "criterion_mm": tried, "kept": "none (rolled back)"},
+                    None, 0.0)
+        finally:
+            if isinstance(snapshot, VertexRows):
+                snapshot.close()
+                os.remove(snapshot.path)
+
+
+def _snapshot(vertices: MutableMapping) -> MutableMapping:
+    """A copy of every shape's correspondence to roll a pass back to: beside the rows file
+    when they are kept on disk (the streaming client holds no mesh per shape), else in
+    memory."""
+    if isinstance(vertices, VertexRows):
+        copy: MutableMapping = VertexRows(vertices.path + ".before", vertices.n_vertices)
+    else:
+        copy = {}
+    for k in sorted(vertices):  # one row at a time
+        copy[k] = np.array(vertices[k])
+    return copy
 
 
 def _unguarded(run_pass: Callable, params: dict, passes: int) -> list[float]:
