@@ -7,7 +7,6 @@ path's. The memory test counts the mesh-sized blocks the client holds (tracemall
 from __future__ import annotations
 
 import gc
-
 import json
 import tracemalloc
 
