@@ -235,7 +235,7 @@ def test_correspondence_on_dask_equals_the_pool(local_cluster, small_meshes):
         pooled = establish_correspondence(small_meshes, 0, n_jobs=2)
     streamed = {}
     on_dask = establish_correspondence(small_meshes, 0,
-                                       on_shape=lambda i, m: streamed.setdefault(i, m))
+                                       on_shape=lambda i, m: streamed.__setitem__(i, m))  # last call: kept
     assert sorted(streamed) == list(range(len(small_meshes)))
     for i, (a, b) in enumerate(zip(pooled.meshes, on_dask.meshes)):
         np.testing.assert_array_equal(a.vertices, b.vertices)  # byte-identical
@@ -262,7 +262,7 @@ def test_streamed_correspondence_on_dask_reads_the_inputs_in_the_workers(local_c
         pooled = establish_correspondence([load_mesh(p) for p in paths], 0, n_jobs=1)
     streamed = {}
     on_dask = establish_correspondence(paths, 0, scratch=tmp_path / "scratch", keep_meshes=False,
-                                       on_shape=lambda i, m: streamed.setdefault(i, m))
+                                       on_shape=lambda i, m: streamed.__setitem__(i, m))  # last call: kept
     assert sorted(streamed) == list(range(len(paths))) and not (tmp_path / "scratch").exists()
     for i, mesh in enumerate(pooled.meshes):
         assert streamed[i].vertices.tobytes() == mesh.vertices.tobytes()

@@ -828,8 +828,9 @@ def establish_correspondence(meshes: list[TriMesh | InputFile | str | os.PathLik
         ``on_shape(index, mesh)`` for every corresponded input as soon as its result is final
         (streaming: the command line writes each output as it arrives, so an interrupted run
         leaves the finished ones). Results become final during the last refinement pass, as
-        its jobs complete (with the safeguard: once the passes are judged, all at once); with
-        ``refine=0`` after the outlier check (all at once).
+        its jobs complete (with the safeguard, a shape whose first-pass result was rolled
+        back or refined further is given again, with its kept result); with ``refine=0``
+        after the outlier check (all at once).
     on_provisional : callable, optional
         ``on_provisional(index, mesh)`` for every shape's reference-based result (before the
         refinement passes, after the outlier check; only when ``refine`` > 0): what an
@@ -950,7 +951,8 @@ def _establish(meshes: list, reference, params: dict, store: Scratch | None, rec
     changes, again = _refine_guarded(record, handles, corresponded, ref_faces, prepared, params, n_jobs,
                                      progress, refine, timings, final if on_shape is not None else None)
     for k in sorted(corresponded) if on_shape is not None else ():
-        if k not in streamed or again:  # untouched by a pass (refine=0, < 3 shapes), or judged
+        if k not in streamed or again:  # untouched by a pass (refine=0, < 3 shapes), or replaced
+            streamed.discard(k)
             stream(k, corresponded[k])
     result = _result(meshes, names, corresponded, prepared, chosen, ref, ref_faces, failures,
                      timings, scores, params, grooming, why, changes, t_start, n_jobs, progress,
@@ -964,10 +966,10 @@ def _refine_guarded(record: dict, handles: list, vertices: MutableMapping, faces
                     timings: dict, on_last_pass: Callable | None) -> tuple[list[float], bool]:
     """:func:`_refine`, each pass judged by the safeguard when it is on
     (:class:`core.correspondence.safeguard.RefinementGuard`, its record into ``record``).
-    Returns the changes and whether the shapes are still to be streamed: without the
-    safeguard the last pass streams each result as it arrives; with it, a result is final
-    only once its pass is judged (a pass may be rolled back), so every kept result streams
-    after the guard (an interrupted run still has the provisional ones)."""
+    Returns the changes and whether the shapes must stream again: the first pass's results
+    stream as they arrive (an interrupted run keeps them); with the safeguard, when that pass
+    is rolled back or another follows, the kept results replace them (``on_shape`` is called
+    again for those shapes)."""
     if not record["enabled"]:
         return _refine(vertices, faces, prepared, _pass_params(params), n_jobs, progress, passes,
                        timings, on_last_pass=on_last_pass), False
@@ -975,11 +977,17 @@ def _refine_guarded(record: dict, handles: list, vertices: MutableMapping, faces
 
     guard = RefinementGuard(lambda k: raw_mesh(handles[k]))
 
+    calls = []
+
     def run_pass(p: dict) -> list[float]:
-        return _refine(vertices, faces, prepared, _pass_params(p), n_jobs, progress, 1, timings)
+        calls.append(p["refine_deformation"])
+        return _refine(vertices, faces, prepared, _pass_params(p), n_jobs, progress, 1, timings,
+                       on_last_pass=on_last_pass if len(calls) == 1 else None)
     changes = guard.refine(vertices, faces, params, passes, run_pass)
     record["stages"] += [guard.record] if passes > 0 else []
-    return changes, True
+    done = guard.record["passes"]
+    kept_first = len(calls) == 1 and bool(done) and done[0]["kept"] == calls[0]
+    return changes, bool(calls) and not kept_first
 
 
 def _drop_flagged(results: dict, usable: list[int], corresponded: MutableMapping, prepared: list,
