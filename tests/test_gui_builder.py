@@ -313,7 +313,9 @@ def test_cancel_during_correspondence(panel, qtbot):
         assert panel.is_busy
         worker = panel._worker
         qtbot.mouseClick(panel.cancel_button, Qt.LeftButton)
-        wait_idle(qtbot, panel, 5000)
+        # generous: a loaded machine can take seconds to stop the pool; what is checked is
+        # that Cancel is reached and no work goes on after it, not how fast
+        wait_idle(qtbot, panel, 30000)
     assert gaps.ticks > 0  # the GUI thread kept processing events while the pool registered
     assert worker.isFinished() and worker.was_cancelled  # no work goes on after Cancel
     assert "Correspondence cancelled" in panel.status_label.text()
