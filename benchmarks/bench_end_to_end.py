@@ -31,7 +31,8 @@ material point (over the training shapes) is where the bump moves the surface by
 10 % of its peak (sigma 2 mm: within 4.29 mm of the bump's centre). Measure:
 :func:`core.datasets.factors.support_iou` (per planted bump, the best IoU of any factor's
 support, 10 % of its peak), mean over the 4 bumps; with today's LSF on both pipelines'
-correspondences, and round 1 end to end (its own LSF).
+correspondences, and round 1 end to end (its own LSF); column ``known corr``: today's LSF of
+as many ovoids generated on one lattice (known correspondences), the measure's ceiling.
 
 Run: ``.venv/bin/python benchmarks/bench_end_to_end.py [--families F ...] [--shapes 16]
 [--held-out 3] [--seeds 1] [--jobs 1] [--json OUT] [--cache DIR]``; ``--cache``
@@ -68,7 +69,7 @@ from core.datasets.families import FAMILIES, OVOID_CENTRES, REPORT, ovoid_base, 
 METHODS = ("gmm-aniso", "icp")
 LAYOUTS = ("3 orthogonal", "2 parallel")
 PIPELINES = ("today", "round 1", "round 1 own fit")  # the fit columns
-LSF_COLUMNS = ("today", "round 1 corr, today's LSF", "round 1 end to end")
+LSF_COLUMNS = ("today", "round 1 corr, today's LSF", "round 1 end to end", "known corr")
 N_FACTORS, LSF_FACTORS = 10, 8
 SPACING, NOISE = 2.0, 0.2
 HELD_OUT_SEED = 1000  # the held-out shapes' population seed: seed + this
@@ -185,6 +186,21 @@ def lsf_iou(planted: np.ndarray, factors: np.ndarray) -> float:
     return float(support_iou(planted, factors).mean())
 
 
+def known_lsf(n_shapes: int, seed: int) -> dict:
+    """The measure's ceiling: today's LSF of ``n_shapes`` ovoids generated on ONE lattice
+    (1,500 vertices, known correspondences; :func:`ovoid_shape` with the planted centres)."""
+    from core.datasets.families import ovoid_shape, sphere_lattice
+
+    m, faces = sphere_lattice(1500)
+    rng = np.random.default_rng([seed, 7])
+    shapes = np.stack([ovoid_shape(m, faces, rng, OVOID_CENTRES) for _ in range(n_shapes)])
+    d2 = ((ovoid_base(m)[None] - ovoid_base(OVOID_CENTRES)[:, None]) ** 2).sum(axis=2)
+    planted = np.zeros((len(OVOID_CENTRES), len(m), 3))
+    planted[:, :, 0] = np.exp(-d2 / (2 * 2.0 ** 2))
+    factors, seconds = today_lsf(shapes, faces)
+    return {"lsf": {"known corr": lsf_iou(planted, factors), "today_s": seconds}}
+
+
 def today_lsf(shapes: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
     from core.build.pipeline import build_model
 
@@ -284,6 +300,7 @@ def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
                      lambda: _round1_build(pop, cases, n_factors, with_lsf, folder))
     return {"today": _evaluate(today, pop, cases, with_lsf, own=False),
             "round 1": _evaluate(round1, pop, cases, with_lsf, own=True),
+            "known": known_lsf(n_shapes, seed) if with_lsf else {},
             "points": {layout: float(np.mean([len(c["points"]) for c in cases if c["layout"] == layout]))
                        for layout in LAYOUTS}}
 
@@ -312,6 +329,8 @@ def summarise(results: dict) -> dict:
     summary = {}
     for family, runs in results.items():
         runs = list(runs.values())
+        if not runs:
+            continue
         fits = {}
         for layout in LAYOUTS:
             for method in METHODS:
@@ -323,7 +342,7 @@ def summarise(results: dict) -> dict:
                                       or [np.nan])),
                         int(sum(r[name].get("kept", 0) for r in runs))] for name in ("today", "round 1")}
         lsf = {}
-        for col, name in zip(LSF_COLUMNS, ("today", "round 1", "round 1")):
+        for col, name in zip(LSF_COLUMNS, ("today", "round 1", "round 1", "known")):
             vals = [r[name]["lsf"][col] for r in runs if "lsf" in r.get(name, {})]
             lsf[col] = float(np.mean(vals)) if vals else None
         summary[family] = {"fits": fits, "build": build, "lsf": lsf,
