@@ -35,7 +35,7 @@ correspondences, and round 1 end to end (its own LSF); column ``known corr``: to
 as many ovoids generated on one lattice (known correspondences), the measure's ceiling.
 
 Run: ``.venv/bin/python benchmarks/bench_end_to_end.py [--families F ...] [--shapes 16]
-[--held-out 3] [--seeds 1] [--jobs 1] [--json OUT] [--cache DIR]``; ``--cache``
+[--held-out 3] [--seeds 1] [--jobs 1] [--json OUT] [--cache DIR] [--round1-timeout S]``; ``--cache``
 keeps the built models (the slow part) and reuses them, so a change of the fit code reruns in
 seconds.
 """
@@ -225,8 +225,10 @@ def _today_build(pop, n_factors: int) -> dict:
             "factors": m.factors, "coef_var": m.coef_var, "world": m.world_transform}
 
 
-def _round1_build(pop, cases: list[dict], n_factors: int, with_lsf: bool, folder: str) -> dict:
-    """Round 1's build-model (and LSF, and its own fits of ``cases``) in its own tree."""
+def _round1_build(pop, cases: list[dict], n_factors: int, with_lsf: bool, folder: str,
+                  timeout: float | None = None) -> dict:
+    """Round 1's build-model (and LSF, and its own fits of ``cases``) in its own tree; past
+    ``timeout`` seconds it is stopped (``{"error": ..., "timeout": 1}``, not cached)."""
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
         arrays = {"n": len(pop.meshes), "factors": n_factors, "lsf": LSF_FACTORS if with_lsf else 0,
@@ -238,8 +240,12 @@ def _round1_build(pop, cases: list[dict], n_factors: int, with_lsf: bool, folder
         np.savez(src, **arrays)
         env = {**os.environ, "PYTHONPATH": folder}
         t0 = time.perf_counter()
-        done = subprocess.run([sys.executable, "-c", ROUND1_SCRIPT, src, dst], cwd=folder, env=env,
-                              capture_output=True, text=True)
+        try:
+            done = subprocess.run([sys.executable, "-c", ROUND1_SCRIPT, src, dst], cwd=folder,
+                                  env=env, capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"error": np.array([f"not finished within --round1-timeout {timeout:.0f} s"]),
+                    "seconds": time.perf_counter() - t0, "timeout": 1}
         if done.returncode != 0:
             return {"error": np.array(done.stderr.strip().splitlines()[-1:] or ["no output"]),
                     "seconds": time.perf_counter() - t0}
@@ -251,7 +257,7 @@ def _cached(path: Path | None, make) -> dict:
     if path is not None and path.exists():
         return dict(np.load(path))
     data = make()
-    if path is not None:
+    if path is not None and "timeout" not in data:
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez(path, **data)
     return data
@@ -286,7 +292,7 @@ def _evaluate(data: dict, pop, cases: list[dict], with_lsf: bool, own: bool) -> 
 
 
 def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
-            cache: Path | None = None) -> dict:
+            cache: Path | None = None, timeout: float | None = None) -> dict:
     """Both pipelines on one population of ``family``: {"today": ..., "round 1": ...}; the
     built models are kept in ``cache`` (a folder) when given and reused from it."""
     pop = population(family, n_shapes, seed)
@@ -297,7 +303,7 @@ def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
     today = _cached(None if stem is None else stem.with_name(stem.name + "_today.npz"),
                     lambda: _today_build(pop, n_factors))
     round1 = _cached(None if stem is None else stem.with_name(stem.name + "_round1.npz"),
-                     lambda: _round1_build(pop, cases, n_factors, with_lsf, folder))
+                     lambda: _round1_build(pop, cases, n_factors, with_lsf, folder, timeout))
     return {"today": _evaluate(today, pop, cases, with_lsf, own=False),
             "round 1": _evaluate(round1, pop, cases, with_lsf, own=True),
             "known": known_lsf(n_shapes, seed) if with_lsf else {},
@@ -306,8 +312,8 @@ def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
 
 
 def _task(task: tuple) -> tuple:
-    family, seed, n_shapes, n_held_out, folder, cache = task
-    return family, seed, run_one(family, seed, n_shapes, n_held_out, folder, cache)
+    family, seed, n_shapes, n_held_out, folder, cache, timeout = task
+    return family, seed, run_one(family, seed, n_shapes, n_held_out, folder, cache, timeout)
 
 
 # ----------------------------------------------------------------------------- tables
@@ -359,7 +365,7 @@ def tables(summary: dict, header: str) -> str:
                 "| family | contours | " + " | ".join(PIPELINES) + " |", "|---|---|" + "---|" * len(PIPELINES)]
         for family, s in summary.items():
             for layout in LAYOUTS:
-                cells = [f"{c[0]:.3f}" if c else "failed" for c in
+                cells = [f"{c[0]:.3f}" if c else "-" for c in
                          (s["fits"][f"{layout}|{method}"][col] for col in PIPELINES)]
                 out.append(f"| {family} | {layout} | " + " | ".join(cells) + " |")
     out += ["", "Time: build (correspondence + PCA model, s, mean per population; shapes kept) and "
@@ -390,9 +396,9 @@ def tables(summary: dict, header: str) -> str:
 
 
 def run(families: list[str], seeds: range, n_shapes: int, n_held_out: int, jobs: int, folder: str,
-        on_result=None, cache: Path | None = None) -> dict:
+        on_result=None, cache: Path | None = None, timeout: float | None = None) -> dict:
     """Every (family, seed) task, ``jobs`` at a time: {family: {seed: run_one(...)}}."""
-    tasks = [(f, s, n_shapes, n_held_out, folder, cache) for f in families for s in seeds]
+    tasks = [(f, s, n_shapes, n_held_out, folder, cache, timeout) for f in families for s in seeds]
     results: dict = {f: {} for f in families}
     t0 = time.perf_counter()
     if jobs <= 1:
@@ -422,6 +428,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", type=Path, default=None, help="write the results here (as they come)")
     parser.add_argument("--cache", type=Path, default=None,
                         help="keep the built models in this folder and reuse them (only the fits rerun)")
+    parser.add_argument("--round1-timeout", type=float, default=None, metavar="S",
+                        help="stop round 1's build of a population after S seconds (reported, not cached)")
     args = parser.parse_args(argv)
     if args.shapes < 4 or args.held_out < 1 or args.seeds < 1:
         raise SystemExit("need --shapes >= 4, --held-out >= 1 and --seeds >= 1")
@@ -437,7 +445,7 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="round1_") as folder:
         extract_round1(folder)
         results = run(args.families, range(args.seeds), args.shapes, args.held_out, args.jobs,
-                      folder, on_result=dump, cache=args.cache)
+                      folder, on_result=dump, cache=args.cache, timeout=args.round1_timeout)
     print(tables(summarise(results),
                  f"\n{args.seeds} population(s) a family, {args.shapes} training shapes, "
                  f"{args.held_out} held-out shapes, PCA-{min(N_FACTORS, args.shapes - 1)}, "
