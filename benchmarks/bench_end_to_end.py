@@ -362,7 +362,8 @@ def tables(summary: dict, header: str) -> str:
     for method in METHODS:
         out += ["", f"{method}: symmetric surface distance (mm) of the fit to the true held-out "
                 "surface, today's fit on each pipeline's model (round 1's own fit last)", "",
-                "| family | contours | " + " | ".join(PIPELINES) + " |", "|---|---|" + "---|" * len(PIPELINES)]
+                "| family | contours | " + " | ".join(PIPELINES) + " |",
+                "|---|---|" + "---|" * len(PIPELINES)]
         for family, s in summary.items():
             for layout in LAYOUTS:
                 cells = [f"{c[0]:.3f}" if c else "-" for c in
