@@ -16,7 +16,8 @@ w the uniform outlier weight, W_j the precision of component j (the covariance s
 ``covariance``): ``gmm-iso`` W_j = I; ``gmm-aniso`` W_j = eta n_j n_j^T + (I - n_j n_j^T), n_j
 the current model normal (Eq. 5), so points slide along the surface instead of snapping to
 vertices; ``icp`` hard nearest-vertex responsibilities with a point-to-plane metric (W_j as
-gmm-aniso's with eta fixed at 100; Chen and Medioni 1992), the baseline.
+gmm-aniso's with eta fixed at 100; Chen and Medioni 1992), the baseline, with the same
+shape and pose priors.
 
 Modules: ``em`` (:class:`GMMFitter`, the EM loop in scikit-learn's GaussianMixture style),
 ``covariance`` (the strategies), ``pose`` (similarity, Procrustes, Gauss-Newton pose step,

@@ -122,11 +122,14 @@ def _checked_transform(matrix, name: str) -> np.ndarray:
     return t
 
 
-def _pose_prior(pose_sd, pose_spread: float, snap: ModelSnapshot, place: Similarity,
-                method: str) -> PosePrior | None:
+def _pose_prior(pose_sd, pose_spread: float, snap: ModelSnapshot,
+                place: Similarity) -> PosePrior | None:
     if not pose_spread >= 0:
         raise ValueError(f"pose_spread must be >= 0, got {pose_spread}")
-    if pose_sd is None or pose_spread == 0 or method == "icp":  # ICP: closed-form Procrustes
+    # ICP too (issue 27): point-to-plane ICP leaves sliding along the surface and the scale
+    # nearly free on two parallel contours; without the prior its pose drifted (scale up to
+    # 1.3, centre 5-7 mm along a thin tube) where gmm-aniso's stayed put
+    if pose_sd is None or pose_spread == 0:
         return None
     if isinstance(pose_sd, str):
         if pose_sd != "auto":
@@ -236,7 +239,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         (also on a warm start): it keeps an underdetermined fit (one or two contours) from
         sliding or scaling away, and is outweighed by the data wherever the points constrain
         the pose. "auto": (3 deg, 0.064 r, 0.03), i.e. 1 mm on a caudate. None: no prior.
-        GMM methods only (the pose step is then the Gauss-Newton one, also for gmm-iso).
+        All methods (the pose step is then the Gauss-Newton one, also for gmm-iso; ICP's
+        always is, its metric being point-to-plane).
     pose_spread : float
         Multiplies the three standard deviations of ``pose_sd`` (the Fit panel's "pose prior
         spread"); 0 removes the pose prior.
@@ -285,7 +289,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     fitter = GMMFitter(
         make_covariance(method, anisotropy, adaptive_anisotropy), pose=pose,
         prior_weight=prior_weight, coef_bound=float(coef_bound) * np.sqrt(snap.coef_var),
-        pose_prior=_pose_prior(pose_sd, pose_spread, snap, place, method),
+        pose_prior=_pose_prior(pose_sd, pose_spread, snap, place),
         outlier_weight=outlier_weight, normal_weight=normal_weight,
         sigma2_min=max(floor**2, float(model.info.get("noise_variance", 0.0) or 0.0)),
         max_iter=max_iter, tol=tol, xtol=_relative(xtol, XTOL_PER_SIZE, snap.size, "xtol"),
