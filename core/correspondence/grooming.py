@@ -57,7 +57,7 @@ DEFAULT_GROOMING: dict[str, Any] = {
     "keep_tessellation_above": None,  # an input with at least this share of ``vertices``
     # keeps its own tessellation (None: every input is remeshed). The correspondence batch
     # sets 0.5 and remeshes only the reference (issue 27: the targets' remesh took away the
-    # density cue CPD matched; batch.remesh_reference).
+    # density cue CPD matched; inputs.remesh_reference).
 }
 
 
