@@ -118,13 +118,13 @@ def evaluate(pop, n_jobs: int) -> dict:
 
 def _criteria(pop, result) -> dict:
     """Candidate criteria on one run's correspondences (lower is better)."""
-    from core.correspondence.batch import _compactness
+    from core.correspondence.reference import compactness
     from core.correspondence.safeguard import loo_generalisation
 
     shapes = [m.vertices for m in result.meshes]
     loo = loo_generalisation(shapes, result.faces, pop.meshes)
     return {"point+raw": loo["value"], "surface": loo["surface_mm"],
-            "compactness": _compactness(np.stack(shapes))}
+            "compactness": compactness(np.stack(shapes))}
 
 
 def _offline(runs: dict, base: str) -> dict:

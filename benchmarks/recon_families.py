@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from core.datasets.families import normal_bumps, ovoid_shape
+from core.evaluation.simulated_user import pca_model
 from core.geometry.toolkit import random_rotation, vertex_normals
 from core.models.shape_model import ShapeModel
-from core.evaluation.simulated_user import pca_model
 
 TUNING = ("bean", "planted")
 REPORT = ("ovoid", "tube", "twist", "ring", "mixed", "caudate")

@@ -238,9 +238,9 @@ def test_correspond_pair_recovers_homologues(population):
         errors.append(truth_error(out["vertices"], truths[k], params[0]))
         # Plain CPD (same pose and motion), then nearest-point projection: the baseline that
         # the assignment and fairing must beat.
-        xn, centre, scale = corr._normalise(meshes[k].vertices)
-        yn, _, _ = corr._normalise(reference.vertices)
-        pose = corr._rigid_pose(xn, yn, params_cpd, True)
+        xn, centre, scale = corr.normalise(meshes[k].vertices)
+        yn, _, _ = corr.normalise(reference.vertices)
+        pose = corr.rigid_pose(xn, yn, params_cpd, True)
         moved = corr.cpd_nonrigid(xn, apply_transform(pose, yn)).points
         projected, _ = geometry.closest_points_on_surface(moved * scale + centre, meshes[k].vertices,
                                                       meshes[k].faces)

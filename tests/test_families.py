@@ -37,7 +37,7 @@ def test_material_points_lie_on_the_base_surface(family_population):
     (its faces over its material points) is close to the other's (the base sampled twice)."""
     family, pop = family_population
     a, b = pop.material
-    fa, fb = pop.meshes[0].faces, pop.meshes[1].faces
+    fb = pop.meshes[1].faces
     d = SurfaceProjector(b, fb)(a)[1]
     edge = meshops.mean_edge_length(b, fb)
     assert np.percentile(d, 99) < 0.25 * edge + 0.05, (family, np.percentile(d, 99), edge)

@@ -14,7 +14,8 @@ candidates; ``--reference PATH`` uses that mesh (it must be one closed surface).
 
 Writes ``DIR/<input name>`` for every input that succeeded (same format as the input; .vtk for
 formats that cannot be written or cannot keep vertex order, such as STL: the report's
-``output`` says which), all with the reference's faces and vertex i homologous across files, and ``DIR/correspondence.json``: the chosen reference, per-shape residual (symmetric mean
+``output`` says which), all with the reference's faces and vertex i homologous across files,
+and ``DIR/correspondence.json``: the chosen reference, per-shape residual (symmetric mean
 surface distance to the input, mm), timings, parameters, and every failed input with its reason.
 Inputs that cannot be read or used are reported and skipped; the others are still written
 (each file is read in a child process, so a reader crash on a damaged file costs that file only).

@@ -7,9 +7,9 @@ Structures", SPIE Medical Imaging 2016. For every training mesh (the *target*):
    and rigidly registered to it by rigid CPD with scale (Myronenko & Song, "Point Set
    Registration: Coherent Point Drift", TPAMI 2010, Fig. 2), on subsamples of both point sets
    and from a few principal-axes starts; the inputs' own orientation is kept unless a
-   principal-axes start fits far better (see :func:`core.correspondence.pair._rigid_fit`: nearly symmetric shapes fit
-   about as well flipped). The target's mirror image is fitted too, to catch a mirrored side
-   (:func:`mirror_fit_ratio`).
+   principal-axes start fits far better (see :func:`core.correspondence.pair.rigid_fit`:
+   nearly symmetric shapes fit about as well flipped). The target's mirror image is fitted
+   too, to catch a mirrored side (:func:`mirror_fit_ratio`).
 2. **Deformation**: nonrigid CPD (TPAMI 2010, Fig. 4) moves the posed reference onto the target
    (outlier weight ``w``, kernel width ``beta``, regularisation ``lam``; unit-RMS units; a
    rank-``low_rank`` kernel), on subsamples of at most ``cpd_points`` (3,000) points, the
@@ -63,7 +63,11 @@ Shapes are independent, so the per-shape work runs in a process pool.
 
 Modules: :mod:`~core.correspondence.cpd` (the rustcpd adapter),
 :mod:`~core.correspondence.assignment`, :mod:`~core.correspondence.pair` (one shape),
-:mod:`~core.correspondence.batch` (the training set), :mod:`~core.correspondence.offsets`
+:mod:`~core.correspondence.batch` (the training set: one run and its stages) with
+:mod:`~core.correspondence.inputs` (reading, grooming), :mod:`~core.correspondence.reference`
+(its choice), :mod:`~core.correspondence.checks` (mirrored, switched, outliers),
+:mod:`~core.correspondence.refinement` (the groupwise passes) and
+:mod:`~core.correspondence.tasks` (the per-shape jobs), :mod:`~core.correspondence.offsets`
 (the refinement's template fit).
 """
 
@@ -75,10 +79,10 @@ import importlib
 _EXPORTS = {
     "auction_assign": "assignment", "labelling_candidates": "assignment",
     "CorrespondenceResult": "batch", "default_vertex_count": "batch",
-    "establish_correspondence": "batch", "pick_reference_candidates": "batch",
+    "establish_correspondence": "batch", "pick_reference_candidates": "reference",
     "CPDResult": "cpd", "cpd_affine": "cpd", "cpd_log_posterior": "cpd", "cpd_nonrigid": "cpd",
     "cpd_rigid": "cpd",
-    "DEFAULT_CPD_PARAMS": "pair", "_normalise": "pair", "_rigid_pose": "pair",
+    "DEFAULT_CPD_PARAMS": "pair", "normalise": "pair", "rigid_pose": "pair",
     "correspond_pair": "pair", "label_points": "pair", "mesh_problem": "pair",
     "mirror_fit_ratio": "pair",
 }

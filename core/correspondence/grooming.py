@@ -31,6 +31,7 @@ does not depend on which subject is the reference.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -42,7 +43,7 @@ from core.types import TriMesh
 
 REMESH_ATTEMPTS = 5  # decimations tried by :func:`remesh` before it gives up on a clean result
 
-DEFAULT_GROOMING = {
+DEFAULT_GROOMING: dict[str, Any] = {
     "largest_piece": True,
     "fill_holes": True,
     "fix_orientation": True,
@@ -56,7 +57,7 @@ DEFAULT_GROOMING = {
     "keep_tessellation_above": None,  # an input with at least this share of ``vertices``
     # keeps its own tessellation (None: every input is remeshed). The correspondence batch
     # sets 0.5 and remeshes only the reference (issue 27: the targets' remesh took away the
-    # density cue CPD matched; batch.remesh_reference).
+    # density cue CPD matched; inputs.remesh_reference).
 }
 
 
@@ -185,7 +186,8 @@ def split_non_manifold(vertices: np.ndarray, faces: np.ndarray
     own copy of the vertex, so that sheets glued along a non-manifold edge (marching cubes
     at voxels touching along an edge: four triangles on it) or touching at a point come
     apart, and a fin comes off as a piece of its own. Triangles on an edge that still has
-    three or more after that (rare) are removed, leaving holes for :func:`fill_holes`. Returns (vertices, faces, triangles removed, vertices added)."""
+    three or more after that (rare) are removed, leaving holes for :func:`fill_holes`.
+    Returns (vertices, faces, triangles removed, vertices added)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     n_faces, n_used = len(f), len(np.unique(f))
@@ -332,9 +334,10 @@ def remesh(vertices: np.ndarray, faces: np.ndarray, n_vertices: int, *,
     and closed at 1,100 and 1,250); a result that is not closed or has another Euler
     characteristic than the input is decimated again to a target 2 % or 4 % off, up to
     :data:`REMESH_ATTEMPTS` times (each also with its folds split and their holes closed,
-    :func:`_refold`, which mostly gives the input's topology back); then by topology-preserving decimation (vtkDecimatePro;
-    Schroeder, Zarge & Lorensen, SIGGRAPH 1992), and if that too does not give one closed
-    2-manifold of the input's Euler characteristic, the input is returned as it is. Vertices
+    :func:`_refold`, which mostly gives the input's topology back); then by
+    topology-preserving decimation (vtkDecimatePro; Schroeder, Zarge & Lorensen, SIGGRAPH
+    1992), and if that too does not give one closed 2-manifold of the input's Euler
+    characteristic, the input is returned as it is. Vertices
     then only move (relaxation), so a closed manifold input gives a closed manifold output.
     """
     import pyvista as pv

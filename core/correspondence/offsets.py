@@ -51,8 +51,14 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from core.geometry.toolkit import (SurfaceProjector, barycentric, face_normals,
-                           farthest_point_indices, rodrigues, vertex_normals)
+from core.geometry.toolkit import (
+    SurfaceProjector,
+    barycentric,
+    face_normals,
+    farthest_point_indices,
+    rodrigues,
+    vertex_normals,
+)
 
 NYSTROM_POINTS = 400  # landmarks of the low-rank kernel (the kernel is broad: ~0.5 of the size)
 BASIS_ENERGY = 0.995  # share of the kernel's trace the offset basis keeps

@@ -8,18 +8,18 @@ reference's faces, and fairing (:func:`core.geometry.mesh.fair_mesh`).
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 
-from core.geometry import mesh as meshops
 from core.correspondence.assignment import auction_assign, labelling_candidates
-from core.correspondence.cpd import cpd_nonrigid, cpd_rigid
+from core.correspondence.cpd import CPDResult, cpd_nonrigid, cpd_rigid
 from core.correspondence.offsets import NormalOffsetFit, fit_normal_offsets
+from core.geometry import mesh as meshops
 from core.geometry.toolkit import SurfaceProjector, symmetric_surface_distance
-from core.runtime.failures import describe_failure
 from core.types import TriMesh
 
-DEFAULT_CPD_PARAMS = {
+DEFAULT_CPD_PARAMS: dict[str, Any] = {
     "w": 0.0,                 # outlier weight of the CPD mixture, in [0, 1)
     "beta": 2.0,              # Gaussian kernel width of the nonrigid motion (unit-RMS units)
     "lam": 2.0,               # motion coherence regularisation (lambda)
@@ -70,7 +70,6 @@ DEFAULT_CPD_PARAMS = {
 }
 
 
-
 def mesh_problem(mesh: TriMesh, *, need_closed: bool = False) -> str | None:
     """Why ``mesh`` cannot be used for correspondence, or None if it can."""
     v = np.asarray(mesh.vertices)
@@ -110,7 +109,9 @@ def offsets_fit(template: np.ndarray, faces: np.ndarray, target_vertices: np.nda
                               pose=params["offset_pose"])
 
 
-def _normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """(points centred and scaled to unit RMS radius, centre, scale): the unit-RMS units of
+    every registration here."""
     centre = points.mean(axis=0)
     scale = float(np.sqrt(((points - centre) ** 2).sum(axis=1).mean()))
     return (points - centre) / scale, centre, scale
@@ -122,7 +123,8 @@ def _subsample(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     return points[np.random.default_rng(seed).choice(len(points), n, replace=False)]
 
 
-def _principal_axes(points: np.ndarray) -> np.ndarray:
+def principal_axes(points: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation whose columns are the principal axes of ``points``, longest first."""
     _, vecs = np.linalg.eigh(np.cov(points.T))
     vecs = vecs[:, ::-1]
     if np.linalg.det(vecs) < 0:
@@ -130,16 +132,16 @@ def _principal_axes(points: np.ndarray) -> np.ndarray:
     return vecs
 
 
-def _rigid_pose(target_n: np.ndarray, reference_n: np.ndarray, params: dict,
-                parallel: bool) -> np.ndarray:
+def rigid_pose(target_n: np.ndarray, reference_n: np.ndarray, params: dict,
+               parallel: bool) -> np.ndarray:
     """Similarity (4, 4) posing the normalised reference on the normalised target
-    (:func:`_rigid_fit`)."""
-    return _rigid_fit(target_n, reference_n, params, parallel)[0]
+    (:func:`rigid_fit`)."""
+    return rigid_fit(target_n, reference_n, params, parallel)[0]
 
 
-def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, parallel: bool,
-               prefer_identity: bool = True, refine: bool = True
-               ) -> tuple[np.ndarray, float, bool]:
+def rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, parallel: bool,
+              prefer_identity: bool = True, refine: bool = True
+              ) -> tuple[np.ndarray, float, bool]:
     """Similarity (4, 4) posing the normalised reference on the normalised target, the
     smallest sigma^2 of the short runs over all starts (normalised units; the best rigid fit
     whatever the orientation, for :func:`mirror_fit_ratio`), and whether a principal-axes
@@ -170,8 +172,8 @@ def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, para
         raise ValueError(f"pose_starts must be 'auto', 'identity' or 'pca', got {mode!r}")
     starts = [np.eye(3)] if mode in ("identity", "auto") else []
     if mode in ("pca", "auto"):
-        axes_t = _principal_axes(target_n)
-        axes_r = _principal_axes(reference_n)
+        axes_t = principal_axes(target_n)
+        axes_r = principal_axes(reference_n)
         flips = [np.diag(d) for d in ([1, 1, 1], [-1, -1, 1], [-1, 1, -1], [1, -1, -1])]
         starts += [axes_t @ f @ axes_r.T for f in flips]
     fits = []
@@ -184,7 +186,7 @@ def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, para
                       parallel=parallel)
         start = np.eye(4)
         start[:3, :3] = rot
-        fits.append((r.sigma2, r.matrix @ start))
+        fits.append((r.sigma2, _matrix(r) @ start))
     best = min(range(len(fits)), key=lambda i: fits[i][0])
     switch = float(params["pose_switch"])
     lowest = min(f[0] for f in fits)  # of the short runs (mirror_fit_ratio compares these)
@@ -196,7 +198,7 @@ def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, para
         # fully run it ends 3 degrees from the truth, the flip 180).
         r = cpd_rigid(tgt, ref, scaling=False, w=params["w"], tolerance=params["tolerance"],
                       max_iterations=params["rigid_iterations"], parallel=parallel)
-        fits[0] = (min(fits[0][0], r.sigma2), r.matrix if r.sigma2 < fits[0][0] else fits[0][1])
+        fits[0] = (min(fits[0][0], r.sigma2), _matrix(r) if r.sigma2 < fits[0][0] else fits[0][1])
     if (prefer_identity and mode == "auto"
             and fits[best][0] >= switch * fits[0][0]):
         best = 0  # the identity start, unless clearly beaten
@@ -212,14 +214,21 @@ def _rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, para
     r = cpd_rigid(tgt_f, ref_f @ matrix[:3, :3].T + matrix[:3, 3], scaling=True, w=params["w"],
                   tolerance=params["tolerance"], max_iterations=params["rigid_iterations"],
                   parallel=parallel)
-    matrix = r.matrix @ matrix
+    matrix = _matrix(r) @ matrix
     return matrix, float(lowest), switched
+
+
+def _matrix(result: CPDResult) -> np.ndarray:
+    """The (4, 4) matrix of a rigid CPD result (always set by :func:`cpd_rigid`)."""
+    if result.matrix is None:
+        raise ValueError("a rigid CPD result has no matrix")
+    return result.matrix
 
 
 def mirror_fit_ratio(reference: np.ndarray, target: np.ndarray, params: dict | None = None,
                      parallel: bool = True, proper: float | None = None) -> float:
     """How well the target's mirror image fits the reference, relative to the target itself:
-    best rigid CPD sigma^2 (short runs from every start, :func:`_rigid_fit`) of the
+    best rigid CPD sigma^2 (short runs from every start, :func:`rigid_fit`) of the
     normalised reference onto the mirrored target over the same onto the target (``proper``,
     when already known).
 
@@ -231,11 +240,11 @@ def mirror_fit_ratio(reference: np.ndarray, target: np.ndarray, params: dict | N
     p = dict(DEFAULT_CPD_PARAMS)
     p.update(params or {})
     p["pose_starts"] = "auto"
-    yn, _, _ = _normalise(np.asarray(reference, dtype=np.float64))
-    xn, _, _ = _normalise(np.asarray(target, dtype=np.float64))
+    yn, _, _ = normalise(np.asarray(reference, dtype=np.float64))
+    xn, _, _ = normalise(np.asarray(target, dtype=np.float64))
     if proper is None:
-        proper = _rigid_fit(xn, yn, p, parallel, refine=False)[1]
-    mirrored = _rigid_fit(xn * np.array([-1.0, 1.0, 1.0]), yn, p, parallel, refine=False)[1]
+        proper = rigid_fit(xn, yn, p, parallel, refine=False)[1]
+    mirrored = rigid_fit(xn * np.array([-1.0, 1.0, 1.0]), yn, p, parallel, refine=False)[1]
     return mirrored / max(proper, 1e-300)
 
 
@@ -264,12 +273,12 @@ def correspond_pair(reference: TriMesh, target: TriMesh, params: dict | None = N
     ref_f = np.asarray(reference.faces)
     tgt_v = np.asarray(target.vertices, dtype=np.float64)
     tgt_f = np.asarray(target.faces)
-    xn, centre, scale = _normalise(tgt_v)
+    xn, centre, scale = normalise(tgt_v)
     mirror = None
     switched = False
     if posed is None:
-        yn, _, _ = _normalise(ref_v)
-        pose, lowest, switched = _rigid_fit(xn, yn, p, parallel)
+        yn, _, _ = normalise(ref_v)
+        pose, lowest, switched = rigid_fit(xn, yn, p, parallel)
         y_posed = yn @ pose[:3, :3].T + pose[:3, 3]
         if p["mirror_check"] and p["pose_starts"] == "auto":
             mirror = mirror_fit_ratio(ref_v, tgt_v, p, parallel, proper=lowest)
@@ -340,14 +349,3 @@ def label_points(moved: np.ndarray, vertices: np.ndarray, faces: np.ndarray, sig
     labelled[rows] = candidates[cols]
     return labelled
 
-
-def _task(args: tuple) -> tuple:
-    """Process-pool entry: (key, ref_v, ref_f, tgt_v, tgt_f, params, parallel[, posed]) ->
-    (key, result or None, error or None)."""
-    key, ref_v, ref_f, tgt_v, tgt_f, params, parallel, *rest = args
-    try:
-        out = correspond_pair(TriMesh(ref_v, ref_f), TriMesh(tgt_v, tgt_f), params, parallel,
-                              posed=rest[0] if rest else None)
-        return key, out, None
-    except Exception as exc:  # reported per shape, the batch goes on; a bug with its traceback
-        return key, None, describe_failure(exc)

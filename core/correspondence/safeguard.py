@@ -186,7 +186,7 @@ class RefinementGuard:
 
     ``raw`` gives the raw input of a shape index (read on demand, kept for the model's
     shapes only); :meth:`refine` runs the passes through ``run_pass`` (one pass of
-    :func:`core.correspondence.batch._refine`) and returns their mean vertex changes."""
+    :func:`core.correspondence.refinement.refine`) and returns their mean vertex changes."""
 
     def __init__(self, raw: Callable[[int], TriMesh]):
         self._raw_of = raw

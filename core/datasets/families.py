@@ -45,6 +45,7 @@ The ovoid's maths (:func:`ovoid_shape`) is also the ``ovoid`` family of
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -68,7 +69,7 @@ STYLE = {"global": ("uneven", (1000, 1800)), "concave": ("uneven", (1000, 1800))
 ICOSPHERE = ("global", "ovoid")  # the fine lattice a randomly rotated icosphere
 
 # Gate problems: a few shapes, 600-900 vertices (coarser grids for the grid-made families).
-GATE = {"global": {"size": (700, 900)}, "concave": {"size": (700, 900)},
+GATE: dict[str, dict[str, Any]] = {"global": {"size": (700, 900)}, "concave": {"size": (700, 900)},
         "coarse": {"size": (300, 600)}, "labels_1mm": {"size": (1.6, 1.6, 1.6)},
         "ovoid": {"size": (700, 900)}, "thin": {"size": (700, 900)},
         "twolobe": {"size": (1.1, 1.1, 1.1)}, "labels_05mm": {"size": (1.0, 1.0, 2.0)}}
