@@ -57,7 +57,7 @@ def _print_row(method, times, residual, fit_times, iterations, cpu) -> None:
 
 
 def _truth_points(window: MainWindow, seed: int = 0) -> list[tuple[str, float, np.ndarray]]:
-    model = window.state.model
+    model = window.state.active.model
     rng = np.random.default_rng(seed)
     coef = rng.standard_normal(model.n_factors) * np.sqrt(model.coef_var)
     truth = model.world_instance(coef) + rng.normal(0, 1.0, 3)
@@ -90,9 +90,9 @@ def bench_refit(window: MainWindow, app: QApplication, n_edits: int,
 
     window.refit_applied.connect(on_applied)
     for method in methods:
-        window.state.clear_points()
+        window.state.active.clear_points()
         window.wait_for_refit()
-        window.state.reset_placement()
+        window.state.active.reset_placement()
         window.fit_panel.set_settings(method=method)
         times, fit_times, iterations, cpu = [], [], [], []
         residual = float("nan")
@@ -113,12 +113,12 @@ def bench_refit(window: MainWindow, app: QApplication, n_edits: int,
             if i >= 15 and "t" in painted:       # time edits once 15 points exist
                 times.append(painted["t"] - t0)
                 cpu.append(painted["cpu"] - c0)
-                residual = window.state.fit_info.residual_mm
-                fit_times.append(window.state.fit_info.fit_seconds)
-                iterations.append(window.state.fit_info.n_iter)
+                residual = window.state.active.fit_info.residual_mm
+                fit_times.append(window.state.active.fit_info.fit_seconds)
+                iterations.append(window.state.active.fit_info.n_iter)
         rows.append((method, times, residual, fit_times, iterations, cpu))
     window.refit_applied.disconnect(on_applied)
-    window.state.clear_points()
+    window.state.active.clear_points()
     window.wait_for_refit()
     return rows
 
@@ -176,7 +176,7 @@ def main() -> int:
     print(f"  imports (Python, numpy, Qt, VTK, app)    {T_IMPORTED - T_START:6.2f} s")
     print(f"  window + demo data + first full paint    {t_paint:6.2f} s")
     print(f"  total to first paint                     {T_IMPORTED - T_START + t_paint:6.2f} s")
-    model = window.state.model
+    model = window.state.active.model
     print(f"\nRefit round trip (click -> new contours painted in the slice views), demo model "
           f"{model.n_vertices} vertices, {model.n_factors} factors, 15..{15 + args.edits} points")
     print(f"  {'method':<10} {'p50 ms':>8} {'p90 ms':>8} {'max ms':>8}  {'fit p50':>8} "
