@@ -85,6 +85,17 @@ def _spread(pop, vertices: list) -> dict:
             "per_shape": [round(float(np.linalg.norm(m - median, axis=1).mean()), 3) for m in material]}
 
 
+def _kept(record: dict) -> dict:
+    """What the safeguard kept at each stage (``correspondence.json``'s record, abridged)."""
+    kept = {}
+    for stage in record.get("stages", []):
+        if stage["stage"] == "refinement":
+            kept["refinement"] = [p["kept"] for p in stage.get("passes", [])]
+        else:
+            kept[stage["stage"]] = stage.get("kept")
+    return kept
+
+
 def _ours_and_plain(family: str, seed: int, n_shapes: int) -> dict:
     """The defaults, then the plain peer with the defaults' (raw) reference."""
     from bench_correspondence import plain_rustcpd
@@ -95,7 +106,8 @@ def _ours_and_plain(family: str, seed: int, n_shapes: int) -> dict:
     t0 = time.perf_counter()
     res = establish_correspondence(pop.meshes, "auto", n_jobs=1)
     out = {"defaults": {**_spread(pop, [m.vertices if m is not None else None for m in res.meshes]),
-                        "seconds": time.perf_counter() - t0}}
+                        "seconds": time.perf_counter() - t0,
+                        "safeguard_kept": _kept(res.safeguard)}}
     ref = res.reference_index
     reference = pop.meshes[ref]
     t0 = time.perf_counter()
@@ -154,7 +166,7 @@ def extract_round1(folder: str) -> None:
 
 
 def run(families: list[str], n_populations: int, n_shapes: int, jobs: int, folder: str,
-        progress=print, on_result=None, first_seed: int = 0) -> dict:
+        progress=print, on_result=None, first_seed: int = 0, kinds: list[str] | None = None) -> dict:
     """Every option on every population: {family: {seed: {option: result}}};
     ``on_result(results)`` after each finished run (the JSON is written as the run goes)."""
     import multiprocessing as mp
@@ -162,7 +174,7 @@ def run(families: list[str], n_populations: int, n_shapes: int, jobs: int, folde
     seeds = range(first_seed, first_seed + n_populations)
     tasks = [(kind, family, seed, n_shapes, folder if kind == "round 1" else None)
              for family in families for seed in seeds
-             for kind in ("defaults", "round 1", *[o for o in OPTIONS if o != "defaults"])]
+             for kind in (kinds or ("defaults", "round 1", *[o for o in OPTIONS if o != "defaults"]))]
     results: dict = {f: {s: {} for s in seeds} for f in families}
     t0 = time.perf_counter()
     with mp.get_context("forkserver").Pool(jobs, maxtasksperchild=4) as pool:
@@ -244,6 +256,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--shapes", type=int, default=7, help="shapes a population")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (each run on 1 core)")
     parser.add_argument("--json", type=Path, default=None, help="write the results here (as they come)")
+    parser.add_argument("--runs", nargs="+", default=None, choices=("round 1", *OPTIONS),
+                        help="only these runs (\"defaults\" includes plain rustcpd)")
     parser.add_argument("--merge", type=Path, nargs="+", default=None,
                         help="no run: the tables of these --json files' runs together")
     args = parser.parse_args(argv)
@@ -265,7 +279,7 @@ def main(argv: list[str] | None = None) -> None:
         extract_round1(folder)
         results = run(args.families, args.populations, args.shapes, args.jobs, folder,
                       progress=lambda s: print(s, flush=True), on_result=dump,
-                      first_seed=args.first_seed)
+                      first_seed=args.first_seed, kinds=args.runs)
     report(summarise(results),
            f"\n{args.populations} populations a family, {args.shapes} shapes each, {args.jobs} jobs, "
            f"{time.perf_counter() - t0:.0f} s, load {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
