@@ -14,6 +14,9 @@ c1 = lambda_1 / sqrt(3N), c2 = lambda_2 / sqrt(3N), cg = lambda_group / sqrt(N) 
 group term, the reference's ``lambdainf``), cG = lambda_graph / sqrt(3 |E|). Factors whose
 product norm ||Phi_m|| ||A_m|| vanishes are removed (the rank adapts). Phi starts as M random
 coordinate vectors (as in Haeffele's code), drawn in proportion to each coordinate's variance.
+One default differs from the authors' code: the group norm is l2 (their code and the paper use
+l-infinity, ``group_norm="linf"``), which gives more local factors at the same weight
+(:class:`LSF`, ``group_norm``).
 """
 
 from __future__ import annotations
