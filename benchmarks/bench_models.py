@@ -3,7 +3,7 @@
 1. Time of every method on the paper's brain-set size (Bernard et al., CVPR 2016): N = 1792
    vertices, K = 17 shapes, M = 96 factors -- synthetic shapes on a torus grid with 12 planted
    local bumps (ground truth), so the support IoU is reported too.
-2. LSF's x/y/z group norm, l-infinity (the paper's, default) vs l2, with PCA and SPLOCS as
+2. LSF's x/y/z group norm, l-infinity (the paper's) vs l2 (the default), with PCA and SPLOCS as
    peers, on two kinds of planted data: disjoint local bumps (ellipsoid, 642 vertices, the
    tests' 6 bumps) and overlapping bumps plus global modes. Each method is fitted on 24 shapes;
    support IoU against the planted factors, generalisation and 5% sparse reconstruction on 24

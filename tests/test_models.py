@@ -397,3 +397,33 @@ def test_varimax_rotates_within_the_pca_subspace(planted):
     # rotated factors are more local than the principal components
     assert support_iou(planted.factors, vm.factors_).mean() > \
         support_iou(planted.factors, pca.factors_).mean()
+
+
+def _noisy_ovoids(seed: int, noise: float = 0.2):
+    """12 ovoids of the ``ovoid`` family on one 1,500-vertex lattice (known correspondences),
+    4 bumps (sigma 2 mm) planted at the same material points, plus ``noise`` mm of per-vertex
+    correspondence noise; and the planted bumps as factors on the lattice."""
+    from core.datasets.families import OVOID_CENTRES, ovoid_base, ovoid_shape, sphere_lattice
+
+    m, faces = sphere_lattice(1500)
+    rng = np.random.default_rng([seed, 7])
+    shapes = np.stack([ovoid_shape(m, faces, rng, OVOID_CENTRES) for _ in range(12)])
+    shapes = shapes + noise * np.random.default_rng([seed, 8]).standard_normal(shapes.shape)
+    d2 = ((ovoid_base(m)[None] - ovoid_base(OVOID_CENTRES)[:, None]) ** 2).sum(axis=2)
+    planted = np.zeros((len(OVOID_CENTRES), len(m), 3))
+    planted[:, :, 0] = np.exp(-d2 / (2 * 2.0 ** 2))
+    return shapes, faces, planted
+
+
+def test_lsf_default_is_local_on_noisy_corresponded_ovoids():
+    """Issue 27 item 5: the default LSF finds the 4 bumps planted on ovoids with 0.2 mm of
+    correspondence noise (mean best support IoU over 3 populations, 8 factors). With the
+    l-infinity group norm at the same weight (the default before) it was 0.15 (0.10, 0.21,
+    0.14), with l2 0.26 (0.15, 0.40, 0.22); PCA's 8 components give about 0.06."""
+    ious, ious_pca = [], []
+    for seed in range(3):
+        shapes, faces, planted = _noisy_ovoids(seed)
+        ious.append(support_iou(planted, LSF(n_factors=8, connectivity=faces).fit(shapes).factors_).mean())
+        ious_pca.append(support_iou(planted, PCA(n_factors=8).fit(shapes).factors_).mean())
+    assert np.mean(ious) >= 0.22
+    assert np.mean(ious) >= 3 * np.mean(ious_pca)
