@@ -239,12 +239,16 @@ def report(summary: dict, header: str) -> None:
 
 
 def merged(paths: list[Path]) -> dict:
-    """The runs of several ``--json`` files (e.g. different ``--first-seed``) together."""
+    """The runs of several ``--json`` files together, population by population (family and
+    seed): different ``--first-seed`` add populations; a later file's run of an option on the
+    same population replaces an earlier one's (e.g. the defaults re-run after a change, beside
+    round 1's unchanged code), and a family missing from a file keeps what it had."""
     results: dict = {}
     for path in paths:
         for family, pops in json.loads(path.read_text())["runs"].items():
             for seed, out in pops.items():
-                results.setdefault(family, {}).setdefault(f"{path.name}:{seed}", {}).update(out)
+                key = str(seed).rsplit(":", 1)[-1]  # merged files name theirs "file:seed"
+                results.setdefault(family, {}).setdefault(key, {}).update(out)
     return results
 
 
