@@ -134,6 +134,32 @@ def test_a_mirrored_side_of_a_chiral_structure_is_caught_and_the_rest_completes(
     assert all(result.meshes[k] is not None for k in (0, 1, 2, 3, 5))
 
 
+def test_no_mirror_check_keeps_a_mirrored_input(tmp_path):
+    """`correspond --no-mirror-check` (a population in which a chiral feature takes either
+    sign) keeps the input the check would leave out; without it, the input is reported."""
+    import json
+
+    from core.cli import main
+    from core.io import save_mesh
+
+    pop = known_homology_shapes("twist", 6, seed=2, n_points=(380, 420))
+    paths = []
+    for k, m in enumerate(pop.meshes):
+        if k == 4:
+            m = TriMesh(m.vertices * np.array([-1.0, 1.0, 1.0]), m.faces[:, ::-1], "mirrored")
+        paths.append(tmp_path / "in" / f"shape_{k}.vtk")
+        paths[-1].parent.mkdir(exist_ok=True)
+        save_mesh(paths[-1], m)
+    common = [*map(str, paths), "--reference", str(paths[0]), "--refine", "0", "--vertices", "400",
+              "--jobs", "1", "--no-safeguard"]
+    assert main(["correspond", *common, "--out", str(tmp_path / "checked")]) == 1  # one input left out
+    report = json.loads((tmp_path / "checked" / "correspondence.json").read_text())
+    assert any("mirrored" in str(v) for v in report["failures"].values()), report["failures"]
+    assert main(["correspond", *common, "--out", str(tmp_path / "kept"), "--no-mirror-check"]) == 0
+    report = json.loads((tmp_path / "kept" / "correspondence.json").read_text())
+    assert not report["failures"] and (tmp_path / "kept" / "shape_4.vtk").exists()
+
+
 def test_a_poorly_corresponded_shape_of_the_right_structure_is_not_dropped_as_an_outlier():
     # Bent tube 1 of this set corresponds 1.5 mm off the truth and lies 2.3x the median
     # Procrustes distance from the mean: with a 2x threshold it was flagged "far from every

@@ -90,6 +90,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "leave-one-out generalisation against the raw inputs says they do "
                              "not help (core.correspondence.safeguard; the report's 'safeguard' "
                              "says what was tried and kept)")
+    parser.add_argument("--no-mirror-check", action="store_true",
+                        help="keep inputs whose mirror image fits the others better (by default "
+                             "left out as a left/right mix-up): for a population in which a "
+                             "chiral feature takes either sign")
     parser.add_argument("--selection", choices=("compactness", "residual"), default="compactness",
                         help="how --reference auto ranks candidates (default compactness)")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
@@ -164,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
             reference = ref_loaded[0][1]
             reference.name = str(ref_path)
     params = {"w": args.w, "beta": args.beta, "lam": args.lam, "tolerance": args.tolerance,
-              "max_iterations": args.max_iterations, "refine_deformation": args.refine_deformation}
+              "max_iterations": args.max_iterations, "refine_deformation": args.refine_deformation,
+              "mirror_check": not args.no_mirror_check}
     groom: bool | dict = False if args.no_groom else {
         "largest_piece": not args.no_largest_piece, "fill_holes": not args.no_fill_holes,
         "fix_orientation": not args.no_fix_orientation, "remesh": not args.no_remesh}
