@@ -60,6 +60,13 @@ HELP = "bring training meshes into correspondence with one reference topology (C
 REPORT_NAME = "correspondence.json"
 
 
+def _cpd_params(args: argparse.Namespace) -> dict:
+    """The pairwise step's settings given on the command line."""
+    return {"w": args.w, "beta": args.beta, "lam": args.lam, "tolerance": args.tolerance,
+            "max_iterations": args.max_iterations, "refine_deformation": args.refine_deformation,
+            "mirror_check": not args.no_mirror_check}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("meshes", nargs="+", metavar="MESH", help="training meshes")
     parser.add_argument("--reference", default="auto",
@@ -167,9 +174,7 @@ def run(args: argparse.Namespace) -> int:
                 raise DataFileError(ref_path, ref_failure[str(ref_path)])
             reference = ref_loaded[0][1]
             reference.name = str(ref_path)
-    params = {"w": args.w, "beta": args.beta, "lam": args.lam, "tolerance": args.tolerance,
-              "max_iterations": args.max_iterations, "refine_deformation": args.refine_deformation,
-              "mirror_check": not args.no_mirror_check}
+    params = _cpd_params(args)
     groom: bool | dict = False if args.no_groom else {
         "largest_piece": not args.no_largest_piece, "fill_holes": not args.no_fill_holes,
         "fix_orientation": not args.no_fix_orientation, "remesh": not args.no_remesh}
