@@ -173,9 +173,14 @@ def planted_supports(pop, shapes: np.ndarray, kept: list[int]) -> np.ndarray:
 
     material = np.mean([material_points(s, pop.meshes[k], pop.material[k])
                         for s, k in zip(shapes, kept)], axis=0)
-    centres = ovoid_base(OVOID_CENTRES)
-    d2 = ((material[None] - centres[:, None]) ** 2).sum(axis=2)
-    field = np.zeros((len(centres), len(material), 3))
+    return bump_fields(material)
+
+
+def bump_fields(base_points: np.ndarray) -> np.ndarray:
+    """(4, N, 3) fields, one a planted bump: a Gaussian of the distance (sigma 2 mm, the
+    family's) of each point on the ovoid's base surface from the bump's centre."""
+    d2 = ((base_points[None] - ovoid_base(OVOID_CENTRES)[:, None]) ** 2).sum(axis=2)
+    field = np.zeros((len(OVOID_CENTRES), len(base_points), 3))
     field[:, :, 0] = np.exp(-d2 / (2 * 2.0 ** 2))
     return field
 
@@ -194,11 +199,8 @@ def known_lsf(n_shapes: int, seed: int) -> dict:
     m, faces = sphere_lattice(1500)
     rng = np.random.default_rng([seed, 7])
     shapes = np.stack([ovoid_shape(m, faces, rng, OVOID_CENTRES) for _ in range(n_shapes)])
-    d2 = ((ovoid_base(m)[None] - ovoid_base(OVOID_CENTRES)[:, None]) ** 2).sum(axis=2)
-    planted = np.zeros((len(OVOID_CENTRES), len(m), 3))
-    planted[:, :, 0] = np.exp(-d2 / (2 * 2.0 ** 2))
     factors, seconds = today_lsf(shapes, faces)
-    return {"lsf": {"known corr": lsf_iou(planted, factors), "today_s": seconds}}
+    return {"lsf": {"known corr": lsf_iou(bump_fields(ovoid_base(m)), factors), "today_s": seconds}}
 
 
 def today_lsf(shapes: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:

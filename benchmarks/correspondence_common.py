@@ -131,10 +131,11 @@ def load_averages() -> str:
 # ----------------------------------------------------------------------------- peers
 
 def normalised(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Points centred and scaled to unit RMS radius, the centre and the scale."""
-    centre = points.mean(axis=0)
-    scale = float(np.sqrt(((points - centre) ** 2).sum(axis=1).mean()))
-    return (points - centre) / scale, centre, scale
+    """Points centred and scaled to unit RMS radius, the centre and the scale: the peers get
+    the product's own normalisation (:func:`core.correspondence.pair.normalise`)."""
+    from core.correspondence.pair import normalise
+
+    return normalise(np.asarray(points, dtype=np.float64))
 
 
 def plain_rustcpd(reference: TriMesh, target: TriMesh, params: dict) -> np.ndarray:

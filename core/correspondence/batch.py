@@ -344,7 +344,7 @@ class CorrespondenceRun:
         if keep_meshes:
             for i in corresponded:
                 out_meshes[i] = TriMesh(corresponded[i], self.faces, self.names[i])
-        times = [t for t in per.values()]
+        times = list(per.values())
         timings.update(total=time.perf_counter() - self.t_start,
                        per_shape_mean=float(np.mean(times)) if times else 0.0,
                        per_shape_max=float(np.max(times)) if times else 0.0, n_jobs=int(self.n_jobs))
@@ -441,7 +441,7 @@ def establish_correspondence(meshes: Sequence[TriMesh | InputFile | str | os.Pat
     if len(meshes) == 0:
         raise ValueError("no meshes to correspond")
     record: dict = {"enabled": bool(safeguard), "stages": []}
-    if cpd_params.get("labelling"):  # given: the first pass labels too (popped by _establish)
+    if cpd_params.get("labelling"):  # given: the first pass labels too (CorrespondenceRun.run pops it)
         record["labelling"] = True
     if safeguard:
         from core.correspondence.safeguard import choose_remesh
