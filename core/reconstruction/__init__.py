@@ -69,9 +69,10 @@ Correlated residuals (issue 27): after the fit, the lag-one correlation rho of n
 points' normal residuals is measured (neighbours by foot point); a shape outside the model's
 span leaves residuals that vary smoothly along a contour, so P points carry the information
 of about P (1 - rho) / (1 + rho). When rho exceeds its standard error 1/sqrt(P), the fit is
-run again from the same start with the likelihood tempered by that factor (both priors'
-weights times (1 + rho) / (1 - rho)); ``FitResult.residual_correlation`` and
-``.prior_inflation`` record it. The normal variance of gmm-aniso is also divided by P - dof
+run again from the same start with the shape prior's weight times (1 + rho) / (1 - rho)
+(not the pose prior's: a wrong pose also leaves correlated residuals, and a tighter pose
+prior held it there); ``FitResult.residual_correlation`` and ``.prior_inflation`` record it.
+The normal variance of gmm-aniso is also divided by P - dof
 rather than P (dof: the trace of the data part of the shape step), as the residuals are
 what the shape was fitted to.
 

@@ -79,7 +79,7 @@ class FitResult:
     coef_precision: np.ndarray | None = None
     centre_offset_mm: np.ndarray | None = None  # fitted centre minus placed centre (world)
     residual_correlation: float = 0.0  # neighbouring points' normal residuals (fit_points)
-    prior_inflation: float = 1.0       # (1 + rho) / (1 - rho), the priors' weight factor used
+    prior_inflation: float = 1.0       # (1 + rho) / (1 - rho), the shape prior's weight factor
     warnings: list[str] = field(default_factory=list)  # e.g. points far from the placement
     placement_source: str = "stored"   # "stored", "given" (a matrix) or "points" (Place here)
 

@@ -94,8 +94,9 @@ DEFAULT_POSE_SD = (3.0, 1.0, 0.03)  # as core.reconstruction: deg, mm, log scale
 #: tune --calibrate`` on the tuning kinds only (bean and planted, 6 unseen shapes each, 4
 #: contour layouts): the smallest factor at which every (kind, layout) cell covers >= 93 %
 #: on average (the target's per-cell rule, 90-97 %), with ``fit=`` given and the mode offset
-#: (1.37 before, the pooled 95th percentile without the offset; 1.42 from 4 demo cases).
-SD_CALIBRATION = 1.351
+#: (1.351 while the fit tempered the pose prior too; 1.37 before, the pooled 95th percentile
+#: without the offset; 1.42 from 4 demo cases).
+SD_CALIBRATION = 1.346
 
 
 def _cross_matrices(v: np.ndarray) -> np.ndarray:
@@ -352,7 +353,8 @@ def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose:
     residuals: the pose prior's SDs are widened to the deviation the fit found from its
     placement (:func:`_pose_aware_sd`), the noise variance is multiplied by the fit's
     ``prior_inflation`` (neighbouring points' residuals correlated by rho carry the
-    information of P (1 - rho) / (1 + rho) points), and its warnings are kept.
+    information of P (1 - rho) / (1 + rho) points) and the pose prior's precision divided by
+    it (the fit tempers only the shape prior), and its warnings are kept.
     ``residual_var_factor`` (default ``RESIDUAL_VAR_FACTOR``; 0 leaves it out) scales the
     out-of-span residual's variance.
     """
@@ -374,7 +376,9 @@ def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose:
            if factor > 0 else np.zeros((len(world), 0)))
     prior = np.zeros((m + k,) * 2)
     prior[:m, :m] = prior_weight * np.diag(1.0 / model.coef_var)
-    prior[m:, m:] = _pose_precision(pose_mode, pose_sd)
+    # the fit tempers the shape prior only: against the inflated noise variance below, the
+    # pose prior keeps the fit's weight with its precision divided by the inflation
+    prior[m:, m:] = _pose_precision(pose_mode, pose_sd) / inflation
     floor_var = (MIN_NOISE_PER_SIZE * size if min_noise_mm is None else float(min_noise_mm)) ** 2
     noise_var, offset, r = floor_var, None, psi.shape[1]
     full_prior = np.zeros((m + k + r,) * 2)
