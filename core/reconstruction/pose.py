@@ -94,10 +94,6 @@ class PosePrior:
         sd = np.array([log_scale] + [np.deg2rad(rotation_deg)] * 3 + [translation_mm] * 3)
         return cls(placement, np.asarray(centre, dtype=np.float64), 1.0 / sd**2)
 
-    def scaled(self, factor: float) -> "PosePrior":
-        """The prior with its precision multiplied by ``factor``."""
-        return PosePrior(self.placement, self.centre, self.precision * float(factor))
-
     def deviation(self, pose: Similarity) -> np.ndarray:
         p0 = self.placement
         return np.concatenate([[np.log(pose.scale / p0.scale)], rotation_vector(pose.rot @ p0.rot.T),
