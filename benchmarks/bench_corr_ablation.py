@@ -20,8 +20,13 @@ population, averaged over the seeds. The protocol's rule: options are chosen on 
 families (default here) with seeds that are not the protocol's (100, 101, 102); the REPORT
 families are only for reporting a choice already made.
 
+``--size LO HI``: the populations' vertex-count range instead of each family's own
+(``population(..., size=)``), e.g. 4,500-5,500 for dense tuning meshes: every tuning family is
+under the CPD subsample's size at its own resolution, so ``cpd_points`` changes nothing there.
+
 Run: ``.venv/bin/python benchmarks/bench_corr_ablation.py [--families F ...] [--seeds 100 101 102]
-[--shapes 6] [--modes "refine 0" defaults] [--options O ...] [--jobs 1] [--json OUT]``.
+[--shapes 6] [--size LO HI] [--modes "refine 0" defaults] [--options O ...] [--jobs 1]
+[--json OUT]``.
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ OPTIONS = {  # label: establish_correspondence keywords (one change each)
     "rigid all points": {"rigid_points": 100000, "rigid_fine_points": 100000},
     "exact kernel": {"low_rank": None},
     "cpd all points": {"cpd_points": None},
+    "cpd 3000 points": {"cpd_points": 3000},  # the default until 2026-12-03 (now 6,000)
     "no remesh": {"groom": {"remesh": False}},
 }
 PLAIN = "plain rustcpd"
@@ -66,11 +72,11 @@ def _spread(pop, vertices: list) -> tuple[float, float]:
 
 
 def _run(task: tuple) -> tuple:
-    """(family, seed, shapes, mode, option) -> (family, seed, mode, option, result)."""
+    """(family, seed, shapes, mode, option, size) -> (family, seed, mode, option, result)."""
     from core.correspondence import establish_correspondence
 
-    family, seed, n_shapes, mode, option = task
-    pop = population(family, n_shapes, seed)
+    family, seed, n_shapes, mode, option, size = task
+    pop = population(family, n_shapes, seed, size=size)
     t0 = time.perf_counter()
     res = establish_correspondence(pop.meshes, "auto", n_jobs=1, **MODES[mode], **OPTIONS[option])
     verts = [m.vertices if m is not None else None for m in res.meshes]
@@ -83,13 +89,13 @@ def _run(task: tuple) -> tuple:
     return family, seed, mode, option, out
 
 
-def _plain(family: str, seed: int, n_shapes: int, ref: int) -> dict:
+def _plain(family: str, seed: int, n_shapes: int, ref: int, size: tuple | None) -> dict:
     """The plain peer with the raw input ``ref`` as reference."""
     from correspondence_common import plain_rustcpd
 
     from core.correspondence import DEFAULT_CPD_PARAMS
 
-    pop = population(family, n_shapes, seed)
+    pop = population(family, n_shapes, seed, size=size)
     t0 = time.perf_counter()
     reference = pop.meshes[ref]
     verts = [reference.vertices if k == ref else plain_rustcpd(reference, m, dict(DEFAULT_CPD_PARAMS))
@@ -100,21 +106,23 @@ def _plain(family: str, seed: int, n_shapes: int, ref: int) -> dict:
 
 def _task(task: tuple) -> list[tuple]:
     """One option's run; the ``refine 0`` base also runs the plain peer with its reference."""
-    family, seed, n_shapes, mode, option = task
+    family, seed, n_shapes, mode, option, size = task
     done = [_run(task)]
     if mode == "refine 0" and option == "base" and "reference" in done[0][4]:
-        done.append((family, seed, "", PLAIN, _plain(family, seed, n_shapes, done[0][4]["reference"])))
+        done.append((family, seed, "", PLAIN,
+                     _plain(family, seed, n_shapes, done[0][4]["reference"], size)))
     return done
 
 
 def run(families: list[str], seeds: list[int], n_shapes: int, modes: list[str], options: list[str],
-        jobs: int, progress=print, on_result=None) -> dict:
+        jobs: int, progress=print, on_result=None, size: tuple | None = None) -> dict:
     """{(mode, option): {family: {seed: result}}} for every mode, option, family and seed."""
     import multiprocessing as mp
 
-    tasks = [(f, s, n_shapes, m, o) for f in families for s in seeds for m in modes for o in options]
+    tasks = [(f, s, n_shapes, m, o, size) for f in families for s in seeds for m in modes
+             for o in options]
     if "refine 0" not in modes or "base" not in options:  # the peer needs the refine 0 base
-        tasks += [(f, s, n_shapes, "refine 0", "base") for f in families for s in seeds]
+        tasks += [(f, s, n_shapes, "refine 0", "base", size) for f in families for s in seeds]
     results: dict = {}
     t0 = time.perf_counter()
 
@@ -182,6 +190,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--families", nargs="+", default=list(TUNING), choices=FAMILIES)
     parser.add_argument("--seeds", nargs="+", type=int, default=[100, 101, 102])
     parser.add_argument("--shapes", type=int, default=6, help="shapes a population")
+    parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("LO", "HI"),
+                        help="vertex-count range of every shape (default: the family's own)")
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     parser.add_argument("--options", nargs="+", default=list(OPTIONS), choices=list(OPTIONS))
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (each run on 1 core)")
@@ -199,14 +209,17 @@ def main(argv: list[str] | None = None) -> None:
 
     def dump(results: dict) -> None:
         if args.json:
-            args.json.write_text(json.dumps({"seeds": args.seeds, "shapes": args.shapes, "runs": [
+            args.json.write_text(json.dumps({"seeds": args.seeds, "shapes": args.shapes,
+                                             "size": args.size, "runs": [
                 {"mode": m, "option": o, "family": f, "seed": s, **r}
                 for (m, o), fams in results.items() for f, seeds in fams.items()
                 for s, r in seeds.items()]}, indent=1))
 
     results = run(args.families, args.seeds, args.shapes, args.modes, args.options, args.jobs,
-                  progress=lambda s: print(s, flush=True), on_result=dump)
-    print(f"\nseeds {args.seeds}, {args.shapes} shapes each, {args.jobs} jobs, "
+                  progress=lambda s: print(s, flush=True), on_result=dump,
+                  size=tuple(args.size) if args.size else None)
+    print(f"\nseeds {args.seeds}, {args.shapes} shapes each"
+          f"{f', {args.size[0]}-{args.size[1]} vertices' if args.size else ''}, {args.jobs} jobs, "
           f"{time.perf_counter() - t0:.0f} s; spread mean / p95 (mm) averaged over the seeds "
           f"(the mean's change against the mode's base; the peer against refine 0's base)\n")
     print(table(results, args.families))
