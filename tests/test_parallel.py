@@ -183,6 +183,52 @@ def test_sigterm_stops_the_pool_and_leaves_no_worker(tmp_path):
     assert still_alive(workers) == []
 
 
+_INTERRUPTED_WAIT_SCRIPT = textwrap.dedent("""
+    import os, signal, sys
+    import concurrent.futures._base as futures_base
+    from core.runtime.parallel import run_jobs, termination_signals
+    import helper_jobs
+
+    take_all = futures_base._AcquireFutures.__enter__
+    calls = []
+
+    def take_one_then_sigint(self):
+        # SIGINT arrives while wait() holds the first future's lock and not yet the others
+        calls.append(1)
+        if len(calls) == 3:
+            self.futures[0]._condition.acquire()
+            os.kill(os.getpid(), signal.SIGINT)
+            for future in self.futures[1:]:
+                future._condition.acquire()
+            return
+        take_all(self)
+
+    futures_base._AcquireFutures.__enter__ = take_one_then_sigint
+    with termination_signals():
+        try:
+            run_jobs(helper_jobs.sleepy, [(i, i) for i in range(40)], n_jobs=2)
+        except KeyboardInterrupt:
+            print("stopped", flush=True)
+            sys.exit(130)
+""")
+
+
+def test_a_sigint_inside_the_pools_wait_stops_it(tmp_path):
+    """A SIGINT landing while ``concurrent.futures.wait`` takes its futures' locks one by one:
+    the pool still stops and the process exits 130 (raised there, it left a lock held, and
+    loky's result thread, then the pool's shutdown, waited on it for good)."""
+    proc = _start_script(tmp_path, _INTERRUPTED_WAIT_SCRIPT,
+                         "import time\n\ndef sleepy(arg, common):\n"
+                         "    time.sleep(0.3)\n    return arg\n")
+    try:
+        out, err = proc.communicate(timeout=60)  # a hang guard, not a timing assertion
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("the pool did not stop after a SIGINT inside its wait")
+    assert proc.returncode == 130, err
+    assert "stopped" in out and "Traceback" not in err
+
+
 _CANCEL_SCRIPT = textwrap.dedent("""
     import numpy as np
     from core.runtime.parallel import run_jobs

@@ -194,20 +194,28 @@ def run_pool(fn: Callable[[Any, Any], Any], iterator: Iterator[tuple[Any, Any]],
         try:
             submit_more()
             while in_flight:
-                # short waits: SIGINT/SIGTERM are handled within a fraction of a second
-                finished, _ = wait(list(in_flight), timeout=0.1, return_when=FIRST_COMPLETED)
-                if not finished:  # heartbeat
+                # Short waits: SIGINT/SIGTERM are handled within a fraction of a second. They
+                # are held back over the wait and the reads of its futures: ``wait`` takes
+                # every future's lock in turn, and a KeyboardInterrupt raised between two
+                # takes would leave one held by this thread, so loky's result thread would
+                # block on it for good and the shutdown below would never return.
+                with signals_deferred():
+                    finished, _ = wait(list(in_flight), timeout=0.1,
+                                       return_when=FIRST_COMPLETED)
+                    arrived = [(in_flight.pop(fut), fut.exception(), fut) for fut in finished]
+                    arrived = [(key, exc, None if exc else fut.result()[1])
+                               for key, exc, fut in arrived]
+                if not arrived:  # heartbeat
                     tick(progress, len(results), total, label)
-                for fut in finished:
-                    key = in_flight.pop(fut)
-                    exc = fut.exception()
+                for key, exc, value in arrived:
                     if exc is not None:
                         raise JobError(key, exc) from exc
-                    results[key] = keep(key, fut.result()[1])
+                    results[key] = keep(key, value)
                     tick(progress, len(results), total, label)
                 submit_more()
         except BaseException:
-            executor.shutdown(wait=True, kill_workers=True)
+            with signals_deferred():  # a second Ctrl-C must not cut the shutdown short
+                executor.shutdown(wait=True, kill_workers=True)
             raise
         executor.shutdown(wait=True)
     return results
