@@ -103,11 +103,11 @@ def test_the_safeguard_keeps_a_pass_that_helps(uneven_beans):
     from core.correspondence import establish_correspondence
 
     pop = uneven_beans
-    guarded = establish_correspondence(pop.meshes, n_jobs=1)
+    guarded = establish_correspondence(pop.meshes, n_jobs=2)
     stages = _stages(guarded)
     assert set(stages["remesh"]["criterion_mm"]) == {"remesh", "no remesh"}
     groom = {} if stages["remesh"]["kept"] == "remesh" else {"remesh": False}
-    before = establish_correspondence(pop.meshes, n_jobs=1, refine=0, groom=groom, safeguard=False)
+    before = establish_correspondence(pop.meshes, n_jobs=2, refine=0, groom=groom, safeguard=False)
     entry = stages["refinement"]["passes"][0]
     assert entry["kept"] in ("normal_offsets", "cpd")
     assert entry["criterion_mm"][entry["kept"]] < stages["refinement"]["before_mm"]
@@ -125,14 +125,14 @@ def test_the_safeguard_rolls_back_a_pass_that_hurts():
     from core.datasets.families import population
 
     pop = population("global", 6, 100, size=(700, 900))
-    guarded = establish_correspondence(pop.meshes, n_jobs=1)
+    guarded = establish_correspondence(pop.meshes, n_jobs=2)
     stages = _stages(guarded)
     entry = stages["refinement"]["passes"][0]
     assert "normal_offsets" in entry["criterion_mm"] and entry["kept"] != "normal_offsets"
     groom = {} if stages["remesh"]["kept"] == "remesh" else {"remesh": False}
-    forced = establish_correspondence(pop.meshes, n_jobs=1, groom=groom, labelling=True,
+    forced = establish_correspondence(pop.meshes, n_jobs=2, groom=groom, labelling=True,
                                       safeguard=False)
-    before = establish_correspondence(pop.meshes, n_jobs=1, groom=groom, refine=0, safeguard=False)
+    before = establish_correspondence(pop.meshes, n_jobs=2, groom=groom, refine=0, safeguard=False)
     assert _true_spread(pop, forced) > 1.1 * _true_spread(pop, before)  # the truth: it hurts
     assert _true_spread(pop, guarded) < _true_spread(pop, forced)
 
