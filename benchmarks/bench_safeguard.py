@@ -121,8 +121,9 @@ def _criteria(pop, result) -> dict:
     from core.correspondence.reference import compactness
     from core.correspondence.safeguard import loo_generalisation
 
-    shapes = [m.vertices for m in result.meshes]
-    loo = loo_generalisation(shapes, result.faces, pop.meshes)
+    ok = [k for k, m in enumerate(result.meshes) if m is not None]  # a shape may be dropped
+    shapes = [result.meshes[k].vertices for k in ok]
+    loo = loo_generalisation(shapes, result.faces, [pop.meshes[k] for k in ok])
     return {"point+raw": loo["value"], "surface": loo["surface_mm"],
             "compactness": compactness(np.stack(shapes))}
 
