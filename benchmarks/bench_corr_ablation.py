@@ -62,6 +62,9 @@ OPTIONS = {  # label: establish_correspondence keywords (one change each)
     "cpd all points": {"cpd_points": None},
     "cpd 3000 points": {"cpd_points": 3000},  # the default until 2026-12-03 (now 6,000)
     "no remesh": {"groom": {"remesh": False}},
+    # mode "defaults" only (they set what "refine 0" sets)
+    "two passes": {"refine": 2},
+    "cpd pass first": {"refine_deformation": "cpd"},
 }
 PLAIN = "plain rustcpd"
 
