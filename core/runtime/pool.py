@@ -202,9 +202,11 @@ def run_pool(fn: Callable[[Any, Any], Any], iterator: Iterator[tuple[Any, Any]],
                 with signals_deferred():
                     finished, _ = wait(list(in_flight), timeout=0.1,
                                        return_when=FIRST_COMPLETED)
-                    arrived = [(in_flight.pop(fut), fut.exception(), fut) for fut in finished]
-                    arrived = [(key, exc, None if exc else fut.result()[1])
-                               for key, exc, fut in arrived]
+                    arrived = []
+                    for fut in finished:
+                        exc = fut.exception()
+                        arrived.append((in_flight.pop(fut), exc,
+                                        None if exc is not None else fut.result()[1]))
                 if not arrived:  # heartbeat
                     tick(progress, len(results), total, label)
                 for key, exc, value in arrived:
