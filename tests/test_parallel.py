@@ -158,6 +158,16 @@ _SCRIPT = textwrap.dedent("""
 """)
 
 
+def _finish(proc: subprocess.Popen, guard: float, hung: str) -> tuple[str, str]:
+    """The script's stdout and stderr once it ends; fails with ``hung`` if it has not ended
+    after ``guard`` seconds (a hang guard, not a timing assertion)."""
+    try:
+        return proc.communicate(timeout=guard)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail(hung)
+
+
 def _start_script(tmp_path: Path, script: str, jobs_source: str) -> subprocess.Popen:
     """``python -c script`` with a module ``helper_jobs`` (``jobs_source``) importable."""
     (tmp_path / "helper_jobs.py").write_text(jobs_source)
@@ -220,11 +230,7 @@ def test_a_sigint_inside_the_pools_wait_stops_it(tmp_path):
     proc = _start_script(tmp_path, _INTERRUPTED_WAIT_SCRIPT,
                          "import time\n\ndef sleepy(arg, common):\n"
                          "    time.sleep(0.3)\n    return arg\n")
-    try:
-        out, err = proc.communicate(timeout=60)  # a hang guard, not a timing assertion
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        pytest.fail("the pool did not stop after a SIGINT inside its wait")
+    out, err = _finish(proc, 60, "the pool did not stop after a SIGINT inside its wait")
     assert proc.returncode == 130, err
     assert "stopped" in out and "Traceback" not in err
 
@@ -256,11 +262,7 @@ def test_a_pool_cancelled_with_large_jobs_queued_lets_the_process_exit(tmp_path)
     keep the interpreter from ending)."""
     proc = _start_script(tmp_path, _CANCEL_SCRIPT, "import time\n\ndef total(arg, common):\n"
                                                    "    time.sleep(0.2)\n    return float(arg.sum())\n")
-    try:
-        out, err = proc.communicate(timeout=120)  # a hang guard, not a timing assertion
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        pytest.fail("the process did not exit after a cancelled pool")
+    out, err = _finish(proc, 120, "the process did not exit after a cancelled pool")
     assert proc.returncode == 0, err
     assert "sum ok True" in out and 1 <= int(out.split()[2]) < 24
     assert "Traceback" not in err and "leaked" not in err
