@@ -229,13 +229,15 @@ def today_lsf(planted: np.ndarray, shapes: np.ndarray, faces: np.ndarray) -> tup
 
 # ----------------------------------------------------------------------------- pipelines
 
-def _today_build(pop, n_factors: int) -> dict:
-    """Today's build-model --correspond --method pca: the model's arrays, the corresponded
-    shapes, the kept inputs and the seconds."""
+def _today_build(pop, n_factors: int, options: dict | None = None) -> dict:
+    """Today's build-model --correspond --method pca (``options``: more correspondence
+    keywords, e.g. ``mirror_check=False``): the model's arrays, the corresponded shapes, the
+    kept inputs and the seconds."""
     from core.build.pipeline import build_model
 
     t0 = time.perf_counter()
-    res = build_model(pop.meshes, correspond=True, method="pca", n_factors=n_factors, n_jobs=1)
+    res = build_model(pop.meshes, correspond=True, method="pca", n_factors=n_factors, n_jobs=1,
+                      correspond_options=options)
     index = {m.name: k for k, m in enumerate(pop.meshes)}
     m = res.model
     return {"seconds": time.perf_counter() - t0, "shapes": res.shapes, "faces": res.faces,
@@ -313,16 +315,19 @@ def _evaluate(data: dict, pop, cases: list[dict], with_lsf: bool, own: bool) -> 
 
 
 def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
-            cache: Path | None = None, timeout: float | None = None) -> dict:
+            cache: Path | None = None, timeout: float | None = None,
+            options: dict | None = None) -> dict:
     """Both pipelines on one population of ``family``: {"today": ..., "round 1": ...}; the
-    built models are kept in ``cache`` (a folder) when given and reused from it."""
+    built models are kept in ``cache`` (a folder) when given and reused from it; ``options``:
+    more correspondence keywords for today's build."""
     pop = population(family, n_shapes, seed)
     cases = held_out_cases(family, n_held_out, seed)
     n_factors = min(N_FACTORS, n_shapes - 1)
     with_lsf = family == "ovoid"
     stem = None if cache is None else cache / f"{family}_seed{seed}_n{n_shapes}_h{n_held_out}"
-    today = _cached(None if stem is None else stem.with_name(stem.name + "_today.npz"),
-                    lambda: _today_build(pop, n_factors))
+    suffix = "".join(f"_{k}-{v}" for k, v in sorted((options or {}).items()))
+    today = _cached(None if stem is None else stem.with_name(stem.name + f"_today{suffix}.npz"),
+                    lambda: _today_build(pop, n_factors, options))
     round1 = _cached(None if stem is None else stem.with_name(stem.name + "_round1.npz"),
                      lambda: _round1_build(pop, cases, n_factors, with_lsf, folder, timeout))
     return {"today": _evaluate(today, pop, cases, with_lsf, own=False),
@@ -333,8 +338,9 @@ def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
 
 
 def _task(task: tuple) -> tuple:
-    family, seed, n_shapes, n_held_out, folder, cache, timeout = task
-    return family, seed, run_one(family, seed, n_shapes, n_held_out, folder, cache, timeout)
+    family, seed, n_shapes, n_held_out, folder, cache, timeout, options = task
+    return family, seed, run_one(family, seed, n_shapes, n_held_out, folder, cache, timeout,
+                                 options)
 
 
 # ----------------------------------------------------------------------------- tables
@@ -422,9 +428,11 @@ def tables(summary: dict, header: str) -> str:
 
 
 def run(families: list[str], seeds: range, n_shapes: int, n_held_out: int, jobs: int, folder: str,
-        on_result=None, cache: Path | None = None, timeout: float | None = None) -> dict:
+        on_result=None, cache: Path | None = None, timeout: float | None = None,
+        options: dict | None = None) -> dict:
     """Every (family, seed) task, ``jobs`` at a time: {family: {seed: run_one(...)}}."""
-    tasks = [(f, s, n_shapes, n_held_out, folder, cache, timeout) for f in families for s in seeds]
+    tasks = [(f, s, n_shapes, n_held_out, folder, cache, timeout, options)
+             for f in families for s in seeds]
     results: dict = {f: {} for f in families}
     t0 = time.perf_counter()
     if jobs <= 1:
@@ -456,6 +464,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="keep the built models in this folder and reuse them (only the fits rerun)")
     parser.add_argument("--round1-timeout", type=float, default=None, metavar="S",
                         help="stop round 1's build of a population after S seconds (reported, not cached)")
+    parser.add_argument("--no-mirror-check", action="store_true",
+                        help="today's build keeps the inputs the mirror check would leave out")
     args = parser.parse_args(argv)
     if args.shapes < 4 or args.held_out < 1 or args.seeds < 1:
         raise SystemExit("need --shapes >= 4, --held-out >= 1 and --seeds >= 1")
@@ -471,7 +481,8 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="round1_") as folder:
         extract_round1(folder)
         results = run(args.families, range(args.seeds), args.shapes, args.held_out, args.jobs,
-                      folder, on_result=dump, cache=args.cache, timeout=args.round1_timeout)
+                      folder, on_result=dump, cache=args.cache, timeout=args.round1_timeout,
+                      options={"mirror_check": False} if args.no_mirror_check else None)
     print(tables(summarise(results),
                  f"\n{args.seeds} population(s) a family, {args.shapes} training shapes, "
                  f"{args.held_out} held-out shapes, PCA-{min(N_FACTORS, args.shapes - 1)}, "
