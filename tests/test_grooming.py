@@ -160,6 +160,33 @@ def test_no_mirror_check_keeps_a_mirrored_input(tmp_path):
     assert not report["failures"] and (tmp_path / "kept" / "shape_4.vtk").exists()
 
 
+def test_build_model_takes_no_mirror_check(tmp_path, capsys):
+    """`build-model --correspond --no-mirror-check` trains on the input the check would leave
+    out (6 shapes, not 5); without --correspond the option is a one-line error."""
+    from core.cli import main
+    from core.io import load_model, save_mesh
+
+    pop = known_homology_shapes("twist", 6, seed=2, n_points=(380, 420))
+    paths = []
+    for k, m in enumerate(pop.meshes):
+        if k == 4:
+            m = TriMesh(m.vertices * np.array([-1.0, 1.0, 1.0]), m.faces[:, ::-1], "mirrored")
+        paths.append(tmp_path / f"shape_{k}.vtk")
+        save_mesh(paths[-1], m)
+    common = ["build-model", *map(str, paths), "--correspond", "--reference", "0", "--jobs", "1",
+              "--factors", "3"]
+    assert main([*common, "--out", str(tmp_path / "checked.npz")]) == 0
+    assert "skipped shape_4.vtk: mirrored" in capsys.readouterr().err
+    assert main([*common, "--out", str(tmp_path / "kept.npz"), "--no-mirror-check"]) == 0
+    captured = capsys.readouterr()
+    assert "skipped" not in captured.err and "6 training shapes" in captured.out
+    assert load_model(tmp_path / "kept.npz").n_factors == 3
+    assert main(["build-model", *map(str, paths), "--no-mirror-check",
+                 "--out", str(tmp_path / "x.npz")]) != 0
+    err = capsys.readouterr().err
+    assert "--no-mirror-check applies to build-model --correspond" in err and "Traceback" not in err
+
+
 def test_a_poorly_corresponded_shape_of_the_right_structure_is_not_dropped_as_an_outlier():
     # Bent tube 1 of this set corresponds 1.5 mm off the truth and lies 2.3x the median
     # Procrustes distance from the mean: with a 2x threshold it was flagged "far from every

@@ -56,6 +56,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                         help="method parameter, e.g. --param lambda_=64 --param max_iter=300 "
                              "(repeatable)")
+    parser.add_argument("--no-mirror-check", action="store_true",
+                        help="with --correspond: keep inputs whose mirror image fits the others "
+                             "better (as correspond --no-mirror-check): for a population in "
+                             "which a chiral feature takes either sign")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (correspondence)")
     add_scheduler_option(parser)
 
@@ -101,9 +105,13 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--factors must be at least 1, got {args.factors}")
     if args.scheduler is not None and not args.correspond:
         raise ValueError("--scheduler applies to build-model --correspond (its per-shape jobs)")
+    if args.no_mirror_check and not args.correspond:
+        raise ValueError("--no-mirror-check applies to build-model --correspond")
     options = None
     if args.correspond:
         meshes, options = _streamed_inputs(args)
+        if args.no_mirror_check:
+            options["mirror_check"] = False
     else:
         with StderrProgress("read meshes") as progress:
             meshes = load_training_meshes(args.inputs, progress=progress, isolate=True,
