@@ -171,6 +171,20 @@ def test_model_form_is_as_tall_as_the_shown_method(panel):
         assert box.model_forms.sizeHint().height() <= form.sizeHint().height() + 4
 
 
+def test_mirror_check_box_sets_the_build_setting(panel):
+    from core.io import TriMesh
+
+    box = panel.pipeline
+    tetra = TriMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]],
+                    [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], "t")
+    entries = [type("Entry", (), {"mesh": tetra, "path": "t.vtk", "name": "t"})()]
+    assert box.mirror_check.isChecked() and box.settings(entries).mirror_check
+    changed = []
+    box.changed.connect(lambda *a: changed.append(a))
+    box.mirror_check.setChecked(False)
+    assert changed and box.settings(entries).mirror_check is False
+
+
 def test_build_tab_hides_the_segmentation_toolbar(qtbot, tmp_path, monkeypatch):
     from app.window import MainWindow
 

@@ -162,3 +162,25 @@ def test_default_number_of_references_is_the_engines():
 
     default = inspect.signature(establish_correspondence).parameters["n_references"].default
     assert DEFAULT_N_REFERENCES == default
+
+
+def test_mirror_check_setting_reaches_the_correspondence_stage():
+    """``BuildSettings(mirror_check=False)`` keeps an input the check leaves out (a mirrored
+    twisted bean among correctly sided ones), and toggling it re-runs the correspondence."""
+    from core.datasets.shapes import known_homology_shapes
+
+    pop = known_homology_shapes("twist", 6, seed=2, n_points=(380, 420))
+    meshes = list(pop.meshes)
+    m = meshes[4]
+    meshes[4] = TriMesh(m.vertices * np.array([-1.0, 1.0, 1.0]), m.faces[:, ::-1], "mirrored")
+    checked = BuildSettings(meshes, reference=0, method="pca", params={"n_factors": 3})
+    kept = BuildSettings(meshes, reference=0, method="pca", params={"n_factors": 3},
+                         mirror_check=False)
+    assert checked.keys()["correspondence"] != kept.keys()["correspondence"]
+    # without correspondence the setting changes nothing
+    assert settings(meshes, mirror_check=False).keys() == settings(meshes).keys()
+    build = StagedBuild()
+    build.run(kept)
+    corr = build.cache["correspondence"].result
+    assert corr.failures == {} and all(mesh is not None for mesh in corr.meshes)
+    assert build.plan(checked) == list(STAGES)

@@ -13,6 +13,7 @@ from typing import Any
 
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtWidgets import (
+    QCheckBox,
     QComboBox,
     QFormLayout,
     QGroupBox,
@@ -61,6 +62,7 @@ class PipelineForm(QWidget):
                       self.model_method):
             combo.currentIndexChanged.connect(self.changed)
         self.n_references.valueChanged.connect(self.changed)
+        self.mirror_check.toggled.connect(self.changed)
 
     def _correspondence_box(self) -> QGroupBox:
         self.reference_combo = QComboBox()
@@ -76,10 +78,18 @@ class PipelineForm(QWidget):
         self.n_references.setValue(engine.default_n_references())
         self.n_references.setToolTip("With reference 'auto': how many candidate references "
                                      "to try (each costs one full correspondence run).")
+        self.mirror_check = QCheckBox("Leave out mirrored inputs")
+        self.mirror_check.setObjectName("mirror_check")
+        self.mirror_check.setChecked(True)
+        self.mirror_check.setToolTip("Leave out an input whose mirror image fits the others "
+                                     "better than any rotation of it (a left/right mix-up). "
+                                     "Untick for a population in which a chiral feature takes "
+                                     "either sign.")
         box = QGroupBox("2. Correspondence")
         form = QFormLayout(box)
         form.addRow("Reference", self.reference_combo)
         form.addRow("Candidates", self.n_references)
+        form.addRow("", self.mirror_check)
         return box
 
     def _alignment_box(self) -> QGroupBox:
@@ -158,6 +168,7 @@ class PipelineForm(QWidget):
             tokens=[(e.path, id(e.mesh)) for e in entries],
             reference=self.reference_choice([e.name for e in entries]),
             n_references=self.n_references.value(),
+            mirror_check=self.mirror_check.isChecked(),
             align_method=self.align_method.currentText(),
             align_transform=self.align_transform.currentText(),
             method=self.model_method.currentText(),

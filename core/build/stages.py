@@ -69,6 +69,10 @@ class BuildSettings:
         meshes that already share one topology.
     n_references : int
         Candidate references tried with ``reference="auto"`` (ignored otherwise).
+    mirror_check : bool
+        Leave out inputs whose mirror image fits the others better (a left/right mix-up;
+        ``establish_correspondence``'s ``mirror_check``). False for a population in which a
+        chiral feature takes either sign. Ignored without correspondence.
     align_method, align_transform : str
         ``core.build.pipeline.align``'s ``method`` and ``transform``.
     method : str
@@ -81,6 +85,7 @@ class BuildSettings:
     tokens: Sequence[Hashable] | None = None
     reference: str | int = "auto"
     n_references: int = DEFAULT_N_REFERENCES
+    mirror_check: bool = True
     align_method: str = "sync"
     align_transform: str = "similarity"
     method: str = "pca"
@@ -99,6 +104,8 @@ class BuildSettings:
             raise ValueError(msg)
         n_refs = int(self.n_references) if self.reference == "auto" else 0
         corr = (tokens, self.reference, n_refs)
+        if not self.mirror_check and self.reference != NO_CORRESPONDENCE:
+            corr += ("no mirror check",)
         align = (corr, self.align_method, self.align_transform)
         model = (align, self.method, _frozen(self.params))
         return {"correspondence": corr, "alignment": align, "model": model}
@@ -212,7 +219,8 @@ class StagedBuild:
         if stage == "correspondence":
             return functools.partial(run_correspondence, list(settings.meshes),
                                      reference=settings.reference,
-                                     n_references=settings.n_references)
+                                     n_references=settings.n_references,
+                                     mirror_check=settings.mirror_check)
         corr = self._current("correspondence", settings)
         if stage == "alignment":
             return functools.partial(run_alignment, corr, method=settings.align_method,
@@ -261,11 +269,13 @@ class StagedBuild:
 
 
 def run_correspondence(meshes: list[TriMesh], reference: str | int = "auto",
-                       n_references: int = DEFAULT_N_REFERENCES, progress: ProgressCallback | None = None):
+                       n_references: int = DEFAULT_N_REFERENCES, progress: ProgressCallback | None = None,
+                       mirror_check: bool = True):
     """Stage 1 (``core.build.pipeline.correspond``): every mesh with the reference's topology.
 
     ``reference`` is "auto", an index into ``meshes``, or :data:`NO_CORRESPONDENCE` for meshes
-    that already share one topology (checked; they are used as they are).
+    that already share one topology (checked; they are used as they are). ``mirror_check``:
+    :class:`BuildSettings`'.
     Returns a ``core.correspondence.CorrespondenceResult``.
     """
     from core.build import pipeline
@@ -279,8 +289,9 @@ def run_correspondence(meshes: list[TriMesh], reference: str | int = "auto",
             meshes=[TriMesh(x, faces, n) for x, n in zip(shapes, names)], reference_index=None,
             reference_name="(input topology)", faces=faces, residuals_mm=[None] * len(names),
             failures={}, timings={})
+    options = {} if mirror_check else {"mirror_check": False}
     return pipeline.correspond(meshes, reference=reference, n_references=n_references,
-                               progress=progress)
+                               progress=progress, **options)
 
 
 def _corresponded(corr) -> tuple[list[str], np.ndarray]:
