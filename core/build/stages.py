@@ -103,9 +103,10 @@ class BuildSettings:
             msg = f"got {len(tokens)} cache tokens for {len(self.meshes)} meshes"
             raise ValueError(msg)
         n_refs = int(self.n_references) if self.reference == "auto" else 0
-        corr = (tokens, self.reference, n_refs)
-        if not self.mirror_check and self.reference != NO_CORRESPONDENCE:
-            corr += ("no mirror check",)
+        # the mirror check's default leaves the key as it was before the setting existed
+        mirror: tuple[str, ...] = () if self.mirror_check or self.reference == NO_CORRESPONDENCE \
+            else ("no mirror check",)
+        corr = (tokens, self.reference, n_refs, *mirror)
         align = (corr, self.align_method, self.align_transform)
         model = (align, self.method, _frozen(self.params))
         return {"correspondence": corr, "alignment": align, "model": model}
