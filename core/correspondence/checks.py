@@ -74,7 +74,9 @@ def flag_mirrored(run: CorrespondenceRun, results: dict) -> dict[int, str]:
         r = mirror_fit_ratio(mean, open_mesh(run.prepared[i]).vertices, run.params)
         if r < MIRROR_RATIO:
             flagged[i] = (f"mirrored: its mirror image fits the other shapes better than any "
-                          f"rotation of it (rigid fit sigma^2 ratio {r:.2f}); a left/right mix-up?")
+                          f"rotation of it (rigid fit sigma^2 ratio {r:.2f}); a left/right "
+                          "mix-up? (if a chiral feature takes either sign in this population, "
+                          "turn the mirror check off)")
     return flagged
 
 
