@@ -88,7 +88,10 @@ def _run(task: tuple) -> tuple:
                                             "seconds": time.perf_counter() - t0}
     mean, p95 = _spread(pop, verts)  # over the shapes kept (a dropped one is counted)
     out = {"mean": mean, "p95": p95, "seconds": time.perf_counter() - t0,
-           "reference": int(res.reference_index), "dropped": sum(v is None for v in verts)}
+           "reference": int(res.reference_index), "dropped": sum(v is None for v in verts),
+           # what the safeguard tried, its criterion values and what it kept (when on)
+           "safeguard": [{k: v for k, v in st.items() if k != "shapes"}
+                         for st in (res.safeguard or {}).get("stages", [])]}
     return family, seed, mode, option, out
 
 

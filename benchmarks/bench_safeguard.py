@@ -130,9 +130,9 @@ def _criteria(pop, result) -> dict:
 
 def _offline(runs: dict, base: str) -> dict:
     """Per candidate criterion: was its remesh pick, and its refinement pick (the
-    safeguard's rule: offsets if lower than before by the margin, else cpd if so), the
-    truth's best? (The refinement from the remesh choice the run's safeguard kept.)"""
-    from core.correspondence.safeguard import KEEP_MARGIN
+    safeguard's rule, :func:`core.correspondence.safeguard.refinement_choice`), the truth's
+    best? (The refinement from the remesh choice the run's safeguard kept.)"""
+    from core.correspondence.safeguard import KEEP_MARGIN, refinement_choice
 
     keep = 1.0 - KEEP_MARGIN
     out = {}
@@ -140,14 +140,11 @@ def _offline(runs: dict, base: str) -> dict:
         c = {k: runs[k]["criteria"][name] for k in ("r0 remesh", "r0 plain", "r1 offsets", "r1 cpd")}
         t = {k: runs[k]["mean"] for k in c}
         rem = "r0 remesh" if c["r0 remesh"] < keep * c["r0 plain"] else "r0 plain"
-        pick = base
-        if c["r1 offsets"] < keep * c[base]:
-            pick = "r1 offsets"
-        elif c["r1 cpd"] < keep * c[base]:
-            pick = "r1 cpd"
-        tried = [base, "r1 offsets"] + (["r1 cpd"] if pick != "r1 offsets" else [])
+        kept = refinement_choice(c[base], {"normal_offsets": c["r1 offsets"], "cpd": c["r1 cpd"]},
+                                 "normal_offsets")
+        pick = {None: base, "normal_offsets": "r1 offsets", "cpd": "r1 cpd"}[kept]
         out[name] = {"remesh": rem == min(("r0 remesh", "r0 plain"), key=t.get),
-                     "refinement": pick == min(tried, key=t.get)}
+                     "refinement": pick == min((base, "r1 offsets", "r1 cpd"), key=t.get)}
     return out
 
 

@@ -75,6 +75,43 @@ def test_a_pass_that_helps_is_kept_and_one_that_hurts_is_rolled_back(truth):
     assert all(np.array_equal(current[k], shapes[k]) for k in current)
 
 
+@pytest.mark.parametrize("shares, kept", [
+    ({"normal_offsets": 0.5, "cpd": 0.9}, "cpd"),              # the other one clearly better
+    ({"normal_offsets": 0.9, "cpd": 0.5}, "normal_offsets"),
+    ({"normal_offsets": 0.7, "cpd": 0.72}, "normal_offsets"),  # about as good: the configured
+])
+def test_both_deformations_are_judged_and_the_other_replaces_the_configured_one_only_if_clearly_better(
+        truth, shares, kept):
+    # Both deformations help (each takes the slid shapes a share of the way back to the
+    # truth). The guard tries both from the same start, also when the configured one
+    # (normal offsets) already passes the margin; the other one is kept only if its
+    # criterion is lower by more than the margin again, and the shapes are then exactly the
+    # kept pass's result.
+    from core.correspondence.safeguard import KEEP_MARGIN
+
+    shapes, slid, faces, raw = truth
+    current = {k: v.copy() for k, v in enumerate(slid)}
+    guard = RefinementGuard(lambda k: raw[k])
+    results = {}
+
+    def partly(params):
+        d = params["refine_deformation"]
+        for k in current:
+            current[k] = closest_points_on_surface(slid[k] + shares[d] * (shapes[k] - slid[k]),
+                                                   shapes[k], faces)[0]
+        results[d] = {k: v.copy() for k, v in current.items()}
+        return [1.0]
+    guard.refine(current, faces, {"refine_deformation": "normal_offsets"}, 1, partly)
+    entry, = guard.record["passes"]
+    crit = entry["criterion_mm"]
+    assert set(crit) == {"normal_offsets", "cpd"}
+    assert max(crit.values()) < (1 - KEEP_MARGIN) * guard.record["before_mm"]  # both pass
+    clearly = crit["cpd"] < (1 - KEEP_MARGIN) * crit["normal_offsets"]
+    assert clearly == (kept == "cpd")  # the case is what it claims to be
+    assert entry["kept"] == kept
+    assert all(np.array_equal(current[k], results[kept][k]) for k in current)
+
+
 def _uneven_beans(seed: int, points: tuple[int, int], decimation_seed: int):
     from core.datasets.shapes import known_homology_shapes, unevenly_decimated
 

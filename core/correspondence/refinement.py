@@ -27,7 +27,8 @@ if TYPE_CHECKING:
 
 
 def refine(run: CorrespondenceRun, params: dict, passes: int,
-           on_last_pass: Callable | None = None) -> list[float]:
+           on_last_pass: Callable | None = None,
+           progress_span: tuple[float, float] = (0.6, 0.95)) -> list[float]:
     """Groupwise refinement: correspond every shape of ``run.corresponded`` again to the
     current mean shape, ``passes`` times; the mean vertex change (mm) of each pass.
 
@@ -38,7 +39,7 @@ def refine(run: CorrespondenceRun, params: dict, passes: int,
     (:mod:`core.correspondence.offsets`, or nonrigid CPD), then labelled and faired as in the
     pairwise step. Each result replaces the shape's correspondence as it arrives (its job was
     the only reader of it); ``on_last_pass(key, (out, err))`` sees the last pass's results as
-    they arrive (final).
+    they arrive (final). The passes report progress over ``progress_span`` of the run.
     """
     vertices = run.corresponded
     changes = []
@@ -64,8 +65,10 @@ def refine(run: CorrespondenceRun, params: dict, passes: int,
                 on_last_pass(key, value)
             return None, err
 
-        start = 0.6 + 0.35 * it / passes
-        run_tasks(tasks, run.n_jobs, run.progress, start, start + 0.35 / passes, on_result=absorb)
+        lo, hi = progress_span
+        start = lo + (hi - lo) * it / passes
+        run_tasks(tasks, run.n_jobs, run.progress, start, start + (hi - lo) / passes,
+                  on_result=absorb)
         ok = [moved[k] for k in keys if k in moved]
         changes.append(float(np.mean(ok)) if ok else 0.0)
     return changes
@@ -82,9 +85,9 @@ def refine_guarded(run: CorrespondenceRun, passes: int,
     """:func:`refine`, each pass judged by the safeguard when it is on
     (:class:`core.correspondence.safeguard.RefinementGuard`, its record into ``run.record``).
     Returns the changes and whether the shapes must stream again: the first pass's results
-    stream as they arrive (an interrupted run keeps them); with the safeguard, when that pass
-    is rolled back or another follows, the kept results replace them (``on_shape`` is called
-    again for those shapes)."""
+    stream as they arrive (an interrupted run keeps them); with the safeguard, when another
+    deformation is kept, the pass is rolled back or another pass follows, the kept results
+    replace them (``on_shape`` is called again for those shapes)."""
     if not run.record["enabled"]:
         return refine(run, pass_params(run.params), passes, on_last_pass=on_last_pass), False
     from core.correspondence.safeguard import RefinementGuard, raw_mesh
@@ -95,10 +98,17 @@ def refine_guarded(run: CorrespondenceRun, passes: int,
     calls = []
 
     def run_pass(p: dict) -> list[float]:
+        # every guarded pass runs both deformations: each run gets its own share of the
+        # progress bar, so that it never goes back
+        share = 0.35 / (2 * max(int(passes), 1))
+        start = min(0.6 + share * len(calls), 0.95 - share)
         calls.append(p["refine_deformation"])
-        return refine(run, pass_params(p), 1, on_last_pass=on_last_pass if len(calls) == 1 else None)
+        return refine(run, pass_params(p), 1, on_last_pass=on_last_pass if len(calls) == 1 else None,
+                      progress_span=(start, start + share))
     changes = guard.refine(run.corresponded, run.faces, run.params, passes, run_pass)
     run.record["stages"] += [guard.record] if passes > 0 else []
     done = guard.record["passes"]
-    kept_first = len(calls) == 1 and bool(done) and done[0]["kept"] == calls[0]
+    # streamed already: the first run's results, when that deformation was kept by the
+    # only pass (restored after the other one was tried, the same vertices)
+    kept_first = len(done) == 1 and done[0]["kept"] == calls[0]
     return changes, bool(calls) and not kept_first
