@@ -95,7 +95,7 @@ def refine_guarded(run: CorrespondenceRun, passes: int,
     handles = run.handles
     guard = RefinementGuard(lambda k: raw_mesh(handles[k]))
 
-    calls = []
+    calls: list[str] = []
 
     def run_pass(p: dict) -> list[float]:
         # every guarded pass runs both deformations: each run gets its own share of the
