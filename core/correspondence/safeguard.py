@@ -246,10 +246,8 @@ class RefinementGuard:
 
     def _one_pass(self, vertices: MutableMapping, faces: np.ndarray, params: dict,
                   keys: list[int], best: float, run_pass: Callable) -> tuple[dict, float | None, float]:
-        """One pass: both deformations from the same start. The configured one is kept if it
-        lowers the criterion by more than the margin, the other one instead if it lowers the
-        criterion by more than the margin below that (or below the start, when the
-        configured one does not pass); else the pass is rolled back.
+        """One pass: both deformations from the same start, the kept one chosen by
+        :func:`refinement_choice` (none: the pass is rolled back).
         Returns (record entry, new criterion or None when rolled back, mean change).
 
         Both are always judged: trying the other one only after a roll-back left a far
