@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
-from PySide6.QtWidgets import QMenu, QWidget
+from PySide6.QtWidgets import QMainWindow, QMenu, QMenuBar, QWidget
 
 
 class ActionRegistry:
@@ -24,6 +24,7 @@ class ActionRegistry:
         self._window = window
         self._actions: dict[str, QAction] = {}
         self._menus: dict[str, QMenu] = {}
+        self._menu_bar: QMenuBar | None = None
 
     # -- actions ---------------------------------------------------------------------------
     def add(self, action_id: str, text: str, slot: Callable | None = None, shortcut=None,
@@ -66,12 +67,8 @@ class ActionRegistry:
         before the entry ``before`` (an action or menu id; appended when None)."""
         if menu_id in self._menus:
             raise ValueError(f"menu id {menu_id!r} is already registered")
-        if parent is None:
-            container = self._window.menuBar()
-            menu = QMenu(title, container)
-        else:
-            container = self.menu(parent)
-            menu = QMenu(title, container)
+        container = self._bar() if parent is None else self.menu(parent)
+        menu = QMenu(title, container)
         if before is None:
             container.addMenu(menu)
         else:
@@ -81,6 +78,18 @@ class ActionRegistry:
 
     def has_menu(self, menu_id: str) -> bool:
         return menu_id in self._menus
+
+    def _bar(self) -> QMenuBar:
+        """The window's menu bar, made here in Python. ``QMainWindow.menuBar()`` makes one in
+        C++ on first call, and shiboken then looks its wrapper up by address: on a fresh
+        machine (PySide6 6.x, full GUI suite) it once returned a stale wrapper of a deleted
+        ``QSurface`` at the same address, and ``QMenu(title, bar)`` raised a TypeError."""
+        if self._menu_bar is None:
+            if not isinstance(self._window, QMainWindow):
+                raise TypeError("top-level menus need a QMainWindow")
+            self._menu_bar = QMenuBar(self._window)
+            self._window.setMenuBar(self._menu_bar)
+        return self._menu_bar
 
     def menu(self, menu_id: str) -> QMenu:
         try:
