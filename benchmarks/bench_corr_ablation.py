@@ -61,6 +61,8 @@ OPTIONS = {  # label: establish_correspondence keywords (one change each)
     "rigid fine all points": {"rigid_fine_points": 100000},  # the chosen start only
     "rigid fine all points 100 it": {"rigid_fine_points": 100000,  # (and 100 for a lone start
                                      "rigid_iterations": 100},      # or the identity re-run)
+    "rigid from start all points": {"rigid_fine_from": "start", "rigid_fine_points": 100000},
+    "rigid from start": {"rigid_fine_from": "start"},
     "exact kernel": {"low_rank": None},
     "cpd all points": {"cpd_points": None},
     "cpd 3000 points": {"cpd_points": 3000},  # the default until 2026-12-03 (now 6,000)

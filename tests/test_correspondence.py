@@ -429,6 +429,29 @@ def test_rigid_pose_still_finds_a_far_rotated_target():
     assert _homology_error(pop, 0, 1, out) < unturned + 0.3, unturned
 
 
+@pytest.mark.parametrize("angle", [12.0, 180.0])
+def test_rigid_fine_refinement_from_the_start_recovers_a_known_rotation(angle):
+    # The same bean turned by a known rotation (12 degrees: the identity start; 180 degrees:
+    # a principal-axes start must win): refined from the chosen start's rotation itself
+    # (rigid_fine_from="start"), the pose must equal the known one as the default's does.
+    pop = known_homology_shapes("bean", 1, seed=4, n_points=(600, 700))
+    axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+    rot = geometry.rodrigues(np.deg2rad(angle) * axis)
+    yn, _, _ = corr.normalise(pop.meshes[0].vertices)
+    xn = yn @ rot.T
+    for origin in ("run", "start"):
+        params = dict(corr.DEFAULT_CPD_PARAMS, rigid_fine_from=origin)
+        pose = corr.rigid_pose(xn, yn, params, True)
+        cos = (np.trace(pose[:3, :3] @ rot.T) / np.linalg.det(pose[:3, :3]) ** (1 / 3) - 1) / 2
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 1.0, origin
+
+
+def test_rigid_fine_refinement_origin_is_checked():
+    yn, _, _ = corr.normalise(known_homology_shapes("bean", 1, seed=4, n_points=(300, 400)).meshes[0].vertices)
+    with pytest.raises(ValueError, match="rigid_fine_from"):
+        corr.rigid_pose(yn, yn, dict(corr.DEFAULT_CPD_PARAMS, rigid_fine_from="end"), True)
+
+
 def _batch_errors(pop, result) -> list[float]:
     """Per shape, mean distance (mm, on the base surface) of its corresponded points'
     material points from the reference's."""

@@ -49,6 +49,8 @@ DEFAULT_CPD_PARAMS: dict[str, Any] = {
     "rigid_iterations": 40,   # rigid CPD iterations (refinement of the best start)
     "rigid_points": 500,      # subsample size for the rigid pose's starts
     "rigid_fine_points": 1000,  # subsample size for the chosen start's final refinement
+    "rigid_fine_from": "run",  # where that refinement starts: "run" (the end of the chosen
+                              # start's short run) or "start" (the start's rotation itself)
     "cpd_points": 6000,       # subsample size for nonrigid CPD (None: all points); with a
                               # subsample the fitted displacement field moves every vertex
                               # (CPD's E-step costs M x N per iteration: on a 10,000-vertex
@@ -213,6 +215,11 @@ def rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, paral
     # mean error against the truth for one reference).
     n_fine = max(int(params["rigid_points"]), int(params["rigid_fine_points"]))
     tgt_f, ref_f = _subsample(target_n, n_fine, 3), _subsample(reference_n, n_fine, 4)
+    if params["rigid_fine_from"] == "start":
+        matrix = np.eye(4)
+        matrix[:3, :3] = starts[best]
+    elif params["rigid_fine_from"] != "run":
+        raise ValueError(f"rigid_fine_from must be 'run' or 'start', got {params['rigid_fine_from']!r}")
     r = cpd_rigid(tgt_f, ref_f @ matrix[:3, :3].T + matrix[:3, 3], scaling=True, w=params["w"],
                   tolerance=params["tolerance"], max_iterations=params["rigid_iterations"],
                   parallel=parallel)
