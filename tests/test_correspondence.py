@@ -447,7 +447,8 @@ def test_rigid_fine_refinement_from_the_start_recovers_a_known_rotation(angle):
 
 
 def test_rigid_fine_refinement_origin_is_checked():
-    yn, _, _ = corr.normalise(known_homology_shapes("bean", 1, seed=4, n_points=(300, 400)).meshes[0].vertices)
+    bean = known_homology_shapes("bean", 1, seed=4, n_points=(300, 400)).meshes[0]
+    yn, _, _ = corr.normalise(bean.vertices)
     with pytest.raises(ValueError, match="rigid_fine_from"):
         corr.rigid_pose(yn, yn, dict(corr.DEFAULT_CPD_PARAMS, rigid_fine_from="end"), True)
 
