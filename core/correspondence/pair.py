@@ -178,6 +178,8 @@ def rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, paral
     mode = params["pose_starts"]
     if mode not in ("auto", "identity", "pca"):
         raise ValueError(f"pose_starts must be 'auto', 'identity' or 'pca', got {mode!r}")
+    if params["rigid_fine_from"] not in ("run", "start"):
+        raise ValueError(f"rigid_fine_from must be 'run' or 'start', got {params['rigid_fine_from']!r}")
     starts = [np.eye(3)] if mode in ("identity", "auto") else []
     if mode in ("pca", "auto"):
         axes_t = principal_axes(target_n)
@@ -222,8 +224,6 @@ def rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, paral
     if params["rigid_fine_from"] == "start":
         matrix = np.eye(4)
         matrix[:3, :3] = starts[best]
-    elif params["rigid_fine_from"] != "run":
-        raise ValueError(f"rigid_fine_from must be 'run' or 'start', got {params['rigid_fine_from']!r}")
     r = cpd_rigid(tgt_f, ref_f @ matrix[:3, :3].T + matrix[:3, 3], scaling=True, w=params["w"],
                   tolerance=params["tolerance"], max_iterations=params["rigid_iterations"],
                   parallel=parallel)
