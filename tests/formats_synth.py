@@ -7,6 +7,7 @@ reports), byte by byte in explicit VR little endian per DICOM PS3.5/PS3.10.
 
 from __future__ import annotations
 
+import locale
 import struct
 from pathlib import Path
 
@@ -73,24 +74,30 @@ def write_series(folder: Path, image, uid: str = UID_ROOT + ".1", description: s
         writer.SetCompressor(compressor)
     files = []
     depth = image.GetDepth()
-    for k in (range(depth) if keep is None else keep):
-        piece = image[:, :, k]
-        pos = image.TransformIndexToPhysicalPoint((0, 0, int(k))) if positions is None \
-            else positions[k]
-        tags = {
-            "0008|0016": MR_IMAGE, "0008|0018": f"{uid}.{k + 1}", "0008|0060": "MR",
-            "0008|103e": description, "0010|0010": patient_name, "0010|0020": patient_id,
-            "0020|000d": UID_ROOT + ".100", "0020|000e": uid, "0020|0011": "1",
-            "0020|0013": str(int(k) + 1), "0020|0032": _ds(pos),
-            "0020|0037": true_orient if orientations is None else _ds(orientations[k]),
-            "0018|0050": f"{image.GetSpacing()[2]:.6g}",
-        }
-        for key, value in tags.items():
-            piece.SetMetaData(key, value)
-        path = folder / name.format(int(k))
-        writer.SetFileName(str(path))
-        writer.Execute(piece)
-        files.append(path)
+    # GDCM's DICOM writer leaves the process's LC_CTYPE at "C", which turns Python's default
+    # text encoding to ASCII for every later test in the same process: restored afterwards.
+    ctype = locale.setlocale(locale.LC_CTYPE)
+    try:
+        for k in (range(depth) if keep is None else keep):
+            piece = image[:, :, k]
+            pos = image.TransformIndexToPhysicalPoint((0, 0, int(k))) if positions is None \
+                else positions[k]
+            tags = {
+                "0008|0016": MR_IMAGE, "0008|0018": f"{uid}.{k + 1}", "0008|0060": "MR",
+                "0008|103e": description, "0010|0010": patient_name, "0010|0020": patient_id,
+                "0020|000d": UID_ROOT + ".100", "0020|000e": uid, "0020|0011": "1",
+                "0020|0013": str(int(k) + 1), "0020|0032": _ds(pos),
+                "0020|0037": true_orient if orientations is None else _ds(orientations[k]),
+                "0018|0050": f"{image.GetSpacing()[2]:.6g}",
+            }
+            for key, value in tags.items():
+                piece.SetMetaData(key, value)
+            path = folder / name.format(int(k))
+            writer.SetFileName(str(path))
+            writer.Execute(piece)
+            files.append(path)
+    finally:
+        locale.setlocale(locale.LC_CTYPE, ctype)
     return files
 
 

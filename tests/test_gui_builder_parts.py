@@ -15,7 +15,7 @@ BUILDER_MODULES = sorted((ROOT / "app" / "panels").glob("builder*.py"))
 
 
 def _classes(path: Path):
-    tree = ast.parse(path.read_text())
+    tree = ast.parse(path.read_text(encoding="utf-8"))
     return [n for n in ast.walk(tree) if isinstance(n, ast.ClassDef)]
 
 
@@ -27,7 +27,7 @@ def test_builder_classes_are_small():
 
 def test_no_maths_in_the_builder_widgets():
     for path in BUILDER_MODULES:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
         for banned in ("linalg", "np.random", "scipy.spatial", "standard_normal"):
             assert banned not in text, f"{path.name} uses {banned}"
 
