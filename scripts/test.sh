@@ -7,7 +7,7 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh --test
 export QT_QPA_PLATFORM=xcb
 # The suite runs in parallel, one pytest-xdist worker a core (at most 4: the correspondence
-# tests start pools of their own); "worksteal" keeps both busy when a few long tests remain.
+# tests start pools of their own); "worksteal" keeps every worker busy while a few long tests remain.
 # SSM_TEST_WORKERS=0 runs it in this one process (for a debugger or -s).
 exec .venv/bin/python -m pytest -q -n "${SSM_TEST_WORKERS:-auto}" --maxprocesses 4 \
     --dist worksteal "$@"
