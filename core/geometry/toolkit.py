@@ -8,8 +8,9 @@ from outside for outward normals.
 - Normals: area-weighted vertex normals (bincount sums, no ``np.add.at``), optionally only at
   a subset of vertices through a vertex-to-face table (the refit loop of reconstruction).
 - Closest points: :class:`SurfaceProjector` with ``exact=True`` queries libigl's AABB tree
-  (compiled; exact for any query, 30-50x faster than the vectorised numpy search it replaced,
-  ``benchmarks/bench_tools.py``); the approximate modes, ``exact=False`` or
+  (compiled; exact for any query, 20-45x faster than the vectorised numpy search it replaced
+  and 2-3x VTK's cell locator, which has no batched query: ``benchmarks/bench_closest_points.py``);
+  the approximate modes, ``exact=False`` or
   :func:`surface_distance`, use the Voronoi-region test of Ericson, *Real-Time Collision
   Detection* (2005), section 5.1.5, on candidate triangles (those around the ``k`` nearest
   vertices, or the ``k`` nearest centroids; exact on any reasonable mesh for points near the
