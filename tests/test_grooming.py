@@ -192,8 +192,10 @@ def test_a_poorly_corresponded_shape_of_the_right_structure_is_not_dropped_as_an
     # Bent tube 1 of this set corresponds 1.5 mm off the truth and lies 2.3x the median
     # Procrustes distance from the mean: with a 2x threshold it was flagged "far from every
     # other training shape" and left out; a ring or a tube among beans lies at 3.9-4.4x.
+    # (the safeguard keeps the remesh and the normal-offsets pass here: that path, without its trials)
     pop = known_homology_shapes("tube", 6, seed=101, n_points=(1100, 1300))
-    result = corr.establish_correspondence(pop.meshes, "auto", n_jobs=2, vertices=1200, refine=1)
+    result = corr.establish_correspondence(pop.meshes, "auto", n_jobs=2, vertices=1200, refine=1,
+                                           safeguard=False)
     assert result.failures == {}
     assert all(m is not None for m in result.meshes)
 

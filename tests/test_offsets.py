@@ -69,13 +69,14 @@ def test_fit_recovers_a_similarity_and_a_bump_along_the_normals(pose_iterations,
 def test_refinement_with_normal_offsets_beats_cpd_passes_on_consistent_features():
     """Consistent features whose heights vary from shape to shape: the refinement pass's CPD
     slid points towards the higher features (density matching); the offsets' fit does not.
-    Seeds apart from the benchmark's (tuning 2-10, held-out 100-108)."""
+    Seeds apart from the benchmark's (tuning 2-10, held-out 100-108). Measured 0.263 against
+    0.492 mm."""
     pop = known_homology_shapes("bean", 6, seed=21, n_points=(650, 750), features=6, n_bumps=3,
                                 bump_mm=0.5, retessellate=True)
     spreads = {}
-    for how in ("normal_offsets", "cpd"):
+    for how in ("normal_offsets", "cpd"):  # each deformation itself: no safeguard to judge it
         res = establish_correspondence(pop.meshes, "auto", n_jobs=1, refine=1, vertices=700,
-                                       refine_deformation=how)
+                                       refine_deformation=how, safeguard=False)
         spreads[how] = float(pop.spread([m.vertices for m in res.meshes]).mean())
     assert spreads["normal_offsets"] < 0.8 * spreads["cpd"], spreads
 
