@@ -34,38 +34,34 @@ class NumpyRound2:
     """The round-2 exact search, built once per surface like the projector it was."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        self.faces = faces
+        self.n_faces = len(faces)
         self.triangles = vertices[faces]
         centroids = self.triangles.mean(axis=1)
         self.radius = float(np.linalg.norm(self.triangles - centroids[:, None], axis=2).max())
         self.tree = cKDTree(centroids)
 
+    def _query(self, points: np.ndarray, k: int):
+        """The k nearest centroids' triangles, and whether the answer is certified exact."""
+        cdist, cand = self.tree.query(points, k=k)
+        cdist, cand = cdist.reshape(len(points), -1), cand.reshape(len(points), -1)
+        c, d, t = toolkit._closest_among(points, self.triangles, cand)
+        return c, d, t, (k >= self.n_faces) | (d + self.radius <= cdist[:, -1])
+
     def project(self, points: np.ndarray, k: int = 8):
         """Closest points (P, 3), distances (P,), triangles (P,)."""
-        return _round2_query(self, points, min(k, len(self.faces)))
+        k = min(k, self.n_faces)
+        closest, dist, tri, ok = self._query(points, k)
+        todo = np.flatnonzero(~ok)
+        while len(todo) and k < self.n_faces:
+            k = min(2 * k, self.n_faces)
+            c, d, t, e = self._query(points[todo], k)
+            closest[todo], dist[todo], tri[todo] = c, d, t
+            todo = todo[~e]
+        return closest, dist, tri
 
 
 def numpy_round2(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray):
     return NumpyRound2(vertices, faces).project(points)
-
-
-def _round2_query(s: NumpyRound2, points: np.ndarray, k: int):
-    faces, triangles, radius, tree = s.faces, s.triangles, s.radius, s.tree
-
-    def query(p, kk):
-        cdist, cand = tree.query(p, k=kk)
-        cdist, cand = cdist.reshape(len(p), -1), cand.reshape(len(p), -1)
-        c, d, t = toolkit._closest_among(p, triangles, cand)
-        return c, d, t, (kk >= len(faces)) | (d + radius <= cdist[:, -1])
-
-    closest, dist, tri, ok = query(points, k)
-    todo = np.flatnonzero(~ok)
-    while len(todo) and k < len(faces):
-        k = min(2 * k, len(faces))
-        c, d, t, e = query(points[todo], k)
-        closest[todo], dist[todo], tri[todo] = c, d, t
-        todo = todo[~e]
-    return closest, dist, tri
 
 
 def vtk_locator(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray):

@@ -201,9 +201,8 @@ class SurfaceProjector:
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         self.faces = np.asarray(faces)
         if self.exact:
-            self.k = 0
-            self._faces64 = np.ascontiguousarray(self.faces, dtype=np.int64)
-            self._aabb = _aabb_tree(self.vertices, self._faces64)
+            self.faces = np.ascontiguousarray(self.faces, dtype=np.int64)  # as the compiled tree reads them
+            self._aabb = _aabb_tree(self.vertices, self.faces)
             return
         self._triangles = self.vertices[self.faces]  # (F, 3, 3)
         if self.first_pass_only:
@@ -214,10 +213,6 @@ class SurfaceProjector:
             self._tree = cKDTree(self.vertices) if tree is None else tree
             self._table = vertex_face_table(self.faces, len(self.vertices)) if table is None else table
 
-    def _query_centroids(self, points: np.ndarray, k: int):
-        _, cand = self._tree.query(points, k=k)
-        return _closest_among(points, self._triangles, cand.reshape(len(points), -1))
-
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Closest surface points (P, 3), distances (P,) and triangle indices (P,)."""
         points = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
@@ -226,12 +221,11 @@ class SurfaceProjector:
         if self.exact:
             if not np.isfinite(points).all():
                 raise ValueError("closest points: a query point is not finite")
-            squared, tri, closest = self._aabb.squared_distance(self.vertices, self._faces64, points)
+            squared, tri, closest = self._aabb.squared_distance(self.vertices, self.faces, points)
             return closest, np.sqrt(squared), tri
-        if self.first_pass_only:
-            return self._query_centroids(points, self.k)
         _, near = self._tree.query(points, k=self.k)
-        cand = self._table[np.asarray(near).reshape(len(points), self.k)].reshape(len(points), -1)
+        near = np.asarray(near).reshape(len(points), self.k)
+        cand = near if self.first_pass_only else self._table[near].reshape(len(points), -1)
         return _closest_among(points, self._triangles, cand)
 
     def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
