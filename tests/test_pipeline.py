@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from core.build.pipeline import align, build_model, corresponded_shapes, fit_model, world_placement
 from core.cli import main as cli_main
 from core.datasets.factors import ellipsoid_surface, planted_shapes
+from core.geometry.toolkit import closest_points_on_surface, symmetric_surface_distance
 from core.io import TriMesh, load_model, save_mesh
 
 WORLD_CENTRE = np.array([-13.0, 8.0, 12.0])  # e.g. a caudate in MNI space
@@ -176,7 +177,11 @@ def test_build_model_with_correspondence(tmp_path):
     assert res.model.n_vertices == res.faces.max() + 1
     assert len(res.names) + len(res.failures) == 5
     assert res.correspondence is not None and "correspondence" in res.timings
-    # corresponded meshes reproduce the inputs' surfaces (vertex sets match up to fairing)
+    # corresponded meshes reproduce the inputs' surfaces: every vertex on its input's surface
+    # (the final projection is exact) and the surfaces close (0.02-0.07 mm measured; fairing
+    # moves vertices along the surface, off the input's vertices, so the piecewise-linear
+    # surfaces of these 162-vertex meshes differ a little)
     for m, raw in zip(res.meshes, meshes):
-        d = np.linalg.norm(m.vertices[:, None] - raw.vertices[None], axis=2).min(1)
-        assert d.mean() < 0.5
+        _, on_input = closest_points_on_surface(m.vertices, raw.vertices, raw.faces)
+        assert on_input.max() < 1e-6
+        assert symmetric_surface_distance(m.vertices, m.faces, raw.vertices, raw.faces) < 0.1
