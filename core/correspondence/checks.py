@@ -46,7 +46,7 @@ def drop_flagged(run: CorrespondenceRun, results: dict, first: dict) -> None:
         retry_from_mean(run, list(flagged), first)
         flagged = {k: r for k, r in flag_outliers(corresponded, run.names, run.chosen).items()
                    if k in flagged}
-    if flagged and not run.params.get("mirror_check", True):
+    if flagged and not run.params["mirror_check"]:  # (run.params holds every default)
         flagged = {k: r for k, r in flagged.items() if not chirality_explains(run, k)}
     for k, reason in flagged.items():
         run.failures[run.names[k]] = reason
