@@ -63,6 +63,8 @@ OPTIONS = {  # label: establish_correspondence keywords (one change each)
                                      "rigid_iterations": 100},      # or the identity re-run)
     "rigid from start all points": {"rigid_fine_from": "start", "rigid_fine_points": 100000},
     "rigid from start": {"rigid_fine_from": "start"},
+    "rigid fine 2000": {"rigid_fine_points": 2000},
+    "rigid fine 3000": {"rigid_fine_points": 3000},
     "exact kernel": {"low_rank": None},
     "cpd all points": {"cpd_points": None},
     "cpd 3000 points": {"cpd_points": 3000},  # the default until 2026-12-03 (now 6,000)

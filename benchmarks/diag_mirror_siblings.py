@@ -5,7 +5,8 @@ For every mirror suspect of :func:`core.correspondence.checks.flag_mirrored`, th
 ratio (:func:`core.correspondence.pair.mirror_fit_ratio`) against each other input, to see
 whether a "same-handed sibling" separates populations whose chiral feature takes either sign
 (the tuning half's global modes) from a true left/right mix-up (twisted beans with one or two
-inputs mirrored).
+inputs mirrored); and the handedness of the other inputs
+(:func:`core.correspondence.checks.population_handedness`), which the check now requires.
 
     PYTHONPATH=. python benchmarks/diag_mirror_siblings.py
 """
@@ -34,6 +35,11 @@ def _flag_and_report(run, results):
     flagged = _flag_mirrored(run, results)
     ratios = {i: results[i][0].get("mirror_ratio") for i in run.usable
               if i in results and results[i][0] is not None}
+    suspects = [i for i, r in ratios.items() if r is not None and r < checks.MIRROR_SUSPECT]
+    if suspects:
+        others = [k for k in sorted(run.corresponded) if k not in suspects]
+        print(f"  handedness of the {len(others)} others: "
+              f"{checks.population_handedness(run, others):.2f}", flush=True)
     for i, ratio in sorted(ratios.items()):
         if ratio is None or ratio >= checks.MIRROR_SUSPECT:
             continue

@@ -135,6 +135,44 @@ def test_a_mirrored_side_of_a_chiral_structure_is_caught_and_the_rest_completes(
     assert all(result.meshes[k] is not None for k in (0, 1, 2, 3, 5))
 
 
+def test_a_chiral_feature_of_either_sign_is_not_a_mix_up():
+    # The tuning family of global modes twists and bends each shape by a random amount of
+    # either sign: no common handedness, so a shape of the minority sign is a member. Before
+    # the handedness rule two of these six were left out as "mirrored" (ratios below 0.8).
+    from core.correspondence import checks
+    from core.datasets.families import population
+
+    pop = population("global", 6, 102, size=(400, 500))
+    seen = []
+    real = checks.population_handedness
+
+    def spy(run, keys):
+        seen.append(real(run, keys))
+        return seen[-1]
+
+    checks.population_handedness = spy
+    try:
+        result = corr.establish_correspondence(list(pop.meshes), "auto", n_jobs=1, refine=0,
+                                               safeguard=False)
+    finally:
+        checks.population_handedness = real
+    assert result.failures == {}, result.failures
+    assert seen and all(h < 1.0 / checks.MIRROR_RATIO for h in seen), seen
+
+
+def test_two_mirrored_sides_are_both_caught():
+    # Two left/right mix-ups of one side: the four correctly sided twisted beans share one
+    # hand (handedness above 1 / MIRROR_RATIO), so both mirrored inputs are still flagged.
+    pop = known_homology_shapes("twist", 6, seed=3, n_points=(380, 420))
+    meshes = list(pop.meshes)
+    for k in (1, 4):
+        m = meshes[k]
+        meshes[k] = TriMesh(m.vertices * np.array([-1.0, 1.0, 1.0]), m.faces[:, ::-1], f"mirrored{k}")
+    result = corr.establish_correspondence(meshes, "auto", n_jobs=1, refine=0, safeguard=False)
+    assert set(result.failures) == {"mirrored1", "mirrored4"}, result.failures
+    assert all(f.startswith("mirrored: ") for f in result.failures.values())
+
+
 def test_no_mirror_check_keeps_a_mirrored_input(tmp_path):
     """`correspond --no-mirror-check` (a population in which a chiral feature takes either
     sign) keeps the input the check would leave out; without it, the input is reported."""

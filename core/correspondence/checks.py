@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from core.correspondence.pair import mirror_fit_ratio, principal_axes
+from core.correspondence.safeguard import spread_pick
 from core.correspondence.store import open_mesh
 from core.correspondence.tasks import add_timings, gpa, make_tasks, run_tasks
 from core.types import TriMesh
@@ -29,6 +30,7 @@ if TYPE_CHECKING:
 
 MIRROR_SUSPECT = 0.95  # pair.mirror_fit_ratio against the reference below this: check again
 MIRROR_RATIO = 0.8     # ... against the others' mean below this: mirrored
+HANDEDNESS_SHAPES = 8  # inputs the population's handedness is measured on
 NEIGHBOUR_TRIES = 3  # closest shapes a switched shape is corresponded to again, one by one
 NEIGHBOUR_POOL = 64  # unswitched shapes the closest are chosen from
 OUTLIER_FACTOR = 3.0  # an outlier's Procrustes distance to the mean: over this many times the median
@@ -80,6 +82,14 @@ def flag_mirrored(run: CorrespondenceRun, results: dict) -> dict[int, str]:
     (measured: 0.92 and up for correctly sided beans, 1.4 and up for the chiral twisted
     beans, 0.73 and below for mirrored twisted beans). When most inputs are suspects, the
     reference is the odd one and nothing is flagged.
+
+    A mix-up is only told apart where the structure has one handedness: a suspect is flagged
+    only when the other inputs fit their own mean (without them) better than their mirror
+    images do, by the same factor the other way (:func:`population_handedness` at least
+    1 / :data:`MIRROR_RATIO`). In a population whose chiral feature takes either sign (the
+    tuning family of global modes, twist of random sign: ratios 0.87-1.12; a 50 mm tube with
+    an S-bend of random sign) a shape of the minority sign is a member, not a mix-up;
+    correctly sided twisted beans around a mirrored one measure 1.18-1.84.
     """
     vertices = run.corresponded
     ratios = {i: results[i][0].get("mirror_ratio") for i in run.usable
@@ -89,15 +99,31 @@ def flag_mirrored(run: CorrespondenceRun, results: dict) -> dict[int, str]:
     if not suspects or 2 * len(suspects) >= len(ratios) or len(others) < 2:
         return {}
     mean, _ = gpa(vertices, others, tol=1e-5)
-    flagged = {}
+    found = {}
     for i in suspects:
         r = mirror_fit_ratio(mean, open_mesh(run.prepared[i]).vertices, run.params)
         if r < MIRROR_RATIO:
-            flagged[i] = (f"mirrored: its mirror image fits the other shapes better than any "
-                          f"rotation of it (rigid fit sigma^2 ratio {r:.2f}); a left/right "
-                          "mix-up? (if a chiral feature takes either sign in this population, "
-                          "turn the mirror check off)")
-    return flagged
+            found[i] = r
+    if not found or population_handedness(run, others) < 1.0 / MIRROR_RATIO:
+        return {}
+    return {i: (f"mirrored: its mirror image fits the other shapes better than any "
+                f"rotation of it (rigid fit sigma^2 ratio {r:.2f}); a left/right "
+                "mix-up? (if a chiral feature takes either sign in this population, "
+                "turn the mirror check off)") for i, r in found.items()}
+
+
+def population_handedness(run: CorrespondenceRun, keys: list[int]) -> float:
+    """How consistently chiral the inputs ``keys`` are: the median, over at most
+    :data:`HANDEDNESS_SHAPES` of them, of :func:`core.correspondence.pair.mirror_fit_ratio`
+    of each against the similarity mean of the others (itself left out). Near 1: no common
+    handedness (achiral, or a chiral feature of either sign); above 1: one hand."""
+    if len(keys) < 3:  # no mean without the shape itself: assume one hand (the check stays on)
+        return np.inf
+    values = []
+    for j in spread_pick(keys, HANDEDNESS_SHAPES):
+        mean, _ = gpa(run.corresponded, [k for k in keys if k != j], tol=1e-5)
+        values.append(mirror_fit_ratio(mean, open_mesh(run.prepared[j]).vertices, run.params))
+    return float(np.median(values))
 
 
 def recheck_switched(run: CorrespondenceRun, results: dict, params: dict) -> dict:

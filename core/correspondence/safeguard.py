@@ -60,7 +60,7 @@ KEEP_MARGIN = 0.05  # a stage is kept only when it lowers the criterion by more 
 # mm) and a CPD pass that truly hurt by 2.5 % (six uneven beans, 1.665 against 1.458 mm).
 
 
-def _spread_pick(keys: Sequence[int], n: int) -> list[int]:
+def spread_pick(keys: Sequence[int], n: int) -> list[int]:
     """At most ``n`` of ``keys``, evenly spread over them (deterministic)."""
     keys = list(keys)
     if len(keys) <= n:
@@ -83,7 +83,7 @@ def loo_generalisation(shapes: Sequence[np.ndarray], faces: np.ndarray, raw: Seq
         raise ValueError(f"leave-one-out generalisation needs at least 3 shapes, got {k_all}")
     aligned = generalized_procrustes(stack, "similarity", max_iter=20, tol=1e-6).aligned
     errors, surface = [], []
-    for k in _spread_pick(range(k_all), folds):
+    for k in spread_pick(range(k_all), folds):
         others = np.delete(aligned, k, axis=0).reshape(k_all - 1, -1)
         mean = others.mean(axis=0)
         _, _, vt = np.linalg.svd(others - mean, full_matrices=False)
@@ -125,7 +125,7 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
 
     if not _remesh_on(groom) or len(meshes) < MIN_SHAPES:
         return groom, None
-    pick = _spread_pick(range(len(meshes)), REMESH_SHAPES)
+    pick = spread_pick(range(len(meshes)), REMESH_SHAPES)
     ref = reference
     if isinstance(reference, (int, np.integer)) and not isinstance(reference, bool):
         pick = sorted(set(pick[:-1]) | {int(reference)}) if int(reference) not in pick else pick
@@ -223,7 +223,7 @@ class RefinementGuard:
     def refine(self, vertices: MutableMapping, faces: np.ndarray, params: dict, passes: int,
                run_pass: Callable[[dict], list[float]]) -> list[float]:
         """Up to ``passes`` guarded passes of ``params["refine_deformation"]``."""
-        keys = _spread_pick(sorted(vertices), MODEL_SHAPES)
+        keys = spread_pick(sorted(vertices), MODEL_SHAPES)
         if passes <= 0:
             return []
         if len(keys) < MIN_SHAPES:
