@@ -143,21 +143,15 @@ def test_a_chiral_feature_of_either_sign_is_not_a_mix_up():
     from core.datasets.families import population
 
     pop = population("global", 6, 102, size=(400, 500))
-    seen = []
-    real = checks.population_handedness
-
-    def spy(run, keys):
-        seen.append(real(run, keys))
-        return seen[-1]
-
-    checks.population_handedness = spy
-    try:
-        result = corr.establish_correspondence(list(pop.meshes), "auto", n_jobs=1, refine=0,
-                                               safeguard=False)
-    finally:
-        checks.population_handedness = real
+    result = corr.establish_correspondence(list(pop.meshes), "auto", n_jobs=1, refine=0,
+                                           safeguard=False)
     assert result.failures == {}, result.failures
-    assert seen and all(h < 1.0 / checks.MIRROR_RATIO for h in seen), seen
+    found = result.mirror_report  # what the check saw, and why it kept them
+    mirrored = [n for n, r in found["suspects"].items() if r < checks.MIRROR_RATIO]
+    assert len(mirrored) == 2, found
+    assert found["handedness"] < 1.0 / checks.MIRROR_RATIO and found["flagged"] == []
+    assert found["note"].startswith("kept: ") and "either sign" in found["note"]
+    assert result.to_report()["mirror_report"] == found
 
 
 def test_two_mirrored_sides_are_both_caught():
@@ -171,6 +165,9 @@ def test_two_mirrored_sides_are_both_caught():
     result = corr.establish_correspondence(meshes, "auto", n_jobs=1, refine=0, safeguard=False)
     assert set(result.failures) == {"mirrored1", "mirrored4"}, result.failures
     assert all(f.startswith("mirrored: ") for f in result.failures.values())
+    found = result.mirror_report
+    assert sorted(found["flagged"]) == ["mirrored1", "mirrored4"] and found["note"] == ""
+    assert found["handedness"] >= 1.25, found  # the four correctly sided beans share a hand
 
 
 def test_no_mirror_check_keeps_a_mirrored_input(tmp_path):
@@ -194,6 +191,8 @@ def test_no_mirror_check_keeps_a_mirrored_input(tmp_path):
     assert main(["correspond", *common, "--out", str(tmp_path / "checked")]) == 1  # one input left out
     report = json.loads((tmp_path / "checked" / "correspondence.json").read_text())
     assert any("mirrored" in str(v) for v in report["failures"].values()), report["failures"]
+    flagged = report["mirror_report"]["flagged"]  # named as in failures (here, the input's path)
+    assert len(flagged) == 1 and flagged[0].endswith("shape_4.vtk") and flagged[0] in report["failures"]
     assert main(["correspond", *common, "--out", str(tmp_path / "kept"), "--no-mirror-check"]) == 0
     report = json.loads((tmp_path / "kept" / "correspondence.json").read_text())
     assert not report["failures"] and (tmp_path / "kept" / "shape_4.vtk").exists()

@@ -81,6 +81,11 @@ class CorrespondenceResult:
     safeguard : dict
         What the safeguard (:mod:`core.correspondence.safeguard`) tried, its criterion's
         values and what it kept: ``{"enabled", "stages": [...]}``.
+    mirror_report : dict
+        When some inputs were mirror suspects (:func:`core.correspondence.checks.flag_mirrored`):
+        ``{"suspects": name -> mirror ratio against the others' mean, "handedness": the
+        others' (None when not measured), "flagged": names left out, "note": why the others
+        were kept}``; empty otherwise.
     """
 
     meshes: list
@@ -99,6 +104,7 @@ class CorrespondenceResult:
     unreadable: dict = field(default_factory=dict)
     poses: dict = field(default_factory=dict)
     safeguard: dict = field(default_factory=dict)
+    mirror_report: dict = field(default_factory=dict)
 
     def to_report(self, names: list[str] | None = None) -> dict:
         """JSON-ready summary (per shape: residual, grooming, error; reference and why)."""
@@ -124,6 +130,7 @@ class CorrespondenceResult:
             "timings": self.timings,
             "params": self.params,
             "safeguard": self.safeguard,
+            "mirror_report": self.mirror_report,
         }
 
 
@@ -197,6 +204,7 @@ class CorrespondenceRun:
     usable: list[int] = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     corresponded: MutableMapping = field(default_factory=dict)
+    mirror_report: dict = field(default_factory=dict)
     chosen: int | None = None
     reference: TriMesh | None = None
     faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), int))
@@ -235,6 +243,7 @@ class CorrespondenceRun:
         changes = self.refine(refine)
         result = self.result(scores, why, changes, keep_meshes)
         result.unreadable, result.poses, result.safeguard = self.unread, poses, self.record
+        result.mirror_report = self.mirror_report
         return result
 
     def prepare(self, groom: bool | dict, vertices: int | None,

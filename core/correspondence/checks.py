@@ -99,17 +99,23 @@ def flag_mirrored(run: CorrespondenceRun, results: dict) -> dict[int, str]:
     if not suspects or 2 * len(suspects) >= len(ratios) or len(others) < 2:
         return {}
     mean, _ = gpa(vertices, others, tol=1e-5)
-    found = {}
-    for i in suspects:
-        r = mirror_fit_ratio(mean, open_mesh(run.prepared[i]).vertices, run.params)
-        if r < MIRROR_RATIO:
-            found[i] = r
-    if not found or population_handedness(run, others) < 1.0 / MIRROR_RATIO:
-        return {}
+    found = {i: mirror_fit_ratio(mean, open_mesh(run.prepared[i]).vertices, run.params)
+             for i in suspects}
+    mirrored = {i: r for i, r in found.items() if r < MIRROR_RATIO}
+    hand = population_handedness(run, others) if mirrored else None
+    flagged = mirrored if hand is not None and hand >= 1.0 / MIRROR_RATIO else {}
+    run.mirror_report = {
+        "suspects": {run.names[i]: round(float(r), 4) for i, r in found.items()},
+        "handedness": None if hand is None or not np.isfinite(hand) else round(hand, 4),
+        "flagged": [run.names[i] for i in flagged],
+        "note": ("" if hand is None or flagged else
+                 f"kept: their mirror images fit the others better, but the others share no "
+                 f"handedness (median mirror ratio {hand:.2f} < {1.0 / MIRROR_RATIO:.2f}): a "
+                 "chiral feature of either sign, not a left/right mix-up")}
     return {i: (f"mirrored: its mirror image fits the other shapes better than any "
                 f"rotation of it (rigid fit sigma^2 ratio {r:.2f}); a left/right "
                 "mix-up? (if a chiral feature takes either sign in this population, "
-                "turn the mirror check off)") for i, r in found.items()}
+                "turn the mirror check off)") for i, r in flagged.items()}
 
 
 def population_handedness(run: CorrespondenceRun, keys: list[int]) -> float:
