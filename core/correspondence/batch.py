@@ -82,7 +82,8 @@ class CorrespondenceResult:
         What the safeguard (:mod:`core.correspondence.safeguard`) tried, its criterion's
         values and what it kept: ``{"enabled", "stages": [...]}``.
     mirror_report : dict
-        When some inputs were mirror suspects (:func:`core.correspondence.checks.flag_mirrored`):
+        When the mirror check compared suspects with the others' mean
+        (:func:`core.correspondence.checks.flag_mirrored`):
         ``{"suspects": name -> mirror ratio against the others' mean, "handedness": the
         others' (None when not measured), "flagged": names left out, "note": why the others
         were kept}``; empty otherwise.

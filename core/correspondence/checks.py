@@ -20,9 +20,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from core.correspondence.pair import mirror_fit_ratio, principal_axes
-from core.correspondence.safeguard import spread_pick
 from core.correspondence.store import open_mesh
-from core.correspondence.tasks import add_timings, gpa, make_tasks, run_tasks
+from core.correspondence.tasks import add_timings, gpa, make_tasks, run_tasks, spread_pick
 from core.types import TriMesh
 
 if TYPE_CHECKING:

@@ -21,7 +21,7 @@ import numpy as np
 from core.correspondence.grooming import GroomingError, describe, groom_mesh
 from core.correspondence.pair import mesh_problem, normalise
 from core.correspondence.store import open_mesh
-from core.correspondence.tasks import make_tasks, run_tasks
+from core.correspondence.tasks import make_tasks, run_tasks, spread_pick
 from core.geometry import mesh as meshops
 from core.types import TriMesh
 
@@ -173,8 +173,7 @@ def select_reference(run: CorrespondenceRun, candidates: list, external: TriMesh
     if len(candidates) > 1 and len(usable) > max(int(selection_shapes), len(candidates)):
         others = [i for i in usable if i not in candidates]
         n_more = max(int(selection_shapes) - len(candidates), 1)
-        spread = np.linspace(0, len(others) - 1, min(n_more, len(others))).round().astype(int)
-        subset = sorted(set(candidates) | {others[j] for j in spread})
+        subset = sorted(set(candidates) | set(spread_pick(others, n_more)))
     else:
         subset = list(usable)
     tasks = []

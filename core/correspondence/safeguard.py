@@ -48,6 +48,7 @@ from collections.abc import Callable, Mapping, MutableMapping, Sequence
 import numpy as np
 
 from core.correspondence.store import VertexRows
+from core.correspondence.tasks import spread_pick
 from core.types import TriMesh
 
 MODEL_SHAPES = 24   # shapes of the generalisation model (evenly spread over the data set)
@@ -58,14 +59,6 @@ KEEP_MARGIN = 0.05  # a stage is kept only when it lowers the criterion by more 
 # Chosen on the tuning populations (bench_safeguard.py): the stages that truly helped lowered
 # it by 7-11 %; a remesh that truly hurt by 1.7 % (bean-even, true spread 1.165 against 1.009
 # mm) and a CPD pass that truly hurt by 2.5 % (six uneven beans, 1.665 against 1.458 mm).
-
-
-def spread_pick(keys: Sequence[int], n: int) -> list[int]:
-    """At most ``n`` of ``keys``, evenly spread over them (deterministic)."""
-    keys = list(keys)
-    if len(keys) <= n:
-        return keys
-    return [keys[j] for j in np.unique(np.linspace(0, len(keys) - 1, n).round().astype(int))]
 
 
 def loo_generalisation(shapes: Sequence[np.ndarray], faces: np.ndarray, raw: Sequence[TriMesh],

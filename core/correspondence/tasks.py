@@ -13,7 +13,7 @@ tally.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -116,6 +116,14 @@ def add_timings(timings: dict, key: int, out: dict) -> None:
     timings["assignment_total"] = timings.get("assignment_total", 0.0) + out["timings"]["assignment"]
     timings["cpu_total"] = timings.get("cpu_total", 0.0) + out["timings"]["total"]
     timings["n_registrations"] = timings.get("n_registrations", 0) + 1
+
+
+def spread_pick(keys: Sequence[int], n: int) -> list[int]:
+    """At most ``n`` of ``keys``, evenly spread over them (deterministic)."""
+    keys = list(keys)
+    if len(keys) <= n:
+        return keys
+    return [keys[j] for j in np.unique(np.linspace(0, len(keys) - 1, n).round().astype(int))]
 
 
 def gpa(vertices: Mapping, keys: list[int], tol: float) -> tuple[np.ndarray, np.ndarray]:
