@@ -604,18 +604,44 @@ def test_correlated_residuals_do_not_tighten_the_pose_prior():
     correlated-residual refit used to multiply the pose prior's precision by the inflation
     too, and so held the fit at the wrong pose: thin tubes turned 30 degrees and shifted,
     two parallel contours, left at the stored placement, mean surface distance 1.60 mm (the
-    two tempered cases 3.45 and 2.30 mm). Tempering only the shape prior: 1.09 mm (1.55 and
-    1.14)."""
+    two tempered cases 3.45 and 2.30 mm; on one tube 1.36 mm tempered against 0.85 mm
+    without the refit). Tempering only the shape prior, a tempered fit is no worse than the
+    same fit without the refit (measured, turned 30 and 40 degrees: 2.56 / 1.47 / 1.08 mm
+    against 2.76 / 1.78 / 1.06), and the mean stays near 1.1 mm."""
     from core.geometry.toolkit import symmetric_surface_distance
 
     shapes, faces, model = _thin_tubes()
     errors, tempered = [], []
     for case in range(6):
-        truth, user = _two_parallel_contours_of_a_turned_tube(shapes[case], faces, case, 30.0)
-        fit = fit_points(model, user.points, user.normals)
-        errors.append(symmetric_surface_distance(fit.vertices, faces, truth, faces))
-        if fit.prior_inflation > 1.2:
-            tempered.append(errors[-1])
+        for angle in (30.0, 40.0):
+            truth, user = _two_parallel_contours_of_a_turned_tube(shapes[case], faces, case, angle)
+            fit = fit_points(model, user.points, user.normals)
+            errors.append(symmetric_surface_distance(fit.vertices, faces, truth, faces))
+            if fit.prior_inflation > 1.2:
+                plain = fit_points(model, user.points, user.normals, correlated_residuals=False)
+                tempered.append((errors[-1], symmetric_surface_distance(plain.vertices, faces,
+                                                                        truth, faces)))
     assert len(tempered) >= 2, "the refit was not exercised"
     assert np.mean(errors) < 1.3, errors
-    assert max(tempered) < 2.0, tempered
+    assert all(with_refit <= 1.05 * without for with_refit, without in tempered), tempered
+
+
+def test_overrelaxed_em_reaches_a_lower_objective_in_fewer_iterations():
+    """Issue 27: on two parallel contours plain EM crawls along the pose/shape directions the
+    points hardly determine and stopped on its tolerance short of its optimum (tubes turned
+    20 degrees, placed at the points: 237 iterations over 6 cases). The adaptive
+    over-relaxation (Salakhutdinov & Roweis 2003) ends at an objective at least as low in
+    every case, in about half the iterations (131), and keeps the record non-increasing."""
+    shapes, faces, model = _thin_tubes()
+    iterations = {True: 0, False: 0}
+    for case in range(6):
+        _, user = _two_parallel_contours_of_a_turned_tube(shapes[case], faces, case, 20.0)
+        fits = {relax: fit_points(model, user.points, user.normals, placement="points",
+                                  correlated_residuals=False, overrelax=relax)
+                for relax in (True, False)}
+        for relax, fit in fits.items():
+            iterations[relax] += fit.n_iter
+        record = np.asarray(fits[True].objective)
+        assert np.all(np.diff(record) <= 1e-9 * abs(record[0])), case
+        assert record[-1] <= fits[False].objective[-1] + 1e-6 * abs(record[-1]), case
+    assert iterations[True] < 0.75 * iterations[False], iterations
