@@ -359,13 +359,14 @@ class GMMFitter:
         # step whose variance crossed that threshold could be refused however short (issue
         # 27: a fit stopped at iteration 7, 100 above the optimum's objective). The
         # shortened steps are then tried again with K kept.
+        first_k = 0  # K of the first attempt's pairs
         for keep_k in (False, True):
             new_pairs = self._pairs_for(new, pairs, keep_k)
             if keep_k:
-                if new_pairs.k <= shrunk_to:  # K had not shrunk: nothing else to try
+                if new_pairs.k <= first_k:  # K had not shrunk: nothing else to try
                     break
                 self._k_floor = pairs.k  # for the rest of this fit: it would be refused again
-            shrunk_to = new_pairs.k
+            first_k = new_pairs.k
             trial = new
             for halving in range(_HALVINGS + 1):
                 last = self._last_geometry
