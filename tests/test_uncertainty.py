@@ -139,7 +139,7 @@ def test_pose_aware_posterior_covers_turned_shapes_and_says_the_pose_is_uncertai
     assert np.linalg.norm(fit.vertices - truth, axis=1).mean() < 1.0
     placed = fit_points(model, user.points, user.normals, placement="points")
     again = fit_posterior(model, user.points, placed.coef, placed.pose, fit=placed)
-    assert again.vertex_sd().mean() < post.vertex_sd().mean()
+    assert again.vertex_sd().mean() < 0.8 * post.vertex_sd().mean()  # measured 0.63
 
 
 def test_coverage_on_turned_unseen_shapes_per_contour_layout():

@@ -406,9 +406,10 @@ class GMMFitter:
             moved = float(np.sqrt(((step[1].x - ev.x) ** 2).sum(axis=1).max()))
             previous = ev.objective
             state, ev, pairs, relaxed = step
-            # grow the over-relaxation while it pays, back to plain EM when it overshoots
-            relax = (min(RELAX_GROWTH * relax, MAX_RELAX) if relaxed or relax == 1.0 else 1.0) \
-                if self.overrelax and shape_active else 1.0
+            if self.overrelax and shape_active and (relaxed or relax == 1.0):
+                relax = min(RELAX_GROWTH * relax, MAX_RELAX)  # it paid: lengthen the next step
+            else:
+                relax = 1.0  # the lengthened step overshot (or no over-relaxation): plain EM
             self.n_iter_ = it + 1
             self.objective_.append(ev.objective)
             change = abs(previous - ev.objective)
