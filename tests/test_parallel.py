@@ -421,3 +421,33 @@ def test_a_job_failure_from_data_is_one_line_and_a_bug_keeps_its_traceback():
         text = describe_failure(exc)
     assert text.startswith("internal error") and "IndexError" in text
     assert "Traceback" in text and "test_parallel.py" in text
+
+
+def test_a_signal_landing_in_a_finalizer_is_raised_at_the_next_wait_not_inside_it():
+    """A SIGINT arriving while a semaphore's finalizer runs (the garbage collector runs them
+    wherever it is triggered): raised there, it was swallowed with a printed traceback and cut
+    the cleanup in half (the semaphore unlinked, still registered: the resource tracker
+    warned of a leak at exit). The finalizer now completes and the next wait raises it."""
+    from multiprocessing import util
+
+    from core.runtime.parallel import raise_if_signalled, termination_signals
+
+    class Resource:
+        pass
+
+    steps: list[str] = []
+
+    def cleanup() -> None:
+        steps.append("unlinked")
+        os.kill(os.getpid(), signal.SIGINT)  # the handler runs at the next bytecode
+        for _ in range(1000):
+            pass
+        steps.append("unregistered")
+
+    with termination_signals():
+        resource = Resource()
+        util.Finalize(resource, cleanup, exitpriority=0)
+        del resource  # the finalizer runs here, as a weakref callback
+        assert steps == ["unlinked", "unregistered"]
+        with pytest.raises(KeyboardInterrupt):
+            raise_if_signalled()

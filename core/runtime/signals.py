@@ -4,8 +4,9 @@ Python already turns SIGINT into ``KeyboardInterrupt``.
 :func:`termination_signals` (installed by the command line for every command) turns SIGTERM
 into :class:`Terminated` and SIGINT into ``KeyboardInterrupt``, also for a process started
 with SIGINT ignored. The executors' waits are short timeouts and call
-:func:`raise_if_signalled`, so either exception surfaces within a fraction of a second, even
-when its first raise was swallowed (Python ignores exceptions raised in a destructor).
+:func:`raise_if_signalled`, so either exception surfaces within a fraction of a second. A
+signal landing in a destructor or finalizer is not raised there (Python would swallow it with a
+printed traceback, and the cleanup would stop half-done) but by that next wait.
 :func:`signals_deferred` holds both back over a step that must not be cut in half. The command
 exits 128 + the signal number (130 SIGINT, 143 SIGTERM), POSIX shells' convention.
 """
@@ -43,11 +44,34 @@ def _raise_for(signum: int) -> None:
     raise Terminated(signum)
 
 
+def _finalizer_codes() -> frozenset:
+    import weakref
+    from multiprocessing import util
+
+    return frozenset({util.Finalize.__call__.__code__, weakref.finalize.__call__.__code__})
+
+
+def _in_finalizer(frame) -> bool:
+    """Whether the interrupted code runs inside a destructor or a finalizer callback (the
+    garbage collector runs them wherever an allocation triggers it)."""
+    codes = _finalizer_codes()
+    while frame is not None:
+        if frame.f_code.co_name == "__del__" or frame.f_code in codes:
+            return True
+        frame = frame.f_back
+    return False
+
+
 def _on_signal(signum, frame) -> None:
     global _SIGNALLED
     _SIGNALLED = signum
     if _DEFERRED is not None:  # inside a critical section: raise when it ends
         _DEFERRED.append(signum)
+        return
+    # Raised in a finalizer, the exception would be swallowed with a printed traceback and
+    # the cleanup cut in half: a pool's semaphore unlinked but still registered, so the
+    # resource tracker warned of a leaked semaphore at exit. The executor's next wait raises it.
+    if _in_finalizer(frame):
         return
     _raise_for(signum)
 
