@@ -63,6 +63,8 @@ OPTIONS = {  # label: establish_correspondence keywords (one change each)
                                      "rigid_iterations": 100},      # or the identity re-run)
     "rigid from start all points": {"rigid_fine_from": "start", "rigid_fine_points": 100000},
     "rigid from start": {"rigid_fine_from": "start"},
+    "rigid even sampling": {"rigid_sampling": "even", "rigid_fine_sampling": "even"},
+    "rigid even fine sampling": {"rigid_fine_sampling": "even"},
     "rigid fine 2000": {"rigid_fine_points": 2000},
     "rigid fine 3000": {"rigid_fine_points": 3000},
     "exact kernel": {"low_rank": None},

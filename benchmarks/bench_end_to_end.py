@@ -37,7 +37,8 @@ column is the mean over :data:`LSF_STARTS` initialisations (``random_state``) of
 one start moves the IoU by as much as the pipelines differ.
 
 Run: ``.venv/bin/python benchmarks/bench_end_to_end.py [--families F ...] [--shapes 16]
-[--held-out 3] [--seeds 1] [--jobs 1] [--json OUT] [--cache DIR] [--round1-timeout S]``; ``--cache``
+[--held-out 3] [--seeds 1 | --seed-list S ...] [--jobs 1] [--json OUT] [--cache DIR] [--round1-timeout S]
+[--no-mirror-check] [--option KEY=VALUE ...]``; ``--cache``
 keeps the built models (the slow part) and reuses them, so a change of the fit code reruns in
 seconds.
 """
@@ -427,7 +428,7 @@ def tables(summary: dict, header: str) -> str:
     return "\n".join(out) + "\n"
 
 
-def run(families: list[str], seeds: range, n_shapes: int, n_held_out: int, jobs: int, folder: str,
+def run(families: list[str], seeds, n_shapes: int, n_held_out: int, jobs: int, folder: str,
         on_result=None, cache: Path | None = None, timeout: float | None = None,
         options: dict | None = None) -> dict:
     """Every (family, seed) task, ``jobs`` at a time: {family: {seed: run_one(...)}}."""
@@ -452,6 +453,17 @@ def run(families: list[str], seeds: range, n_shapes: int, n_held_out: int, jobs:
     return results
 
 
+def _keyword(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of ``--option``: the value as a number or boolean where it reads as one."""
+    key, _, value = text.partition("=")
+    for convert in (int, float):
+        try:
+            return key, convert(value)
+        except ValueError:
+            pass
+    return key, {"true": True, "false": False}.get(value.lower(), value)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--families", nargs="+", default=list(REPORT), choices=FAMILIES)
@@ -466,6 +478,11 @@ def main(argv: list[str] | None = None) -> None:
                         help="stop round 1's build of a population after S seconds (reported, not cached)")
     parser.add_argument("--no-mirror-check", action="store_true",
                         help="today's build keeps the inputs the mirror check would leave out")
+    parser.add_argument("--seed-list", type=int, nargs="+", default=None, metavar="S",
+                        help="these populations instead of 0 .. --seeds - 1")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="a correspondence keyword for today's build (cached apart), e.g. "
+                             "rigid_fine_sampling=random")
     args = parser.parse_args(argv)
     if args.shapes < 4 or args.held_out < 1 or args.seeds < 1:
         raise SystemExit("need --shapes >= 4, --held-out >= 1 and --seeds >= 1")
@@ -480,11 +497,15 @@ def main(argv: list[str] | None = None) -> None:
 
     with tempfile.TemporaryDirectory(prefix="round1_") as folder:
         extract_round1(folder)
-        results = run(args.families, range(args.seeds), args.shapes, args.held_out, args.jobs,
+        options = dict(_keyword(text) for text in args.option)
+        if args.no_mirror_check:
+            options["mirror_check"] = False
+        seeds = args.seed_list if args.seed_list else range(args.seeds)
+        results = run(args.families, seeds, args.shapes, args.held_out, args.jobs,
                       folder, on_result=dump, cache=args.cache, timeout=args.round1_timeout,
-                      options={"mirror_check": False} if args.no_mirror_check else None)
+                      options=options or None)
     print(tables(summarise(results),
-                 f"\n{args.seeds} population(s) a family, {args.shapes} training shapes, "
+                 f"\n{len(seeds)} population(s) a family, {args.shapes} training shapes, "
                  f"{args.held_out} held-out shapes, PCA-{min(N_FACTORS, args.shapes - 1)}, "
                  f"{args.jobs} job(s), {time.perf_counter() - t0:.0f} s, load "
                  f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}"))

@@ -453,6 +453,27 @@ def test_rigid_fine_refinement_origin_is_checked():
         corr.rigid_pose(yn, yn, dict(corr.DEFAULT_CPD_PARAMS, rigid_fine_from="end"), True)
 
 
+def test_even_rigid_subsample_spreads_over_the_surface_whatever_the_vertex_density():
+    from core.correspondence import pair
+
+    # a sphere tessellated ten times more densely on one half (a staircase or a decimated mesh
+    # is uneven in the same way): a random draw follows the density, the even one the area
+    rng = np.random.default_rng(3)
+    dirs = rng.normal(size=(22000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dense = dirs[:, 2] > 0
+    points = np.concatenate([dirs[dense], dirs[~dense][:1000]])
+    share = {even: float(np.mean(pair._subsample(points, 500, 1, even)[:, 2] > 0))
+             for even in (False, True)}
+    assert share[False] > 0.85 and 0.4 < share[True] < 0.6, share
+    # a mesh larger than EVEN_POOL x n is first thinned at random: still even
+    many = np.concatenate([dirs[dense]] * 3 + [dirs[~dense][:3000]])
+    assert len(many) > pair.EVEN_POOL * 500
+    assert 0.4 < np.mean(pair._subsample(many, 500, 1, True)[:, 2] > 0) < 0.6
+    with pytest.raises(ValueError, match="rigid_sampling"):
+        corr.rigid_pose(points, points, dict(corr.DEFAULT_CPD_PARAMS, rigid_sampling="grid"), True)
+
+
 def _batch_errors(pop, result) -> list[float]:
     """Per shape, mean distance (mm, on the base surface) of its corresponded points'
     material points from the reference's."""
