@@ -40,7 +40,8 @@ Run: ``.venv/bin/python benchmarks/bench_end_to_end.py [--families F ...] [--sha
 [--held-out 3] [--seeds 1 | --seed-list S ...] [--jobs 1] [--json OUT] [--cache DIR] [--round1-timeout S]
 [--no-mirror-check] [--option KEY=VALUE ...]``; ``--cache``
 keeps the built models (the slow part) and reuses them, so a change of the fit code reruns in
-seconds.
+seconds; today's models are cached under a key of the correspondence and grooming defaults, so
+a changed default builds them again.
 """
 
 from __future__ import annotations
@@ -315,6 +316,17 @@ def _evaluate(data: dict, pop, cases: list[dict], with_lsf: bool, own: bool) -> 
     return out
 
 
+def _defaults_key() -> str:
+    """Eight hex digits naming today's correspondence and grooming defaults."""
+    import hashlib
+
+    from core.correspondence.grooming import DEFAULT_GROOMING
+    from core.correspondence.pair import DEFAULT_CPD_PARAMS
+
+    text = repr(sorted(DEFAULT_CPD_PARAMS.items())) + repr(sorted(DEFAULT_GROOMING.items()))
+    return hashlib.sha1(text.encode()).hexdigest()[:8]
+
+
 def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
             cache: Path | None = None, timeout: float | None = None,
             options: dict | None = None) -> dict:
@@ -326,7 +338,9 @@ def run_one(family: str, seed: int, n_shapes: int, n_held_out: int, folder: str,
     n_factors = min(N_FACTORS, n_shapes - 1)
     with_lsf = family == "ovoid"
     stem = None if cache is None else cache / f"{family}_seed{seed}_n{n_shapes}_h{n_held_out}"
-    suffix = "".join(f"_{k}-{v}" for k, v in sorted((options or {}).items()))
+    # the correspondence defaults are part of the key: a model cached before a default
+    # changed is not reused as today's
+    suffix = "".join(f"_{k}-{v}" for k, v in sorted((options or {}).items())) + f"_{_defaults_key()}"
     today = _cached(None if stem is None else stem.with_name(stem.name + f"_today{suffix}.npz"),
                     lambda: _today_build(pop, n_factors, options))
     round1 = _cached(None if stem is None else stem.with_name(stem.name + "_round1.npz"),
