@@ -139,6 +139,9 @@ def normalise(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return (points - centre) / scale, centre, scale
 
 
+EVEN_POOL = 20  # an even subsample of n is picked from at most this many x n random points
+
+
 def _subsample(points: np.ndarray, n: int, seed: int = 0, even: bool = False) -> np.ndarray:
     """``n`` of the points: a random draw, or (``even``) farthest-point picks from a random
     first one, spread evenly over the surface whatever its vertex density."""
@@ -154,9 +157,6 @@ def _subsample(points: np.ndarray, n: int, seed: int = 0, even: bool = False) ->
             points = points[rng.choice(len(points), EVEN_POOL * n, replace=False)]
         return points[farthest_point_indices(points, n, start=int(rng.integers(len(points))))]
     return points[rng.choice(len(points), n, replace=False)]
-
-
-EVEN_POOL = 20  # an even subsample of n is picked from at most this many x n random points
 
 
 def principal_axes(points: np.ndarray) -> np.ndarray:
@@ -204,9 +204,9 @@ def rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, paral
     for key in ("rigid_sampling", "rigid_fine_sampling"):
         if params[key] not in ("random", "even"):
             raise ValueError(f"{key} must be 'random' or 'even', got {params[key]!r}")
-    even = params["rigid_sampling"] == "even"
-    tgt = _subsample(target_n, params["rigid_points"], 1, even)
-    ref = _subsample(reference_n, params["rigid_points"], 2, even)
+    even_starts = params["rigid_sampling"] == "even"
+    tgt = _subsample(target_n, params["rigid_points"], 1, even_starts)
+    ref = _subsample(reference_n, params["rigid_points"], 2, even_starts)
     mode = params["pose_starts"]
     if mode not in ("auto", "identity", "pca"):
         raise ValueError(f"pose_starts must be 'auto', 'identity' or 'pca', got {mode!r}")
@@ -252,8 +252,9 @@ def rigid_fit(target_n: np.ndarray, reference_n: np.ndarray, params: dict, paral
     # subsamples left the nonrigid step a worse start (measured on beans: 1.01 vs 0.86 mm
     # mean error against the truth for one reference).
     n_fine = max(int(params["rigid_points"]), int(params["rigid_fine_points"]))
-    even = params["rigid_fine_sampling"] == "even"
-    tgt_f, ref_f = _subsample(target_n, n_fine, 3, even), _subsample(reference_n, n_fine, 4, even)
+    even_fine = params["rigid_fine_sampling"] == "even"
+    tgt_f = _subsample(target_n, n_fine, 3, even_fine)
+    ref_f = _subsample(reference_n, n_fine, 4, even_fine)
     if params["rigid_fine_from"] == "start":
         matrix = np.eye(4)
         matrix[:3, :3] = starts[best]
