@@ -22,8 +22,9 @@ shape and pose priors.
 Modules: ``em`` (:class:`GMMFitter`, the EM loop in scikit-learn's GaussianMixture style),
 ``covariance`` (the strategies), ``pose`` (similarity, Procrustes, Gauss-Newton pose step,
 pose prior), ``snapshot`` (the immutable, content-keyed model snapshot), ``result``
-(:class:`FitResult`), ``fit`` (:func:`fit_points`, the entry point). Normals, closest points,
-Umeyama and rotations come from ``core.geometry.toolkit``.
+(:class:`FitResult`), ``mirror`` (one contour's or parallel slices' mirror mode, which the fit
+restarts from and the posterior counts), ``fit`` (:func:`fit_points`, the entry point).
+Normals, closest points, Umeyama and rotations come from ``core.geometry.toolkit``.
 
 E-step (Eq. 2): p_ij = g_j(y_i) / (sum_k g_k(y_i) + c), c = (N w) / (P (1 - w)), over each
 point's K nearest vertices with K covering the vertices within 4.5 standard deviations (all

@@ -82,6 +82,8 @@ class FitResult:
     prior_inflation: float = 1.0       # (1 + rho) / (1 - rho), the shape prior's weight factor
     warnings: list[str] = field(default_factory=list)  # e.g. points far from the placement
     placement_source: str = "stored"   # "stored", "given" (a matrix) or "points" (Place here)
+    mirror_restart: str = ""          # "fit" / "mirror": which start won (fit_points); "": none
+    mirror_key: tuple | None = None   # the parallel slices the mirror was looked at for
 
     @property
     def coef_covariance(self) -> np.ndarray | None:
@@ -133,6 +135,7 @@ class FitResult:
             "residual_correlation": self.residual_correlation,
             "prior_inflation": self.prior_inflation,
             "warnings": list(self.warnings),
+            "mirror_restart": self.mirror_restart,
         }
         if self.placement is not None:
             out["placement"] = np.asarray(self.placement).tolist()

@@ -54,7 +54,8 @@ band is drawn about the fit, not about the mode).
 
 One contour (all points in one plane) cannot tell which side of it the shape's centre lies:
 a section at height h from the centre and one at -h look alike (a ring, an ellipsoid, a
-tube cut once); nor can parallel slices of one view (mirrored about their middle plane).
+tube cut once); nor can parallel slices of one view (mirrored about their middle plane;
+``core.reconstruction.mirror``, where the fit also restarts from that mode on parallel slices).
 The posterior is then a mixture of the fitted mode and its mirror, shifted by -2 h along
 the planes' normal (h: the centre's height above the middle plane), with weight
 ``MIRROR_WEIGHT``; its variance about the fit adds w (n_j . shift)^2 at each vertex, counted
@@ -83,6 +84,7 @@ from scipy.spatial import cKDTree
 from core.geometry.planes import PLANE_AXIS
 from core.geometry.toolkit import vertex_normals
 from core.models.shape_model import ShapeModel
+from core.reconstruction.mirror import mirror_shift, slice_stack
 
 #: World axes of the three view orientations (normal of each slice plane): RAS x, y, z.
 #: Pose parameters of the posterior: translation (3, mm), rotation (3, rad), log scale (1).
@@ -425,31 +427,15 @@ MIRROR_WEIGHT = 0.5
 
 
 def _mirror_shift(world: np.ndarray, points: np.ndarray) -> np.ndarray | None:
-    """(3,) the shift to the mirror mode when all points lie in one plane (one contour) or in
-    parallel slices of one view: sections at signed heights h_k from the shape's centre look
-    like those at -h_k, so the shape's centre may equally lie mirrored about the slices'
-    middle plane, moved by -2 h along their normal (h: the centre's height above the middle).
-    None when the points span three dimensions otherwise."""
-    if len(points) < 3:
-        return None
-    centred = points - points.mean(axis=0)
-    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
-    normal = vt[2] if sv[2] <= 1e-3 * sv[0] else None
-    if normal is None and MIRROR_PARALLEL:
-        for axis in range(3):  # parallel slices of one view: few distinct depths along its axis
-            depths = np.unique(np.round(points[:, axis], 3))
-            if len(depths) <= MAX_PARALLEL_SLICES and len(depths) * 4 < len(points):
-                normal = np.eye(3)[axis]
-    if normal is None:
-        return None
-    along = points @ normal
-    h = float(world.mean(axis=0) @ normal - 0.5 * (along.min() + along.max()))
-    return -2.0 * h * normal
+    """(3,) the shift to the mirror mode (``core.reconstruction.mirror``) when all points lie
+    in one plane (one contour) or, with :data:`MIRROR_PARALLEL`, in parallel slices of one
+    view; None otherwise."""
+    stack = slice_stack(points, parallel=MIRROR_PARALLEL)
+    return None if stack is None else mirror_shift(world, stack)
 
 
-#: Parallel slices of one view (at most this many distinct depths) get the mirror mode too.
+#: Parallel slices of one view get the mirror mode too (not only a single contour).
 MIRROR_PARALLEL = True
-MAX_PARALLEL_SLICES = 3
 
 
 def section_sd(vertices: np.ndarray, faces: np.ndarray, sd: np.ndarray, origin,
