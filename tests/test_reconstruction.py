@@ -705,6 +705,10 @@ def test_two_parallel_contours_restart_from_the_mirror_mode():
             icp = fit_points(model, user.points, user.normals, placement="points", method="icp")
             assert warm.mirror_restart == "" and icp.mirror_restart == ""
             assert fresh.mirror_restart in ("fit", "mirror")
+            # drawn on: from a fit of a third of the points, it looks again
+            third = fit_points(model, user.points[::3], user.normals[::3], placement="points")
+            more = fit_points(model, user.points, user.normals, init=third)
+            assert third.mirror_restart in ("fit", "mirror") and more.mirror_restart in ("fit", "mirror")
             for k, orientation in ((1, "axial"), (3, "mixed")):
                 other = simulate_user(truth, faces, k, orientations=orientation, spacing=2.0,
                                       noise=0.2, rng=np.random.default_rng(h))

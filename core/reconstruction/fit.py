@@ -270,9 +270,10 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         a second time from its mirror mode (the fitted pose moved across that plane, the
         mean shape) under the same priors, and the fit with the lower objective is kept
         (``FitResult.mirror_restart``: "fit" or "mirror"; "" when not tried). A warm start
-        from a fit of the same slices (``init.mirror_key``) is not restarted: the live refit
-        looks at the mirror once per new slice, not once per point. Not for one contour, nor
-        for ICP: on the tuning half those lost as often as they won (issue 27).
+        from a fit of the same slices (``init.mirror_key``, the ``SliceStack.key`` of
+        ``core.reconstruction.mirror``) is not restarted: the live refit looks at the mirror
+        once per new slice and each time the points double, not once per point. Not for one
+        contour, nor for ICP: on the tuning half those lost as often as they won (issue 27).
     max_distance_factor : float
         Points farther than this many model diagonals from the model's box are refused.
     callback : callable(iteration, objective), optional

@@ -34,6 +34,7 @@ class SliceStack:
     high: float
 
     depths: tuple[float, ...] = ()  # the slices' depths along the normal (parallel slices)
+    n_points: int = 0
 
     @property
     def middle(self) -> float:
@@ -41,9 +42,12 @@ class SliceStack:
 
     @property
     def key(self) -> tuple:
-        """What identifies the slices (axis and depths, to 0.01 mm): a warm-started fit of the
-        same slices need not look at the mirror mode again."""
-        return (tuple(np.round(self.normal, 3)), tuple(np.round(self.depths, 2)))
+        """The slices (axis and depths, to 0.01 mm) and the points' count to a power of 2: a
+        warm-started fit with the same key need not look at the mirror mode again, and one
+        drawn on looks again each time its points have doubled (the first points of a new
+        slice say little about which side is right)."""
+        return (tuple(np.round(self.normal, 3)), tuple(np.round(self.depths, 2)),
+                int(np.log2(max(self.n_points, 1))))
 
 
 def slice_stack(points: np.ndarray, parallel: bool = True) -> SliceStack | None:
@@ -66,7 +70,8 @@ def slice_stack(points: np.ndarray, parallel: bool = True) -> SliceStack | None:
     if normal is None:
         return None
     along = points @ normal
-    return SliceStack(normal, n_planes, float(along.min()), float(along.max()), depths)
+    return SliceStack(normal, n_planes, float(along.min()), float(along.max()), depths,
+                      len(points))
 
 
 def mirror_shift(vertices: np.ndarray, stack: SliceStack) -> np.ndarray:
