@@ -278,3 +278,19 @@ def test_second_image_state_swaps_the_window_with_the_base_and_keeps_its_setting
         second.set_opacity(1.5)
     state.set_image(Volume(data, np.eye(4)))           # a new first image drops the second
     assert not second.loaded and second.to_document() is None
+
+
+def test_fit_read_out_says_when_the_fit_moved_to_the_other_side_of_parallel_slices():
+    """Issue 27: with parallel contours only, the fit may keep its restart from the other side
+    of the slices; the surface then jumps, and the fit panel says why (an info, not an error)."""
+    from app.model.state import MIRROR_MESSAGE, FitInfo
+    from core.reconstruction import FitResult
+
+    def result(restart: str) -> FitResult:
+        return FitResult(coef=np.zeros(2), pose=np.eye(4), vertices=np.zeros((4, 3)),
+                         residual_mm=0.1, model_size_mm=10.0, mirror_restart=restart)
+
+    moved = FitInfo.from_result(result("mirror"), 0.05)
+    assert moved.level == "info" and moved.message == MIRROR_MESSAGE and not moved.warnings
+    for restart in ("fit", ""):
+        assert FitInfo.from_result(result(restart), 0.05).message == ""

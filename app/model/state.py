@@ -185,10 +185,18 @@ class FitInfo:
     @classmethod
     def from_result(cls, result, seconds: float) -> FitInfo:
         """The read-out of a ``core.reconstruction.FitResult`` applied ``seconds`` after the edit."""
-        return cls(residual_mm=float(result.residual_mm), n_iter=int(result.n_iter),
+        info = cls(residual_mm=float(result.residual_mm), n_iter=int(result.n_iter),
                    converged=bool(result.converged), stop_reason=result.stop_reason,
                    seconds=float(seconds), fit_seconds=float(result.elapsed_s),
                    warnings=plausibility_warnings(result.plausibility()))
+        if getattr(result, "mirror_restart", "") == "mirror":  # the surface may have jumped
+            info.level, info.message = "info", MIRROR_MESSAGE
+        return info
+
+
+#: Said when the fit of parallel contours kept its restart from the other side of the slices.
+MIRROR_MESSAGE = ("Parallel contours only: the structure fitted better on the other side of "
+                  "the slices and was moved there. A contour in another view settles the side.")
 
 
 _ids = itertools.count(1)
