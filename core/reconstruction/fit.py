@@ -16,7 +16,7 @@ from core.geometry.toolkit import surface_distance, vertex_normals
 from core.models.shape_model import ShapeModel
 from core.reconstruction.covariance import make_covariance
 from core.reconstruction.em import FitState, GMMFitter
-from core.reconstruction.mirror import mirror_shift, slice_stack
+from core.reconstruction.mirror import SliceStack, mirror_shift, slice_stack
 from core.reconstruction.pose import PosePrior, Similarity
 from core.reconstruction.result import FitResult
 from core.reconstruction.snapshot import ModelSnapshot, model_snapshot
@@ -316,6 +316,9 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
             n_neighbors=n_neighbors, max_neighbors=max_neighbors, pose_first=pose_first,
             overrelax=overrelax, callback=callback)
 
+    def run(f: GMMFitter, state: FitState | None) -> GMMFitter:
+        return f.fit(snap, pts, user_normals, init=state, placement=place)
+
     fitter = make_fitter()
     start = None
     if init is not None:
@@ -326,51 +329,75 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         snap.shape(start.coef if start else np.zeros(snap.n_factors))), max_distance_factor)
     warnings = [] if start is not None or pose == "none" else placement_warnings(
         snap, pts, place, POSE_SD[1] * snap.size * pose_spread)
-    fitter.fit(snap, pts, user_normals, init=start, placement=place)
-    restart = ""
+    run(fitter, start)
     # not ICP: its hard pairs' objectives picked the worse start as often as the better
     # (tuning families end to end, 2 parallel contours: concave 0.171 -> 0.174 mm)
     stack = slice_stack(pts) if mirror_restart and pose != "none" and method != "icp" else None
-    if stack is not None and stack.n_planes < 2:
-        stack = None
+    stack = stack if stack is not None and stack.n_planes >= 2 else None
+    restart = ""
     # a warm start from a fit that looked at these slices' mirror already stays on its side
     if stack is not None and (init is None or getattr(init, "mirror_key", None) != stack.key):
-        shift = mirror_shift(fitter.vertices_, stack)
-        if np.linalg.norm(shift) > xtol_mm:
-            # the same objective (same priors about the same placement) from the mirror mode
-            fitted = fitter.state_.pose
-            mirror_start = FitState(np.zeros(snap.n_factors),
-                                    Similarity(fitted.scale, fitted.rot, fitted.trans + shift),
-                                    float("nan"), float("nan"))
-            other = make_fitter()
-            other.fit(snap, pts, user_normals, init=mirror_start, placement=place)
-            other.n_iter_ += fitter.n_iter_
-            restart = "fit"
-            if other.objective_[-1] < fitter.objective_[-1]:
-                fitter, start, restart = other, mirror_start, "mirror"
+        fitter, start, restart = _restart_from_mirror(fitter, start, make_fitter, run, stack,
+                                                      xtol_mm)
     rho, inflation = 0.0, 1.0
     if correlated_residuals and snap.n_factors > 0:
-        rho, rms = residual_correlation(pts, fitter.vertices_, snap.faces)
-        shrunk, inflation = information_inflation(rho, len(pts))
-        if rms <= 2.0 * np.sqrt(fitter.sigma2_min):  # on the surface to the floor: no misfit
-            shrunk, inflation = 0.0, 1.0
-        if shrunk > 0.0:  # the tempered posterior, from the plain fit's state
-            # The shape prior only. A wrong pose leaves smoothly varying residuals too, so
-            # tightening the pose prior by the same factor locked in the very pose error the
-            # correlation came from (issue 27: a thin tube turned from the model's frame, 2
-            # parallel contours, 1.36 -> 0.87 mm without; from the stored placement, 10 mm
-            # off, the report kinds' mean error 4.7 against 9.5 mm with 2 parallel contours).
-            fitter.prior_weight = prior_weight * inflation
-            # the tempered objective from the same start: its record is non-increasing
-            n_iter = fitter.n_iter_
-            fitter.fit(snap, pts, user_normals, init=start, placement=place)
-            fitter.n_iter_ += n_iter
+        rho, inflation = _tempered_refit(fitter, start, run, prior_weight)
     result = _result(fitter, snap, model, method, pose, place, start_time)
     result.residual_correlation, result.prior_inflation = rho, inflation
     result.warnings, result.placement_source = warnings, source
     result.mirror_restart = restart
     result.mirror_key = None if stack is None else stack.key
     return result
+
+
+#: ``run(fitter, start)``: fits the call's points from ``start`` (``fit_points``' closure).
+_Run = Callable[[GMMFitter, "FitState | None"], GMMFitter]
+
+
+def _restart_from_mirror(fitter: GMMFitter, start: FitState | None,
+                         make_fitter: Callable[[], GMMFitter], run: _Run, stack: SliceStack,
+                         xtol_mm: float) -> tuple[GMMFitter, FitState | None, str]:
+    """The fit of parallel slices run again from its mirror mode (``mirror_restart`` of
+    :func:`fit_points`; ``run(fitter, start)`` fits the points): (the fitter with the lower
+    objective, its start, "fit" or "mirror"; "" when the mirror mode is within ``xtol_mm``
+    of the fit)."""
+    shift = mirror_shift(fitter.vertices_, stack)
+    if np.linalg.norm(shift) <= xtol_mm:
+        return fitter, start, ""
+    # the same objective (same priors about the same placement) from the mirror mode: the
+    # fitted pose moved across the slices' middle plane, the mean shape, the cold variance
+    snap, fitted = fitter.snap_, fitter.state_.pose
+    mirror_start = FitState(np.zeros(snap.n_factors),
+                            Similarity(fitted.scale, fitted.rot, fitted.trans + shift),
+                            float("nan"), float("nan"))
+    other = run(make_fitter(), mirror_start)
+    other.n_iter_ += fitter.n_iter_
+    if other.objective_[-1] < fitter.objective_[-1]:
+        return other, mirror_start, "mirror"
+    return fitter, start, "fit"
+
+
+def _tempered_refit(fitter: GMMFitter, start: FitState | None, run: _Run,
+                    prior_weight: float) -> tuple[float, float]:
+    """The refit with the shape prior tempered by the residuals' correlation
+    (``correlated_residuals`` of :func:`fit_points`), in place: (rho, the inflation)."""
+    snap, pts = fitter.snap_, fitter.points_
+    rho, rms = residual_correlation(pts, fitter.vertices_, snap.faces)
+    shrunk, inflation = information_inflation(rho, len(pts))
+    if rms <= 2.0 * np.sqrt(fitter.sigma2_min):  # on the surface to the floor: no misfit
+        shrunk, inflation = 0.0, 1.0
+    if shrunk > 0.0:  # the tempered posterior, from the plain fit's state
+        # The shape prior only. A wrong pose leaves smoothly varying residuals too, so
+        # tightening the pose prior by the same factor locked in the very pose error the
+        # correlation came from (issue 27: a thin tube turned from the model's frame, 2
+        # parallel contours, 1.36 -> 0.87 mm without; from the stored placement, 10 mm
+        # off, the report kinds' mean error 4.7 against 9.5 mm with 2 parallel contours).
+        fitter.prior_weight = prior_weight * inflation
+        # the tempered objective from the same start: its record is non-increasing
+        n_iter = fitter.n_iter_
+        run(fitter, start)
+        fitter.n_iter_ += n_iter
+    return rho, inflation
 
 
 def _result(fitter: GMMFitter, snap: ModelSnapshot, model: ShapeModel, method: str, pose: str,
