@@ -266,8 +266,8 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
         contours hardly determine and stopped short of its optimum. False: plain EM.
     mirror_restart : bool
         Points in 2-3 parallel slices of one view (``core.reconstruction.mirror``) cannot
-        tell which side of their middle plane the shape's centre lies on: a cold fit is run
-        a second time from its mirror mode (the fitted pose moved across that plane, the
+        tell which side of their middle plane the shape's centre lies on: the fit is run a
+        second time from its mirror mode (the fitted pose moved across that plane, the
         mean shape) under the same priors, and the fit with the lower objective is kept
         (``FitResult.mirror_restart``: "fit" or "mirror"; "" when not tried). A warm start
         from a fit of the same slices (``init.mirror_key``, the ``SliceStack.key`` of

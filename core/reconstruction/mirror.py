@@ -32,7 +32,6 @@ class SliceStack:
     n_planes: int
     low: float
     high: float
-
     depths: tuple[float, ...] = ()  # the slices' depths along the normal (parallel slices)
     n_points: int = 0
 
