@@ -76,9 +76,12 @@ def _spread(pop, result) -> tuple[float, float]:
     return float(s.mean()), float(np.percentile(s, 95))
 
 
-def evaluate(pop, n_jobs: int) -> dict:
-    """Every run of the module docstring on one population: spreads, the record, the checks."""
+def evaluate(pop, n_jobs: int, save: Path | None = None) -> dict:
+    """Every run of the module docstring on one population: spreads, the record, the checks;
+    with ``save`` (an .npz path), the judged runs' correspondences and the raw inputs, for
+    trying other criteria offline."""
     runs: dict = {}
+    arrays: dict = {}
 
     def run(label: str, judge: bool = False, **kw):
         t = time.perf_counter()
@@ -86,6 +89,14 @@ def evaluate(pop, n_jobs: int) -> dict:
         runs[label] = dict(zip(("mean", "p95"), _spread(pop, res)), seconds=time.perf_counter() - t)
         if judge:
             runs[label]["criteria"] = _criteria(pop, res)
+            if save is not None:
+                key = label.replace(" ", "_")
+                arrays[f"{key}_faces"] = res.faces
+                for k, m in enumerate(res.meshes):
+                    if m is not None:
+                        arrays[f"{key}_{k}"] = m.vertices
+                arrays[f"{key}_spread"] = pop.spread([m.vertices if m is not None else None
+                                                      for m in res.meshes])
         return res
 
     run("before", groom={"keep_tessellation_above": None}, safeguard=False)  # round 2's defaults
@@ -112,6 +123,10 @@ def evaluate(pop, n_jobs: int) -> dict:
         kept = "none" if p["kept"].startswith("none") else p["kept"]
         checks.append(_check("refinement", crit, {k: truth[k] for k in crit}, kept))
     base = "r0 remesh" if kept_remesh else "r0 plain"
+    if save is not None:
+        for k, m in enumerate(pop.meshes):
+            arrays[f"raw_{k}_v"], arrays[f"raw_{k}_f"] = m.vertices, m.faces
+        np.savez_compressed(save, **arrays)
     return {"runs": runs, "checks": checks, "safeguard": guarded.safeguard,
             "offline": _offline(runs, base)}
 
@@ -193,10 +208,15 @@ def main() -> None:
     ap.add_argument("--report", action="store_true", help="the REPORT families (else TUNING)")
     ap.add_argument("--only", nargs="*", help="family labels to run")
     ap.add_argument("--json", type=Path, help="write every result here")
+    ap.add_argument("--save", type=Path, help="a folder: each population's judged runs (.npz)")
     args = ap.parse_args()
     results = []
     for fam, seed, pop in populations(args.report, args.seeds, args.shapes, args.only):
-        out = evaluate(pop, args.jobs)
+        save = None
+        if args.save:
+            args.save.mkdir(parents=True, exist_ok=True)
+            save = args.save / f"{fam}_{seed}.npz"
+        out = evaluate(pop, args.jobs, save)
         out.update(family=fam, seed=seed)
         results.append(out)
         runs = out["runs"]
