@@ -197,3 +197,20 @@ def test_correspondence_json_records_the_safeguard(tmp_path):
                  "--refine", "0"]) == 0
     record = json.loads((out2 / "correspondence.json").read_text())["safeguard"]
     assert record == {"enabled": False, "stages": []}
+
+
+def test_the_remesh_trial_judges_the_reference_the_batch_takes():
+    """The remesh is of the reference alone, so the trial's subset of a larger set must hold
+    the reference the whole batch takes, not take the subset's own most typical shape."""
+    from core.correspondence import establish_correspondence
+    from core.correspondence.safeguard import REMESH_SHAPES
+    from core.correspondence.tasks import spread_pick
+    from core.datasets.families import population
+
+    pop = population("coarse", 12, 100)
+    result = establish_correspondence(pop.meshes, n_jobs=2, refine=0)
+    trial = _stages(result)["remesh"]
+    subset = [pop.meshes[i].name for i in spread_pick(range(len(pop.meshes)), REMESH_SHAPES)]
+    assert result.reference_name not in subset  # else this population tests nothing
+    assert result.reference_name in trial["shapes"] and len(trial["shapes"]) == REMESH_SHAPES
+    assert trial["reference"] == result.reference_name

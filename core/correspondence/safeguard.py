@@ -28,7 +28,10 @@ recorded in ``CorrespondenceResult.safeguard`` and so in ``correspondence.json``
 
 - the remesh: the batch is run on a subset of at most :data:`REMESH_SHAPES` shapes with and
   without it (reference-based, no refinement), and the remesh is kept only when the
-  criterion is lower with it by more than :data:`KEEP_MARGIN`;
+  criterion is lower with it by more than :data:`KEEP_MARGIN`. The subset includes the
+  reference the whole batch takes (:func:`batch_reference`), which the remesh is of (until
+  2026-12-07 a subset of a larger set took its own most typical shape, and so judged another
+  shape's remesh);
 - a refinement pass: both deformations (``refine_deformation``, by default
   ``"normal_offsets"``, and the other one, ``"cpd"``) are run from the same start and judged
   by the criterion on at most :data:`MODEL_SHAPES` shapes. The configured one is kept if it
@@ -119,13 +122,20 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
     if not _remesh_on(groom) or len(meshes) < MIN_SHAPES:
         return groom, None
     pick = spread_pick(range(len(meshes)), REMESH_SHAPES)
+    options = dict(groom) if isinstance(groom, dict) else {}
     ref = reference
-    if isinstance(reference, (int, np.integer)) and not isinstance(reference, bool):
+    if not isinstance(reference, (int, np.integer, TriMesh)) and not (
+            isinstance(reference, (str, os.PathLike)) and os.path.isfile(str(reference))):
+        try:  # "auto" or an input's name: the input the whole batch will take
+            ref = batch_reference(meshes, reference, options, vertices, n_jobs, cpd_params)
+        except ValueError:  # no input can serve: the batch says so itself
+            return groom, None
+    if isinstance(ref, (int, np.integer)) and not isinstance(ref, bool):
+        reference = ref
         pick = sorted(set(pick[:-1]) | {int(reference)}) if int(reference) not in pick else pick
         ref = pick.index(int(reference))
-    elif not isinstance(reference, TriMesh) and not (isinstance(reference, (str, os.PathLike))
-                                                     and os.path.isfile(str(reference))):
-        ref = "auto"  # a name of an input, or "auto": the subset's own choice
+    elif ref is None:
+        ref = "auto"  # a repaired copy of an input: the subset's own choice
     raw = []
     for i in list(pick):
         try:
@@ -140,7 +150,6 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
         return groom, None
     if vertices is None and all(isinstance(m, TriMesh) for m in meshes):
         vertices = default_vertex_count(list(meshes))
-    options = dict(groom) if isinstance(groom, dict) else {}
     values = {}
     for label, remesh in (("remesh", True), ("no remesh", False)):
         try:
@@ -157,7 +166,33 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
               "criterion_mm": {k: v.get("value") for k, v in values.items()},
               "failed": {k: v.get("failed") for k, v in values.items()},
               "kept": "remesh" if keep else "no remesh"}
+    if isinstance(ref, int) and not isinstance(ref, bool):
+        record["reference"] = raw[ref].name
     return (groom if keep else dict(options, remesh=False)), record
+
+
+def batch_reference(meshes: Sequence, reference, options: dict, vertices: int | None,
+                    n_jobs: int | None, cpd_params: dict) -> int | None:
+    """The index of the input that the batch of all ``meshes`` takes as its reference
+    (``"auto"``: the most typical one; or an input's name), from the inputs groomed as the
+    batch grooms them but without the remesh (a remesh hardly moves the pose- and
+    scale-invariant descriptor the choice is made by); with several candidates
+    (``n_references``), the most typical. None when the batch would use a repaired copy.
+
+    The remesh trial must judge this reference's remesh: the remesh is of the reference
+    alone (``core.correspondence.inputs.remesh_reference``), and the most typical shape of
+    a subset is often another one (issue 27: in a population of 12 thin tubes the trial's
+    own reference lowered the criterion by 35 % with the remesh, where the batch's reference
+    gave the same true spread with or without it)."""
+    from core.correspondence.batch import CorrespondenceRun, _check_params
+    from core.correspondence.reference import resolve_reference
+
+    run = CorrespondenceRun(list(meshes), _check_params(dict(cpd_params), "compactness"), None,
+                            {"enabled": False, "stages": []},
+                            (os.cpu_count() or 1) if n_jobs is None else int(n_jobs))
+    run.prepare(dict(options, remesh=False), vertices, None)
+    candidates, external, _ = resolve_reference(run, reference, 1)
+    return None if external is not None or candidates[0] is None else int(candidates[0])
 
 
 def _criterion_of(result, raw: Sequence[TriMesh]) -> dict:
