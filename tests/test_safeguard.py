@@ -5,6 +5,7 @@ that helps is kept, and ``correspondence.json`` records what was tried and kept.
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -214,3 +215,29 @@ def test_the_remesh_trial_judges_the_reference_the_batch_takes():
     assert result.reference_name not in subset  # else this population tests nothing
     assert result.reference_name in trial["shapes"] and len(trial["shapes"]) == REMESH_SHAPES
     assert trial["reference"] == result.reference_name
+
+
+def test_the_remesh_trial_judges_both_runs_on_the_shapes_both_kept(truth, monkeypatch):
+    """The mirror check may leave out different members in the two trial runs (a two-handed
+    population): both runs are then judged on the shapes both kept, never on means over
+    different shapes."""
+    import core.correspondence.batch as batch
+    from core.correspondence.safeguard import choose_remesh
+
+    shapes, slid, faces, raw = truth
+    dropped = {True: 4, False: 6}  # the remesh run leaves out input 4, the other input 6
+
+    def trial_run(meshes, reference, *, groom, **_):
+        outputs = shapes if groom["remesh"] else slid
+        return SimpleNamespace(faces=faces, meshes=[
+            None if k == dropped[groom["remesh"]] else TriMesh(v, faces, f"s{k}")
+            for k, v in enumerate(outputs)])
+
+    monkeypatch.setattr(batch, "establish_correspondence", trial_run)
+    _, record = choose_remesh(raw, 0, {}, None, 1, {})
+    common = [k for k in range(len(raw)) if k not in dropped.values()]
+    for label, outputs in (("remesh", shapes), ("no remesh", slid)):
+        expected = loo_generalisation([outputs[k] for k in common], faces, [raw[k] for k in common])
+        assert record["criterion_mm"][label] == pytest.approx(expected["value"], rel=1e-9)
+    assert record["failed"] == {"remesh": 1, "no remesh": 1}
+    assert record["kept"] == "remesh"  # the true correspondences beat the slid ones

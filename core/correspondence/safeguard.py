@@ -28,7 +28,8 @@ recorded in ``CorrespondenceResult.safeguard`` and so in ``correspondence.json``
 
 - the remesh: the batch is run on a subset of at most :data:`REMESH_SHAPES` shapes with and
   without it (reference-based, no refinement), and the remesh is kept only when the
-  criterion is lower with it by more than :data:`KEEP_MARGIN`. The subset includes the
+  criterion is lower with it by more than :data:`KEEP_MARGIN` (the run that fails fewer
+  inputs wins first; both are judged on the shapes both kept). The subset includes the
   reference the whole batch takes (:func:`batch_reference`), which the remesh is of (until
   2026-12-07 a subset of a larger set took its own most typical shape, and so judged another
   shape's remesh);
@@ -150,16 +151,21 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
         return groom, None
     if vertices is None and all(isinstance(m, TriMesh) for m in meshes):
         vertices = default_vertex_count(list(meshes))
-    values = {}
+    values, results = {}, {}
     for label, remesh in (("remesh", True), ("no remesh", False)):
         try:
-            res = establish_correspondence(raw, ref, groom=dict(options, remesh=remesh),
-                                           vertices=vertices, refine=0, n_jobs=n_jobs,
-                                           safeguard=False, **cpd_params)
+            results[label] = establish_correspondence(raw, ref, groom=dict(options, remesh=remesh),
+                                                      vertices=vertices, refine=0, n_jobs=n_jobs,
+                                                      safeguard=False, **cpd_params)
         except ValueError as exc:
             values[label] = {"value": None, "error": str(exc)}
-            continue
-        values[label] = _criterion_of(res, raw)
+    # both judged on the shapes both kept (the mirror check may leave out different members
+    # of a two-handed population in each run): a mean over different shapes is no comparison
+    common = set(range(len(raw)))
+    for res in results.values():
+        common &= {j for j, m in enumerate(res.meshes) if m is not None}
+    for label, res in results.items():
+        values[label] = _criterion_of(res, raw, common if len(common) >= 3 else None)
     keep = _better(values["remesh"], values["no remesh"])
     record = {"stage": "remesh", "tried": ["remesh", "no remesh"], "shapes": [raw[j].name for j in
                                                                                range(len(pick))],
@@ -195,12 +201,16 @@ def batch_reference(meshes: Sequence, reference, options: dict, vertices: int | 
     return None if external is not None or candidates[0] is None else int(candidates[0])
 
 
-def _criterion_of(result, raw: Sequence[TriMesh]) -> dict:
+def _criterion_of(result, raw: Sequence[TriMesh], shapes: set[int] | None = None) -> dict:
+    """The criterion of a trial run over its corresponded shapes among ``shapes`` (all when
+    None), and how many of the inputs the run failed."""
     ok = [j for j, m in enumerate(result.meshes) if m is not None]
+    failed = len(raw) - len(ok)
+    ok = [j for j in ok if shapes is None or j in shapes]
     if len(ok) < 3:
-        return {"value": None, "error": "fewer than 3 shapes corresponded", "failed": len(raw) - len(ok)}
+        return {"value": None, "error": "fewer than 3 shapes corresponded", "failed": failed}
     return dict(loo_generalisation([result.meshes[j].vertices for j in ok], result.faces,
-                                   [raw[j] for j in ok]), failed=len(raw) - len(ok))
+                                   [raw[j] for j in ok]), failed=failed)
 
 
 def _better(with_stage: dict, without: dict) -> bool:
