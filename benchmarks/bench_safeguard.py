@@ -92,8 +92,8 @@ def evaluate(pop, n_jobs: int, save: Path | None = None) -> dict:
         t = time.perf_counter()
         res = establish_correspondence(pop.meshes, n_jobs=n_jobs, **kw)
         runs[label] = dict(zip(("mean", "p95"), _spread(pop, res)), seconds=time.perf_counter() - t)
-        runs[label]["dropped"] = [k for k, m in enumerate(res.meshes) if m is None]
         kept_shapes[label] = [None if m is None else m.vertices for m in res.meshes]
+        runs[label]["dropped"] = [k for k, v in enumerate(kept_shapes[label]) if v is None]
         if judge:
             runs[label]["criteria"] = _criteria(pop, res)
             if save is not None:
@@ -121,7 +121,7 @@ def evaluate(pop, n_jobs: int, save: Path | None = None) -> dict:
     if "remesh" in stages:
         st = stages["remesh"]
         options = {"remesh": "r0 remesh", "no remesh": "r0 plain"}
-        checks.append(_check("remesh", st["criterion_mm"], _truth(pop, runs, kept_shapes, options),
+        checks.append(_check("remesh", st["criterion_mm"], _truth(pop, kept_shapes, options),
                              st["kept"]))
     if "refinement" in stages and stages["refinement"]["passes"]:
         p = stages["refinement"]["passes"][0]
@@ -129,7 +129,7 @@ def evaluate(pop, n_jobs: int, save: Path | None = None) -> dict:
         options = {"none": base, "normal_offsets": "r1 offsets", "cpd": "r1 cpd"}
         kept = "none" if p["kept"].startswith("none") else p["kept"]
         checks.append(_check("refinement", crit,
-                             _truth(pop, runs, kept_shapes, {k: options[k] for k in crit}), kept))
+                             _truth(pop, kept_shapes, {k: options[k] for k in crit}), kept))
     if save is not None:
         for k, m in enumerate(pop.meshes):
             arrays[f"raw_{k}_v"], arrays[f"raw_{k}_f"] = m.vertices, m.faces
@@ -153,7 +153,8 @@ def _criteria(pop, result) -> dict:
 def _offline(runs: dict, base: str) -> dict:
     """Per candidate criterion: was its remesh pick, and its refinement pick (the
     safeguard's rule, :func:`core.correspondence.safeguard.refinement_choice`), the truth's
-    best? (The refinement from the remesh choice the run's safeguard kept.)"""
+    best? (The refinement from the remesh choice the run's safeguard kept; the truth here is
+    each run's mean over its own kept shapes, not :func:`_truth`'s common ones.)"""
     from core.correspondence.safeguard import KEEP_MARGIN, refinement_choice
 
     keep = 1.0 - KEEP_MARGIN
@@ -173,13 +174,15 @@ def _offline(runs: dict, base: str) -> dict:
 TIE = 0.03  # options whose true spreads differ by less than this share: a tie, either is right
 
 
-def _truth(pop, runs: dict, kept_shapes: dict, options: dict) -> dict:
+def _truth(pop, kept_shapes: dict, options: dict) -> dict:
     """Per option of one decision (option -> run label): the true spread over the shapes
     that every option compared kept (the mirror check may leave out different members of a
     two-handed population in different runs, and a mean over different shapes is no
     comparison), and how many genuine members the option's run left out (every input of
-    these populations is one)."""
-    dropped = {o: set(runs[label]["dropped"]) for o, label in options.items()}
+    these populations is one). ``kept_shapes``: run label -> per input, its corresponded
+    vertices or None where the run left it out."""
+    dropped = {o: {k for k, v in enumerate(kept_shapes[label]) if v is None}
+               for o, label in options.items()}
     common = set(range(len(pop.meshes))) - set().union(*dropped.values())
     out = {}
     for o, label in options.items():

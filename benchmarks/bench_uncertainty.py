@@ -28,8 +28,8 @@ at its stored placement instead (the fits' warnings are counted).
 on average. Per layout the table also gives the mean of the cells, the worst cell and the
 worst shape, and the posterior's time per fit. Variants side by side: ``--residual F`` (the GP
 out-of-span residual; calibrate it with ``--families tune --calibrate --residual F`` and pass
-the factor printed as ``--sd-factor``),
-``--mirror-weight W`` and ``--no-parallel-mirror`` (the mirror mode of one contour).
+the factor printed as ``--sd-factor``), ``--mirror-weight W`` and ``--no-parallel-mirror``
+(the mirror mode of one contour).
 
     python benchmarks/bench_uncertainty.py [--cases N] [--tune]
     python benchmarks/bench_uncertainty.py --families tune --calibrate
