@@ -8,6 +8,7 @@ import pytest
 from core.evaluation.simulated_user import pca_model, simulate_user, synthetic_shapes
 from core.geometry.toolkit import closest_points_on_triangles, rodrigues, surface_distance, vertex_normals
 from core.reconstruction import FitResult, fit_points
+from core.reconstruction.fit import PRIOR_WEIGHT
 from core.runtime.progress import Cancelled
 
 
@@ -507,7 +508,7 @@ def test_tempered_fit_is_the_fit_with_the_prior_weight_inflated(family):
     fit = fit_points(model, user.points, user.normals, pose="none")
     assert fit.prior_inflation > 1.2, (fit.residual_correlation, fit.prior_inflation)
     plain = fit_points(model, user.points, user.normals, pose="none", correlated_residuals=False,
-                       prior_weight=fit.prior_inflation)
+                       prior_weight=PRIOR_WEIGHT * fit.prior_inflation)
     assert np.abs(fit.vertices - plain.vertices).max() < 1e-6
     assert plain.prior_inflation == 1.0 and plain.residual_correlation == 0.0
 
@@ -583,11 +584,12 @@ def test_icp_keeps_its_pose_on_two_parallel_contours_of_a_thin_tube():
     degrees), two parallel axial contours, placed at the points (*Place here*). Without a
     pose prior point-to-plane ICP slid and scaled away (unrotated: mean surface distance 0.20
     mm, one case 0.81 mm at scale 1.22; rotated: scale up to 1.38); with gmm-aniso's pose
-    prior it stays within 0.05 / 0.10 of scale 1."""
+    prior it stays within 0.05 / 0.15 of scale 1 (rotated: at most 1.099 with the shape
+    prior's weight 1, 1.108 with today's 1.4; the errors are the same)."""
     from core.geometry.toolkit import symmetric_surface_distance
 
     shapes, faces, model = _thin_tubes()
-    for angle, bound in ((0.0, 0.05), (20.0, 0.1)):
+    for angle, bound in ((0.0, 0.05), (20.0, 0.15)):
         errors, scales = [], []
         for case in range(6):
             truth, user = _two_parallel_contours_of_a_turned_tube(shapes[case], faces, case, angle)
@@ -634,9 +636,12 @@ def test_overrelaxed_em_reaches_a_lower_objective_in_fewer_iterations():
     points hardly determine and stopped on its tolerance short of its optimum (tubes turned
     20 degrees, placed at the points: 237 iterations over 6 cases). The adaptive
     over-relaxation (Salakhutdinov & Roweis 2003) ends at an objective at least as low in
-    every case, in about half the iterations (131), and keeps the record non-increasing."""
+    every case with the shape prior's weight 1, in about half the iterations (131), and keeps
+    the record non-increasing. With today's weight 1.4 one case of the 6 ends in another
+    basin 0.1 % higher (391.74 against 391.34; 147 against 282 iterations in all)."""
     shapes, faces, model = _thin_tubes()
     iterations = {True: 0, False: 0}
+    lower = 0
     for case in range(6):
         _, user = _two_parallel_contours_of_a_turned_tube(shapes[case], faces, case, 20.0)
         fits = {relax: fit_points(model, user.points, user.normals, placement="points",
@@ -646,7 +651,9 @@ def test_overrelaxed_em_reaches_a_lower_objective_in_fewer_iterations():
             iterations[relax] += fit.n_iter
         record = np.asarray(fits[True].objective)
         assert np.all(np.diff(record) <= 1e-9 * abs(record[0])), case
-        assert record[-1] <= fits[False].objective[-1] + 1e-6 * abs(record[-1]), case
+        assert record[-1] <= fits[False].objective[-1] + 2e-3 * abs(record[-1]), case
+        lower += record[-1] <= fits[False].objective[-1] + 1e-6 * abs(record[-1])
+    assert lower >= 5, lower
     assert iterations[True] < 0.75 * iterations[False], iterations
 
 
@@ -675,8 +682,9 @@ def test_two_parallel_contours_restart_from_the_mirror_mode():
     """Issue 27: two parallel contours cannot tell on which side of their middle plane the
     shape's centre lies, and the fit from the points' centre sometimes settles on the wrong
     side. The restart from the mirror mode keeps the lower of the two objectives (never a
-    higher one than the plain fit); on these turned beans it recovers one case (0.64 -> 0.47
-    mm mean vertex error) and changes no other. It is not tried for one contour, three
+    higher one than the plain fit); on these turned beans it recovers one case (0.85 -> 0.74
+    mm mean vertex error; 0.64 -> 0.47 with the shape prior's weight 1) and moves no other by
+    more than 0.01 mm. It is not tried for one contour, three
     orthogonal ones, ICP, or a warm start from a fit that looked at the same slices."""
     shapes, faces = synthetic_shapes(26, subdivisions=3, seed=11, size=(3.0, 6.0, 14.0))
     model = pca_model(shapes[6:], faces, n_factors=10)
@@ -715,4 +723,5 @@ def test_two_parallel_contours_restart_from_the_mirror_mode():
                 fit = fit_points(model, other.points, other.normals, placement="points")
                 assert fit.mirror_restart == "", k
     assert "mirror" in kept, kept
-    assert np.mean(errors[True]) < np.mean(errors[False]) - 0.02, errors
+    gains = np.subtract(errors[False], errors[True])
+    assert gains.max() > 0.1 and gains.min() > -0.01, errors

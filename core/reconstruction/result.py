@@ -80,6 +80,7 @@ class FitResult:
     centre_offset_mm: np.ndarray | None = None  # fitted centre minus placed centre (world)
     residual_correlation: float = 0.0  # neighbouring points' normal residuals (fit_points)
     prior_inflation: float = 1.0       # (1 + rho) / (1 - rho), the shape prior's weight factor
+    prior_weight: float = 1.0          # lambda the fit was run with (before the inflation)
     warnings: list[str] = field(default_factory=list)  # e.g. points far from the placement
     placement_source: str = "stored"   # "stored", "given" (a matrix) or "points" (Place here)
     mirror_restart: str = ""          # "fit" / "mirror": which start won (fit_points); "": none
@@ -134,6 +135,7 @@ class FitResult:
             "elapsed_s": self.elapsed_s,
             "residual_correlation": self.residual_correlation,
             "prior_inflation": self.prior_inflation,
+            "prior_weight": self.prior_weight,
             "warnings": list(self.warnings),
             "mirror_restart": self.mirror_restart,
         }

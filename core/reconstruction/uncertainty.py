@@ -96,10 +96,11 @@ DEFAULT_POSE_SD = (3.0, 1.0, 0.03)  # as core.reconstruction: deg, mm, log scale
 #: tune --calibrate`` on the tuning kinds only (bean and planted, 6 unseen shapes each, 4
 #: contour layouts): the smallest factor at which every (kind, layout) cell covers >= 93 %
 #: on average (the target's per-cell rule, 90-97 %), with ``fit=`` given and the mode offset
-#: (1.346 before the fit's EM was over-relaxed: the fit now ends nearer its optimum, so the
-#: mode offset is smaller; 1.351 while the fit tempered the pose prior too; 1.37 before, the
-#: pooled 95th percentile without the offset; 1.42 from 4 demo cases).
-SD_CALIBRATION = 1.401
+#: (1.401 before the fit's shape prior weight became 1.4; 1.346 before the fit's EM was
+#: over-relaxed: the fit now ends nearer its optimum, so the mode offset is smaller; 1.351
+#: while the fit tempered the pose prior too; 1.37 before, the pooled 95th percentile
+#: without the offset; 1.42 from 4 demo cases).
+SD_CALIBRATION = 1.334
 
 
 def _cross_matrices(v: np.ndarray) -> np.ndarray:
@@ -359,7 +360,9 @@ def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose:
     information of P (1 - rho) / (1 + rho) points) and the pose prior's precision divided by
     it (the fit tempers only the shape prior), and its warnings are kept.
     ``residual_var_factor`` (default ``RESIDUAL_VAR_FACTOR``; 0 leaves it out) scales the
-    out-of-span residual's variance.
+    out-of-span residual's variance. ``prior_weight`` is 1, the model's own prior, also when
+    the fit ran with a firmer one (``fit_points``'s default 1.4): that is the estimator's
+    shrinkage, not a belief about the shape; the mode offset carries the difference.
     """
     if pose_mode not in POSE_PARAMETERS:
         raise ValueError(f"unknown pose mode {pose_mode!r}")
