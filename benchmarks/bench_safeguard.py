@@ -216,11 +216,23 @@ def _check(stage: str, criterion: dict, truth: dict, kept: str) -> dict:
 RUNS = ("before", "after", "r0 plain", "r0 remesh", "r1 offsets", "r1 cpd", "nogroom cpd")
 
 
+def wilson_interval(hits: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a hit rate (95 % for z = 1.96)."""
+    if n == 0:
+        return 0.0, 1.0
+    p, z2 = hits / n, z * z
+    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = z * np.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return float(centre - half), float(centre + half)
+
+
 def summary(results: list[dict]) -> None:
     checks = [c for r in results for c in r["checks"]]
     hits = sum(c["right"] for c in checks)
+    lo, hi = wilson_interval(hits, len(checks))
     print(f"\nsafeguard hit rate: {hits}/{len(checks)} decisions "
-          f"({100 * hits / max(len(checks), 1):.0f} %)")
+          f"({100 * hits / max(len(checks), 1):.0f} %; Wilson 95 % interval {100 * lo:.0f}-"
+          f"{100 * hi:.0f} %, the true rates these decisions cannot rule out)")
     spread_only = sum(c["right_spread_only"] for c in checks)
     print(f"by the common shapes' spread alone (dropped members not counted): {spread_only}/"
           f"{len(checks)}")
