@@ -22,7 +22,8 @@ two-handed population, and every input here is a genuine member), then the lowes
 over the shapes that every option compared kept (a mean over different shapes is no
 comparison). The hit rate by the spread alone is printed beside it.
 
-    PYTHONPATH=. python benchmarks/bench_safeguard.py --jobs 2 [--report] [--seeds 2] [--json out.json]
+    PYTHONPATH=. python benchmarks/bench_safeguard.py --jobs 2 [--report] [--seeds 2 | --seed-list 4 5]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -46,14 +47,14 @@ STYLES = ("uneven", "even")
 QUICK = ("bean-uneven", "tube-uneven", "global", "concave", "coarse", "labels_1mm")
 
 
-def populations(report: bool, seeds: int, n_shapes: int, only: list[str] | None):
-    """(family label, seed, population) of the chosen half."""
+def populations(report: bool, seeds, n_shapes: int, only: list[str] | None):
+    """(family label, seed, population) of the chosen half, for each seed in ``seeds``."""
     out = []
     if not report:
         for kind in KINDS:
             for style in STYLES:
                 label = f"{kind}-{style}"
-                for seed in range(seeds):
+                for seed in seeds:
                     if only and label not in only:
                         continue
                     if style == "even":
@@ -68,7 +69,7 @@ def populations(report: bool, seeds: int, n_shapes: int, only: list[str] | None)
     except ImportError:
         return out
     for fam in (families.REPORT if report else families.TUNING):
-        for seed in range(seeds):
+        for seed in seeds:
             if only and fam not in only:
                 continue
             out.append((fam, seed, families.population(fam, n_shapes, 100 + seed)))
@@ -257,7 +258,9 @@ def summary(results: list[dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--seeds", type=int, default=1, help="populations a family: seeds 0, 1, ...")
+    ap.add_argument("--seed-list", type=int, nargs="+", default=None, metavar="S",
+                    help="these seeds instead of --seeds")
     ap.add_argument("--shapes", type=int, default=8)
     ap.add_argument("--report", action="store_true", help="the REPORT families (else TUNING)")
     ap.add_argument("--only", nargs="*", help="family labels to run")
@@ -265,7 +268,8 @@ def main() -> None:
     ap.add_argument("--save", type=Path, help="a folder: each population's judged runs (.npz)")
     args = ap.parse_args()
     results = []
-    for fam, seed, pop in populations(args.report, args.seeds, args.shapes, args.only):
+    seeds = args.seed_list if args.seed_list else range(args.seeds)
+    for fam, seed, pop in populations(args.report, seeds, args.shapes, args.only):
         save = None
         if args.save:
             args.save.mkdir(parents=True, exist_ok=True)
