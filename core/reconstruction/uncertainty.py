@@ -142,11 +142,16 @@ class FitPosterior:
         pose = np.arange(m, total - self.n_residual)
         return np.setdiff1d(np.arange(total), pose), pose
 
+    @property
+    def normal_jacobians(self) -> np.ndarray:
+        """(N, M + K + R) u_j = J_j^T n_j: how each parameter moves vertex j along its normal."""
+        return np.einsum("na,nap->np", self.normals, self.jacobians)
+
     def variance_shares(self) -> tuple[float, float]:
         """(shape, pose): mean over the vertices of the normal variance from the shape's
         block of the covariance alone (coefficients and out-of-span residual) and from the
         pose's block alone (mm^2); the mirror mode of a single contour counts as pose."""
-        u = np.einsum("na,nap->np", self.normals, self.jacobians)
+        u = self.normal_jacobians
         out = []
         for idx in self._blocks():
             ub = u[:, idx]
@@ -176,7 +181,7 @@ class FitPosterior:
 
     def vertex_sd(self) -> np.ndarray:
         """(N,) posterior SD (mm) of the fitted surface along its normal at each vertex."""
-        u = np.einsum("na,nap->np", self.normals, self.jacobians)
+        u = self.normal_jacobians
         var = ((u @ self.cov) * u).sum(axis=1) + self.model_noise_var
         if self.offset is not None:  # mean squared error about the fit, not about the mode
             var = var + (u @ self.offset) ** 2
