@@ -36,12 +36,13 @@ held-out shapes from the model span.
 
 Section "families" (issue 27, item 6): the known-correspondence problem without pose on the
 independent families of ``benchmarks/recon_families.py`` (PCA-10 of 40 training shapes per
-kind, 6 held-out shapes, 3 orthogonal / 2 parallel axial contours, 2 mm spacing, 0.2 mm
-noise); the tuning kinds (``--set tune``: bean, planted) are the only ones any default was
-chosen on, the report kinds (ovoid, tube, twist, ring, mixed, caudate) are reported. Peers
-side by side: ours (``fit_points(pose="none")``, defaults) and rustcpd ``register_atlas``
-with ``optimize_similarity=False`` and its documented defaults otherwise (lambda 0.1,
-tolerance 1e-3, 100 iterations), and with lambda 1 (our prior weight) and tolerance 1e-6.
+kind, 6 held-out shapes, 3 orthogonal / 2 parallel axial contours, 2 mm spacing, 0.2 mm noise);
+the tuning kinds (``--set tune``: bean, planted; global, concave, coarse since 2026-12-07) are
+the only ones any default was chosen on, the report kinds (ovoid, tube, twist, ring, mixed,
+caudate) are reported. Peers side by side: ours (``fit_points(pose="none")``, defaults) and
+rustcpd ``register_atlas`` with ``optimize_similarity=False`` and its documented defaults
+otherwise (lambda 0.1, tolerance 1e-3, 100 iterations), and with lambda 1 (our prior weight)
+and tolerance 1e-6.
 Cells: mean vertex error (mm); the last row the median time per fit.
 
 Latency: a ~2,000-vertex, 50-factor model (the demo topology with extra random smooth bumps
