@@ -173,8 +173,12 @@ def run_pool(fn: Callable[[Any, Any], Any], iterator: Iterator[tuple[Any, Any]],
 
     # The workers, and a fork server started now, inherit one BLAS thread each.
     with single_threaded_children():
-        executor = ProcessPoolExecutor(max_workers=n, context=_pool_context(fn),
-                                       initializer=_pool_init, initargs=(common, os.getpid()))
+        # The executor's queues create named semaphores and register them with the resource
+        # tracker, and its shutdown unlinks them: a signal raised halfway through either can
+        # leave one that the tracker reports as leaked at exit. Both run with signals held back.
+        with signals_deferred():
+            executor = ProcessPoolExecutor(max_workers=n, context=_pool_context(fn),
+                                           initializer=_pool_init, initargs=(common, os.getpid()))
         results: dict = {}
         limit = max(1, int(window) if window else 4 * n)
         in_flight: dict = {}
@@ -219,7 +223,8 @@ def run_pool(fn: Callable[[Any, Any], Any], iterator: Iterator[tuple[Any, Any]],
             with signals_deferred():  # a second Ctrl-C must not cut the shutdown short
                 executor.shutdown(wait=True, kill_workers=True)
             raise
-        executor.shutdown(wait=True)
+        with signals_deferred():
+            executor.shutdown(wait=True)
     return results
 
 
