@@ -33,9 +33,12 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_safeguard import TIE, _check  # noqa: E402
 
 from core.alignment.transforms import apply_transform, fit_transform, generalized_procrustes  # noqa: E402
-from core.correspondence.safeguard import loo_generalisation  # noqa: E402
+from core.correspondence.safeguard import loo_generalisation, refinement_choice  # noqa: E402
 from core.geometry.toolkit import closest_points_on_surface, vertex_normals  # noqa: E402
 from core.types import TriMesh  # noqa: E402
 
@@ -111,25 +114,15 @@ def population_criteria(npz: Path) -> dict:
     return out
 
 
-def _refinement_pick(before: float, options: dict, first: str, margin: float) -> str:
-    """The product's rule (core.correspondence.safeguard.refinement_choice) at ``margin``."""
-    keep = 1.0 - margin
-    kept = first if options[first] < keep * before else None
-    for name, value in options.items():
-        if name != first and value < keep * (before if kept is None else options[kept]):
-            kept = name
-    return "none" if kept is None else kept
-
-
 def _right(check: dict, pick: str) -> bool:
-    truth, dropped = check["truth_mm"], check["dropped"]
-    fewest = min(dropped.values())
-    return dropped[pick] == fewest and truth[pick] <= min(
-        t for o, t in truth.items() if dropped[o] == fewest)
+    """Is ``pick`` right by the truth ``bench_safeguard.py`` stored for this decision?"""
+    truth = {o: {"mean": t, "dropped": check["dropped"][o], "common": check["common_shapes"]}
+             for o, t in check["truth_mm"].items()}
+    return _check(check["stage"], check["criterion_mm"], truth, pick)["right"]
 
 
 def score(results: list[dict], criteria: dict, name: str, margin: float) -> tuple[int, int, int]:
-    """(right, decisions, misses costing more than 3 % of the best option's true spread)."""
+    """(right, decisions, misses costing more than ``TIE`` of the best option's true spread)."""
     right = total = costly = 0
     for res in results:
         values = {run: c[name] for run, c in criteria[(res["family"], res["seed"])].items()}
@@ -142,10 +135,10 @@ def score(results: list[dict], criteria: dict, name: str, margin: float) -> tupl
                 options = {"normal_offsets": values["r1_offsets"], "cpd": values["r1_cpd"]}
                 options = {o: v for o, v in options.items() if o in check["truth_mm"]}
                 base = values["r0_remesh" if remesh_kept else "r0_plain"]
-                pick = _refinement_pick(base, options, "normal_offsets", margin)
+                pick = refinement_choice(base, options, "normal_offsets", margin) or "none"
             ok = _right(check, pick)
             right, total = right + ok, total + 1
-            costly += (not ok) and check["truth_mm"][pick] > 1.03 * min(check["truth_mm"].values())
+            costly += (not ok) and check["truth_mm"][pick] > (1 + TIE) * min(check["truth_mm"].values())
     return right, total, costly
 
 
@@ -158,7 +151,7 @@ def main() -> None:
     criteria = {(r["family"], r["seed"]): population_criteria(args.folder / f"{r['family']}_{r['seed']}.npz")
                 for r in results}
     names = next(iter(next(iter(criteria.values())).values()))
-    print(f"decisions right (misses costing > 3 %) at margins {', '.join(f'{m:.0%}' for m in MARGINS)}")
+    print(f"decisions right (misses costing > {TIE:.0%}) at margins {', '.join(f'{m:.0%}' for m in MARGINS)}")
     for name in names:
         cells = [score(results, criteria, name, m) for m in MARGINS]
         print(f"{name:24s}" + "".join(f"  {r}/{n} ({c})" for r, n, c in cells))

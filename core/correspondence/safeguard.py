@@ -223,15 +223,17 @@ def _better(with_stage: dict, without: dict) -> bool:
     return with_stage["value"] < (1.0 - KEEP_MARGIN) * without["value"]
 
 
-def refinement_choice(before: float, criterion: Mapping[str, float], first: str) -> str | None:
+def refinement_choice(before: float, criterion: Mapping[str, float], first: str,
+                      margin: float = KEEP_MARGIN) -> str | None:
     """The deformation a refinement pass keeps (module docstring), or None to roll it back.
 
     ``before``: the criterion before the pass; ``criterion``: after each deformation tried,
     from the same start; ``first``: the configured one. It is kept if it lowers the criterion
-    by more than :data:`KEEP_MARGIN`; another replaces it only if it lowers the criterion by
-    more than the margin again (the criterion's own noise is a few per cent, and the margin
-    is for every choice the guard makes)."""
-    keep = 1.0 - KEEP_MARGIN
+    by more than ``margin`` (:data:`KEEP_MARGIN`; other margins for the benchmarks' offline
+    scoring); another replaces it only if it lowers the criterion by more than the margin
+    again (the criterion's own noise is a few per cent, and the margin is for every choice
+    the guard makes)."""
+    keep = 1.0 - margin
     kept = first if criterion[first] < keep * before else None
     for deformation, value in criterion.items():
         if deformation != first and value < keep * (before if kept is None else criterion[kept]):
