@@ -16,9 +16,17 @@ criterion picks the option with the lowest true spread (the truth of ``FILE``'s 
   shape, each vertex's height above the area-weighted centroid of its neighbours within r
   (r = 0.1, 0.2, 0.4 x the shape's RMS radius), over r, along the vertex normal (a curvature
   at scale r); the criterion is the area-weighted mean over vertices of its SD over the shapes;
+- ``consistency`` (with ``--other-references``): how much the correspondence depends on the
+  reference. Each judged option is run again with two other inputs as the reference (the
+  batch's own plus 2 and plus 4, cyclically); for each pair of runs, every vertex of one run
+  on shape k is located on the other run's surface of shape k (triangle and barycentric
+  coordinates), carried by those coordinates to every other shape l of the other run, and
+  compared with the first run's vertex on l (mm, both ways, averaged). Correspondences that
+  are right do not depend on the reference and give zero; errors a reference leaves in its
+  own way show up, errors every reference shares do not;
 - products of the safeguard's criterion with each.
 
-    PYTHONPATH=. python benchmarks/diag_safeguard_criteria.py DIR FILE
+    PYTHONPATH=. python benchmarks/diag_safeguard_criteria.py DIR FILE [--other-references]
 """
 
 from __future__ import annotations
@@ -35,11 +43,13 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_safeguard import TIE, _check  # noqa: E402
+from bench_safeguard import TIE, _check, populations  # noqa: E402
 
 from core.alignment.transforms import apply_transform, fit_transform, generalized_procrustes  # noqa: E402
+from core.correspondence import establish_correspondence  # noqa: E402
 from core.correspondence.safeguard import loo_generalisation, refinement_choice  # noqa: E402
-from core.geometry.toolkit import closest_points_on_surface, vertex_normals  # noqa: E402
+from core.datasets import families  # noqa: E402
+from core.geometry.toolkit import closest_points_on_surface, surface_coordinates, vertex_normals  # noqa: E402
 from core.types import TriMesh  # noqa: E402
 
 RUNS = ("r0_remesh", "r0_plain", "r1_offsets", "r1_cpd")
@@ -93,25 +103,83 @@ def specificity(shapes: list[np.ndarray], raw: list[TriMesh], seed: int = 0) -> 
                               for v, f in surfaces) for x in instances]))
 
 
-def population_criteria(npz: Path) -> dict:
-    """Per stored run: each criterion's value."""
+def stored_run(z, run: str) -> tuple[dict[int, np.ndarray], np.ndarray]:
+    """(input index -> corresponded vertices, faces) of one stored run."""
+    keys = sorted(int(k.rsplit("_", 1)[1]) for k in z.files
+                  if k.startswith(run + "_") and k.rsplit("_", 1)[1].isdigit())
+    return {k: np.asarray(z[f"{run}_{k}"], dtype=np.float64) for k in keys}, z[f"{run}_faces"]
+
+
+def population_criteria(npz: Path, others: Path | None = None) -> dict:
+    """Per stored run: each criterion's value (``others``: the other references' runs)."""
     z = np.load(npz)
     raw = []
     while f"raw_{len(raw)}_v" in z:
         raw.append(TriMesh(z[f"raw_{len(raw)}_v"], z[f"raw_{len(raw)}_f"]))
+    zo = None if others is None else np.load(others)
     out = {}
     for run in RUNS:
         if f"{run}_faces" not in z:
             continue
-        faces = z[f"{run}_faces"]
-        keys = sorted(int(k.rsplit("_", 1)[1]) for k in z.files
-                      if k.startswith(run + "_") and k.rsplit("_", 1)[1].isdigit())
-        shapes = [z[f"{run}_{k}"] for k in keys]
+        shaped, faces = stored_run(z, run)
+        keys = sorted(shaped)
+        shapes = [shaped[k] for k in keys]
         product = loo_generalisation(shapes, faces, [raw[k] for k in keys])["value"]
         spec, desc = specificity(shapes, [raw[k] for k in keys]), descriptor_spread(shapes, faces)
         out[run] = {"product": product, "specificity": spec, "descriptor": desc,
                     "product x specificity": product * spec, "product x descriptor": product * desc}
+        if zo is not None:
+            cons = float(np.mean([reference_consistency(shaped, faces, *stored_run(zo, f"{j}_{run}"))
+                                  for j in ("b0", "b1")]))
+            out[run].update({"consistency": cons, "product x consistency": product * cons})
     return out
+
+
+def _transfer(a: dict[int, np.ndarray], b: dict[int, np.ndarray], b_faces: np.ndarray,
+              keys: list[int]) -> float:
+    """Run ``a``'s vertices on each shape located on run ``b``'s surface of it, carried to
+    every other shape of ``b``, against ``a``'s vertices there: the mean distance (mm)."""
+    out = []
+    for k in keys:
+        tri, bary, _ = surface_coordinates(a[k], b[k], b_faces)
+        for m in keys:
+            if m != k:
+                carried = np.einsum("pj,pjk->pk", bary, b[m][b_faces[tri]])
+                out.append(np.linalg.norm(carried - a[m], axis=1).mean())
+    return float(np.mean(out))
+
+
+def reference_consistency(a: dict[int, np.ndarray], a_faces: np.ndarray,
+                          b: dict[int, np.ndarray], b_faces: np.ndarray) -> float:
+    """How far two runs with different references disagree (module docstring), mm."""
+    keys = sorted(set(a) & set(b))
+    return 0.5 * (_transfer(a, b, b_faces, keys) + _transfer(b, a, a_faces, keys))
+
+
+def other_reference_runs(result: dict, n_shapes: int, path: Path) -> Path:
+    """Each judged option of one population run again with two other references, stored
+    at ``path`` (kept: a second call reads it)."""
+    if path.exists():
+        return path
+    fam, seed = result["family"], result["seed"]
+    report = fam in families.REPORT
+    _, _, pop = next(iter(populations(report, [seed], n_shapes, [fam])))
+    remesh_kept = any(c["stage"] == "remesh" and c["kept"] == "remesh" for c in result["checks"])
+    groom = {} if remesh_kept else {"remesh": False}
+    own = establish_correspondence(pop.meshes, refine=0, groom={"remesh": False}, safeguard=False,
+                                   n_jobs=2).reference_index
+    options = {"r0_remesh": dict(refine=0), "r0_plain": dict(refine=0, groom={"remesh": False}),
+               "r1_offsets": dict(groom=groom, labelling=True),
+               "r1_cpd": dict(groom=groom, labelling=True, refine_deformation="cpd")}
+    arrays = {}
+    for j, ref in enumerate(((own + 2) % n_shapes, (own + 4) % n_shapes)):
+        for run, kw in options.items():
+            res = establish_correspondence(pop.meshes, reference=ref, safeguard=False, n_jobs=2, **kw)
+            arrays[f"b{j}_{run}_faces"] = res.faces
+            arrays.update({f"b{j}_{run}_{k}": m.vertices for k, m in enumerate(res.meshes)
+                           if m is not None})
+    np.savez_compressed(path, **arrays)
+    return path
 
 
 def _right(check: dict, pick: str) -> bool:
@@ -146,10 +214,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", type=Path, help="bench_safeguard.py --save folder")
     ap.add_argument("json", type=Path, help="bench_safeguard.py --json file of the same run")
+    ap.add_argument("--other-references", action="store_true",
+                    help="add the reference-consistency criterion (runs each option with two other "
+                         "references; stored in the folder as *_others.npz)")
     args = ap.parse_args()
     results = json.loads(args.json.read_text())
-    criteria = {(r["family"], r["seed"]): population_criteria(args.folder / f"{r['family']}_{r['seed']}.npz")
-                for r in results}
+    criteria = {}
+    for r in results:
+        stored = args.folder / f"{r['family']}_{r['seed']}.npz"
+        others = None
+        if args.other_references:
+            n_shapes = sum(1 for k in np.load(stored).files if k.startswith("raw_") and k.endswith("_v"))
+            others = other_reference_runs(r, n_shapes, args.folder / f"{r['family']}_{r['seed']}_others.npz")
+        criteria[(r["family"], r["seed"])] = population_criteria(stored, others)
     names = next(iter(next(iter(criteria.values())).values()))
     print(f"decisions right (misses costing > {TIE:.0%}) at margins {', '.join(f'{m:.0%}' for m in MARGINS)}")
     for name in names:
