@@ -116,13 +116,13 @@ class SessionActions:
         w.show_message(message[0])
         return True
 
-    def apply_session(self, session) -> None:
+    def apply_session(self, session, volume=None) -> None:
         """Restore image, model, fit, points, window, crosshair and plan from a Session
-        (without a refit: the stored fit is shown)."""
+        (without a refit: the stored fit is shown; ``volume``: its image, read already)."""
         w = self.w
         w.refit.cancel()
         with w.refit.suspended():
-            fit = w.sessions.apply(session)
+            fit = w.sessions.apply(session, volume)
             was_blocked = w.fit_panel.blockSignals(True)
             try:
                 w.fit_panel.set_settings(fit.get("method"), fit.get("pose"),

@@ -2,19 +2,26 @@
 
 What is opened is decided by the file's type (:mod:`app.formats`); reading and checking is
 the :class:`app.model.controllers.SessionController`'s job. This only asks (file dialogs, the
-series chooser) and routes a path to the window's ``load_image`` / ``load_model`` /
-``import_points`` / ``open_session``. The window delegates its ``open_*`` methods here.
+series chooser) and routes a path to the window's ``load_model`` / ``import_points``. An
+image, or a session's image, is read in a worker behind a progress dialog with Cancel (a DICOM
+series of a few hundred files takes a second or more; a folder's series are listed in a worker
+too) and then shown by the window's ``show_image`` / ``apply_session``. The window delegates
+its ``open_*`` methods here.
 """
 
 from __future__ import annotations
 
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from PySide6.QtWidgets import QFileDialog, QInputDialog, QMessageBox
 
 from app import formats
+from app.model.controllers import read_image
+from app.workers import DialogTask
 from core.io.model_library import structure_from_name
 from core.io.points import is_markups_file, markups_name
 
@@ -32,6 +39,11 @@ class FileActions:
 
     def __init__(self, window):
         self.w = window
+        self.image_task = DialogTask("Opening image", "Reading the image…", window)
+        self.image_task.succeeded.connect(self._on_read)
+        self.image_task.failed.connect(window.show_error)
+        self.image_task.cancelled.connect(lambda: window.show_message("Opening the image was cancelled"))
+        self._then: Callable[[Any], None] | None = None  # what to do with the job's result
 
     def start_dir(self) -> str:
         """The folder file dialogs start in: the session's, else the image's, else the cwd."""
@@ -41,9 +53,10 @@ class FileActions:
         return str(Path.cwd())
 
     def resolve_image(self, path: str | os.PathLike, ask: bool | None,
-                      notes: list[str]) -> str | os.PathLike | None:
+                      notes: list[str], series: list | None = None) -> str | os.PathLike | None:
         """``path``, or the DICOM series chosen in it (asks the user unless ``ask`` is False:
-        then the one with most files, said in ``notes``); None if the user cancelled."""
+        then the one with most files, said in ``notes``); None if the user cancelled.
+        ``series``: the folder's series, listed already (:func:`app.formats.folder_series`)."""
         if ask is None:
             ask = not os.environ.get("SSM_STUDIO_NO_DIALOGS")
         chooser = None
@@ -51,7 +64,9 @@ class FileActions:
             from app.series_dialog import ask_series
 
             chooser = lambda found: ask_series(self.w, found)  # noqa: E731
-        return formats.resolve_dicom_choice(path, chooser, notes.append)
+        if series is None:
+            return formats.resolve_dicom_choice(path, chooser, notes.append)
+        return formats.choose_series_file(path, series, chooser, notes.append)
 
     def open_path(self, path: str | os.PathLike, dropped: bool = False) -> None:
         """Open any supported file by its type (drag and drop, recent files); errors shown.
@@ -62,7 +77,7 @@ class FileActions:
         w, name = self.w, str(path).lower()
         try:
             if formats.is_image_path(path):
-                w.load_image(path)
+                self.open_image(path)
             elif formats.is_model_path(path):
                 if dropped:
                     self.open_dropped_model(path)
@@ -74,13 +89,66 @@ class FileActions:
                 if structure is not None:
                     w.import_points(path, structure)
             elif name.endswith(".json"):
-                w.open_session(path)
+                self.open_session(path)
             else:
                 raise ValueError(f"{path}: unsupported file type (expected an image: .nii/.nii.gz,"
                                  " .nrrd, .mha or a DICOM folder/file; a .npz or .h5 model; a "
                                  ".json session; or .csv/.mrk.json points)")
         except (ValueError, OSError) as exc:
             w.show_error(exc)
+
+    def open_image(self, path: str | os.PathLike) -> bool:
+        """Read the image at ``path`` in a worker, then show it. A DICOM folder's series are
+        listed in a worker first, and the user picks one between the two jobs."""
+        self._check_idle(path)
+
+        def listed(series: list) -> None:
+            notes: list[str] = []
+            resolved = self.resolve_image(path, None, notes, series=series)
+            if resolved is not None:
+                self._start(lambda volume: self.w.show_image(resolved, volume, notes),
+                            read_image, resolved, None, path if notes else None)
+
+        return self._start(listed, formats.folder_series, path)
+
+    def open_session(self, path: str | os.PathLike) -> bool:
+        """Open the session file ``path``: its image read in a worker, then everything
+        restored (a damaged session file raises before anything changes)."""
+        self._check_idle(path)
+        session = self.w.sessions.read(path)
+
+        def restore(volume) -> None:
+            self.w.apply_session(session, volume=volume)
+            self.w.set_session(Path(path))
+            self.w.show_message(f"Opened session {Path(path).name}")
+
+        if session.image_path is None:
+            restore(None)
+            return True
+        return self._start(restore, read_image, session.image_path)
+
+    def wait_for_image(self, msecs: int = 60000) -> None:
+        """Block until the image being read is shown (tests, scripts)."""
+        from PySide6.QtCore import QCoreApplication
+
+        self.image_task.wait(msecs)
+        while self.image_task.is_running:  # its outcome arrives as a queued call
+            QCoreApplication.processEvents()
+            self.image_task.wait(msecs)    # (a folder's listing is followed by the read)
+
+    def _check_idle(self, path: str | os.PathLike) -> None:
+        if self.image_task.is_running:
+            raise ValueError(f"{path}: an image is still being read; wait or cancel it first")
+
+    def _start(self, then: Callable[[Any], None], fn: Callable[..., Any], *args: Any) -> bool:
+        """Run ``fn(*args)`` behind the progress dialog; ``then(result)`` in the GUI thread."""
+        self._then = then
+        return self.image_task.start(fn, *args, show_dialog=not self.w._quiet_errors())
+
+    def _on_read(self, result: Any) -> None:
+        then, self._then = self._then, None
+        if then is not None:
+            self.w._guarded(lambda: then(result))
 
     def open_dialog(self, what: str) -> None:
         """The open dialog for ``what`` (a key of :data:`OPEN_DIALOGS`), then open the file."""

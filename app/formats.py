@@ -40,14 +40,32 @@ def resolve_dicom_choice(path: str | os.PathLike, ask: Callable | None,
     """The path to read for ``path``: a DICOM folder with several series becomes one file of
     the series ``ask(series_list)`` returns (None: cancelled); without ``ask`` the series
     with most files is taken and ``notify`` told. Anything else is returned unchanged."""
+    return choose_series_file(path, folder_series(path), ask, notify)
+
+
+def folder_series(path: str | os.PathLike, progress=None) -> list:
+    """The image series of a DICOM folder (:func:`core.io.dicom.list_series`; it reads every
+    file's header, so a worker calls it: ``progress`` is its Cancel point); [] for anything
+    else."""
     from core.io.dicom import list_series
 
     path = Path(path)
     if not (path.is_dir() and is_dicom_path(path)):
-        return path
+        return []
+    if progress is not None:
+        progress(0.0, "looking for DICOM series")
     series = list_series(path)
+    if progress is not None:
+        progress(0.0, "")  # a Cancel while the headers were read stops here
+    return series
+
+
+def choose_series_file(path: str | os.PathLike, series: list, ask: Callable | None,
+                       notify: Callable[[str], None] | None = None) -> Path | None:
+    """:func:`resolve_dicom_choice` with the folder's ``series`` listed already."""
+    path = Path(path)
     if len(series) <= 1:
-        return path  # none (read_dicom explains) or one
+        return path  # not a DICOM folder, or none (read_dicom explains) or one series
     if ask is None:
         if notify is not None:
             others = "; ".join(s.label() for s in series[1:])

@@ -197,6 +197,14 @@ class MainWindow(QMainWindow):
             if notes:  # the series was taken by default from a folder holding several
                 raise formats.default_series_error(folder, path, exc) from None
             raise
+        self._image_opened(message, notes)
+
+    def show_image(self, path: str | os.PathLike, volume, notes: list[str] | tuple = ()) -> None:
+        """Show ``volume``, read from ``path`` in a worker (``app.file_actions``), as
+        :meth:`load_image` shows an image it reads."""
+        self._image_opened(self.sessions.open_image(path, volume=volume), notes)
+
+    def _image_opened(self, message: str, notes: list[str] | tuple) -> None:
         message = self.sessions.overlap_warning() or message
         self.show_message(message + (f" ({notes[0]})" if notes else ""))
         self.auto_place.offer(self, message)
@@ -287,9 +295,10 @@ class MainWindow(QMainWindow):
         """The current work as a :class:`core.session.document.Session`."""
         return self.sessions.to_session(self.fit_panel.settings)
 
-    def apply_session(self, session) -> None:
-        """Restore image, model, fit, points, window and crosshair from a Session."""
-        self.session_actions.apply_session(session)
+    def apply_session(self, session, volume=None) -> None:
+        """Restore image, model, fit, points, window and crosshair from a Session
+        (``volume``: its image, read already)."""
+        self.session_actions.apply_session(session, volume)
 
     def open_session(self, path: str | os.PathLike) -> None:
         self.apply_session(self.sessions.read(path))

@@ -64,6 +64,7 @@ def test_dropped_dicom_folder_opens_and_leaks_no_patient_name(window, dicom_fold
 
     folder, big, _ = dicom_folder
     _drop(window, folder)
+    window.files.wait_for_image()           # read in a worker, shown when it is done
     vol = window.state.volume
     assert vol is not None and vol.shape == (16, 14, 10)
     assert np.array_equal(vol.data, sitk.GetArrayFromImage(big).T)
@@ -127,8 +128,10 @@ def test_nrrd_image_h5_model_and_seg_nrrd_export(window, tmp_path):
     sitk.WriteImage(image, str(tmp_path / "scan.nrrd"))
     sitk.WriteImage(image, str(tmp_path / "scan.mha"))
     _drop(window, tmp_path / "scan.mha")
+    window.files.wait_for_image()
     mha = window.state.volume
     window.open_path(tmp_path / "scan.nrrd")
+    window.files.wait_for_image()
     assert np.allclose(window.state.volume.affine, mha.affine, atol=1e-9)
     centre = window.state.volume.voxel_to_world((np.array(window.state.volume.shape) - 1) / 2)
     shapes, faces = synthetic_shapes(6, subdivisions=2, seed=1)
@@ -204,3 +207,83 @@ def test_gui_model_loading_refuses_what_the_cli_refuses(window, tmp_path):
     assert window.state.active.model is None and "#shape" in window.statusBar().currentMessage()
     window.load_model(f"{tmp_path / 'face.h5'}#shape")
     assert window.state.active.model is not None and window.state.active.model.n_vertices == shapes.shape[1]
+
+
+def test_an_image_opened_from_a_file_is_read_in_a_worker_and_can_be_cancelled(window, tmp_path,
+                                                                               monkeypatch, qtbot):
+    """Opening an image (menu, drop, recent file) returns at once; the image is read in a
+    worker and shown when read; Cancel keeps the image that was open; a damaged file is a
+    one-line error naming it."""
+    import threading
+
+    import SimpleITK as sitk
+
+    import app.file_actions as file_actions
+
+    first, second = tmp_path / "first.nrrd", tmp_path / "second.mha"
+    sitk.WriteImage(synth.oblique_image((12, 10, 8), (1.0, 1.0, 1.5)), str(first))
+    sitk.WriteImage(synth.oblique_image((9, 11, 7), (1.2, 1.0, 2.0), seed=3), str(second))
+    window.open_path(first)
+    window.files.wait_for_image()
+    assert window.state.volume.shape == (12, 10, 8) and "first" in window.statusBar().currentMessage()
+
+    release, started = threading.Event(), threading.Event()
+    real = file_actions.read_image
+
+    def slow_read(path, series=None, default_of=None, progress=None):
+        started.set()
+        while not release.wait(0.01):          # a long read, reporting progress (Cancel point)
+            progress(0.5, "reading")
+        return real(path, series, default_of, progress)
+
+    monkeypatch.setattr(file_actions, "read_image", slow_read)
+    window.open_path(second)                   # returns while the worker reads
+    qtbot.waitUntil(started.is_set, timeout=5000)   # (the series scan ran first, in a worker)
+    assert window.files.image_task.is_running
+    assert window.state.volume.shape == (12, 10, 8)
+    window.files.image_task.cancel()
+    window.files.wait_for_image()
+    assert window.state.volume.shape == (12, 10, 8)            # the open image is kept
+    assert "cancelled" in window.statusBar().currentMessage()
+    # the same file again, not cancelled: shown
+    release.set()
+    window.open_path(second)
+    window.files.wait_for_image()
+    assert window.state.volume.shape == (9, 11, 7)
+    # a damaged file: one line naming it, the image kept
+    monkeypatch.setattr(file_actions, "read_image", real)
+    broken = tmp_path / "broken.nrrd"
+    broken.write_bytes(first.read_bytes()[:200])
+    window.open_path(broken)
+    window.files.wait_for_image()
+    message = window.statusBar().currentMessage()
+    assert message.startswith("Error:") and "broken.nrrd" in message and "\n" not in message
+    assert "Traceback" not in message and window.state.volume.shape == (9, 11, 7)
+
+
+def test_a_session_opened_from_a_file_reads_its_image_in_a_worker(window, tmp_path):
+    import SimpleITK as sitk
+
+    image = tmp_path / "scan.nrrd"
+    sitk.WriteImage(synth.oblique_image((12, 10, 8), (1.0, 1.0, 1.5)), str(image))
+    window.load_image(image)
+    window.state.set_window(321.0, 123.0)
+    assert window.save_session(path=tmp_path / "case.json")
+    other = tmp_path / "other.mha"
+    sitk.WriteImage(synth.oblique_image((9, 11, 7), (1.2, 1.0, 2.0), seed=3), str(other))
+    window.load_image(other)
+    window.open_path(tmp_path / "case.json")
+    assert window.files.image_task.is_running and window.state.volume.shape == (9, 11, 7)
+    window.files.wait_for_image()
+    assert window.state.volume.shape == (12, 10, 8)
+    assert (window.state.window, window.state.level) == (321.0, 123.0)
+    assert window.session_path == tmp_path / "case.json" and "Opened session" in \
+        window.statusBar().currentMessage()
+    # its image gone: one line naming it, nothing of the session applied
+    window.load_image(other)
+    image.unlink()
+    window.open_path(tmp_path / "case.json")
+    window.files.wait_for_image()
+    message = window.statusBar().currentMessage()
+    assert message.startswith("Error:") and "scan.nrrd" in message
+    assert window.state.volume.shape == (9, 11, 7)

@@ -24,6 +24,27 @@ from core.io.registry import split_member  # a FILE.h5#GROUP model path names FI
 RECOVERED_PATH_KEY = "session_path"     # in a recovery file's info: the session's own file
 
 
+def read_image(path: str | os.PathLike, series: str | None = None,
+               default_of: str | os.PathLike | None = None, progress=None):
+    """The image at ``path`` (:func:`core.io.load_volume`), for a worker thread. ``default_of``:
+    the DICOM folder whose series ``path`` was taken by default, which an error then names
+    with the folder's other series. A Cancel while the file is read (``progress`` raises at
+    its next call) drops the image read."""
+    from app import formats
+
+    if progress is not None:
+        progress(0.0, "")
+    try:
+        volume = load_volume(path, series=series)
+    except DataFileError as exc:
+        if default_of is None:
+            raise
+        raise formats.default_series_error(default_of, path, exc) from None
+    if progress is not None:
+        progress(1.0, "")
+    return volume
+
+
 class SessionController:
     """What is open: the image, the structures' models, the session file and its recovery."""
 
@@ -45,13 +66,16 @@ class SessionController:
         return self._recovery
 
     # -- image and models --------------------------------------------------------------
-    def open_image(self, path: str | os.PathLike, series: str | None = None) -> str:
-        """Load an image (NIfTI, NRRD, MetaImage, DICOM series; raises DataFileError); the
-        crosshair goes to the model. A DICOM image is named by its series description
-        only (app.formats), never by its folder or file name."""
+    def open_image(self, path: str | os.PathLike, series: str | None = None,
+                   volume=None) -> str:
+        """Load an image (NIfTI, NRRD, MetaImage, DICOM series; raises DataFileError), or show
+        ``volume`` already read from it (:func:`read_image` in a worker); the crosshair goes
+        to the model. A DICOM image is named by its series description only (app.formats),
+        never by its folder or file name."""
         from app import formats
 
-        volume = load_volume(path, series=series)
+        if volume is None:
+            volume = load_volume(path, series=series)
         name = formats.remember_display_name(path)  # before set_image updates the title
         self.state.set_image(volume, path)
         self.center_on_model()
@@ -142,13 +166,13 @@ class SessionController:
             structures=records, active_structure=state.structures.index(s) if records else 0,
         )
 
-    def apply(self, session) -> dict:
+    def apply(self, session, volume=None) -> dict:
         """Restore image, structures (models, points, fits), window and crosshair; returns
         the fit settings. The stored fits are shown as saved (no refit), and every undo
-        history starts empty.
+        history starts empty. ``volume``: the session's image, read already (in a worker).
         """
         if session.image_path is not None:
-            self.open_image(session.image_path)
+            self.open_image(session.image_path, volume=volume)
         records = session.structures or [_top_level_record(session)]
         models: dict[Path, object] = {}
         structures = []
