@@ -200,8 +200,7 @@ class MainWindow(QMainWindow):
         self._image_opened(message, notes)
 
     def show_image(self, path: str | os.PathLike, volume, notes: list[str] | tuple = ()) -> None:
-        """Show ``volume``, read from ``path`` in a worker (``app.file_actions``), as
-        :meth:`load_image` shows an image it reads."""
+        """``volume``, read from ``path`` in a worker (app.file_actions), shown as load_image would."""
         self._image_opened(self.sessions.open_image(path, volume=volume), notes)
 
     def _image_opened(self, message: str, notes: list[str] | tuple) -> None:
@@ -296,8 +295,7 @@ class MainWindow(QMainWindow):
         return self.sessions.to_session(self.fit_panel.settings)
 
     def apply_session(self, session, volume=None) -> None:
-        """Restore image, model, fit, points, window and crosshair from a Session
-        (``volume``: its image, read already)."""
+        """Restore image, model, fit, points, window and crosshair (``volume``: read already)."""
         self.session_actions.apply_session(session, volume)
 
     def open_session(self, path: str | os.PathLike) -> None:
