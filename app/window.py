@@ -463,7 +463,8 @@ class MainWindow(QMainWindow):
         self._autosave_timer.stop()
         self.refit.cancel()
         self.refit.wait(5000)
-        for task in (self.auto_place, self.features["second-image"].controller):
+        for task in (self.auto_place, self.files.image_task,
+                     self.features["second-image"].controller):
             task.cancel()
             task.wait(10000)
         if self.recovery_enabled:

@@ -287,3 +287,30 @@ def test_a_session_opened_from_a_file_reads_its_image_in_a_worker(window, tmp_pa
     message = window.statusBar().currentMessage()
     assert message.startswith("Error:") and "scan.nrrd" in message
     assert window.state.volume.shape == (9, 11, 7)
+
+
+def test_closing_the_window_while_an_image_is_read_stops_the_reader(window, tmp_path, monkeypatch,
+                                                                    qtbot):
+    import threading
+
+    import SimpleITK as sitk
+
+    import app.file_actions as file_actions
+    from app.workers import running_workers
+
+    path = tmp_path / "scan.nrrd"
+    sitk.WriteImage(synth.oblique_image((12, 10, 8), (1.0, 1.0, 1.5)), str(path))
+    started = threading.Event()
+
+    def endless_read(path, series=None, default_of=None, progress=None):
+        started.set()
+        while True:                            # only a Cancel ends it
+            progress(0.5, "reading")
+            threading.Event().wait(0.01)
+
+    monkeypatch.setattr(file_actions, "read_image", endless_read)
+    window.open_path(path)
+    qtbot.waitUntil(started.is_set, timeout=5000)
+    window.close()
+    qtbot.waitUntil(lambda: not running_workers(), timeout=5000)
+    assert window.state.volume is None or window.state.image_path != path
