@@ -116,16 +116,17 @@ class FileActions:
         restored (a damaged session file raises before anything changes)."""
         self._check_idle(path)
         session = self.w.sessions.read(path)
-
-        def restore(volume) -> None:
-            self.w.apply_session(session, volume=volume)
-            self.w.set_session(Path(path))
-            self.w.show_message(f"Opened session {Path(path).name}")
-
         if session.image_path is None:
-            restore(None)
+            self.restore_session(session, path)
             return True
-        return self._start(restore, read_image, session.image_path)
+        return self._start(lambda volume: self.restore_session(session, path, volume), read_image,
+                           session.image_path)
+
+    def restore_session(self, session, path: str | os.PathLike, volume=None) -> None:
+        """Apply ``session``, read from ``path`` (``volume``: its image, read already)."""
+        self.w.apply_session(session, volume=volume)
+        self.w.set_session(Path(path))
+        self.w.show_message(f"Opened session {Path(path).name}")
 
     def wait_for_image(self, msecs: int = 60000) -> None:
         """Block until the image being read is shown (tests, scripts)."""

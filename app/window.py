@@ -299,9 +299,7 @@ class MainWindow(QMainWindow):
         self.session_actions.apply_session(session, volume)
 
     def open_session(self, path: str | os.PathLike) -> None:
-        self.apply_session(self.sessions.read(path))
-        self.set_session(Path(path))
-        self.show_message(f"Opened session {Path(path).name}")
+        self.files.restore_session(self.sessions.read(path), path)
 
     def save_session(self, ask: bool = False, path: str | os.PathLike | None = None) -> bool:
         return self.session_actions.save_session(ask, path)
