@@ -25,7 +25,7 @@ from pathlib import Path
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
-from app import demo, formats
+from app import demo
 from app.actions import (
     SHORTCUTS,
     create_actions,
@@ -38,7 +38,7 @@ from app.actions import (
 from app.dialogs import ExportActions, SessionActions
 from app.edit_commands import EditCommands
 from app.file_actions import OPEN_DIALOGS, FileActions
-from app.model.controllers import ExportController, SessionController
+from app.model.controllers import ExportController, SessionController, read_image
 from app.model.state import WorkspaceState
 from app.paint_gate import PaintGate
 from app.panels.factors import FactorsPanel
@@ -55,7 +55,6 @@ from app.tabs import WorkspaceTabs
 from app.tools_install import install_segment_tools
 from app.views.grid import SegmentWorkspace
 from app.workers import error_message
-from core.errors import DataFileError
 from core.io.model_library import list_library
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "OPEN_DIALOGS", "run_gui"]
@@ -191,19 +190,12 @@ class MainWindow(QMainWindow):
                 return  # the user cancelled the series choice
         for note in notes if notify is not None else ():
             notify(note)
-        try:
-            message = self.sessions.open_image(path, series=series)
-        except DataFileError as exc:
-            if notes:  # the series was taken by default from a folder holding several
-                raise formats.default_series_error(folder, path, exc) from None
-            raise
-        self._image_opened(message, notes)
+        # a series taken by default from a folder holding several: its error names the others
+        self.show_image(path, read_image(path, series, folder if notes else None), notes)
 
     def show_image(self, path: str | os.PathLike, volume, notes: list[str] | tuple = ()) -> None:
-        """``volume``, read from ``path`` in a worker (app.file_actions), shown as load_image would."""
-        self._image_opened(self.sessions.open_image(path, volume=volume), notes)
-
-    def _image_opened(self, message: str, notes: list[str] | tuple) -> None:
+        """``volume``, read from ``path`` (here, or in a worker: app.file_actions), shown."""
+        message = self.sessions.open_image(path, volume=volume)
         message = self.sessions.overlap_warning() or message
         self.show_message(message + (f" ({notes[0]})" if notes else ""))
         self.auto_place.offer(self, message)
