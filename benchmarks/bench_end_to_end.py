@@ -442,6 +442,46 @@ def tables(summary: dict, header: str) -> str:
     return "\n".join(out) + "\n"
 
 
+def merged(paths: list[Path]) -> dict:
+    """The runs of several ``--json`` files, {family: {seed: run}}: for each population, each
+    pipeline from the last file that has it without an error (a rerun of today's pipeline
+    replaces an earlier one; round 1's result stays where a later run timed it out)."""
+    results: dict = {}
+    for path in paths:
+        for family, runs in json.loads(Path(path).read_text())["runs"].items():
+            for seed, run in runs.items():
+                into = results.setdefault(family, {}).setdefault(int(seed), {})
+                for name, part in run.items():
+                    if name not in into or (isinstance(part, dict) and "error" not in part):
+                        into[name] = part
+    return results
+
+
+def paired_differences(results: dict) -> str:
+    """Today's end to end minus round 1's end to end (its model and its own fit), paired by
+    population and held-out shape: mean +- standard error, per family, layout and method."""
+    out = ["", "today minus round 1 end to end (mm), paired by population and held-out shape", "",
+           "| family | fit | contours | populations | today | round 1 | difference |",
+           "|---|---|---|---|---|---|---|"]
+    for family, runs in results.items():
+        for method in METHODS:
+            for layout in LAYOUTS:
+                key, a, b, n = f"{layout}|{method}", [], [], 0
+                for run in runs.values():
+                    mine = run.get("today", {}).get("fits", {}).get(key)
+                    theirs = run.get("round 1", {}).get("own_fits", {}).get(key)
+                    if mine and theirs and len(mine) == len(theirs):
+                        a += [v[0] for v in mine]
+                        b += [v[0] for v in theirs]
+                        n += 1
+                if len(a) > 1:
+                    d = np.subtract(a, b)
+                    se = d.std(ddof=1) / np.sqrt(len(d))
+                    out.append(f"| {family} | {method} | {layout} | {n} | {np.mean(a):.3f} | "
+                               f"{np.mean(b):.3f} | {d.mean():+.3f} +- {se:.3f} |")
+    return "\n".join(out) + "\n"
+
+
 def run(families: list[str], seeds, n_shapes: int, n_held_out: int, jobs: int, folder: str,
         on_result=None, cache: Path | None = None, timeout: float | None = None,
         options: dict | None = None) -> dict:
@@ -497,7 +537,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="a correspondence keyword for today's build (cached apart), e.g. "
                              "rigid_fine_sampling=random")
+    parser.add_argument("--merge", type=Path, nargs="+", default=None, metavar="JSON",
+                        help="no run: the tables of these --json files together (merged)")
     args = parser.parse_args(argv)
+    if args.merge:
+        results = merged(args.merge)
+        print(tables(summarise(results), f"merged: {', '.join(str(p) for p in args.merge)}")
+              + paired_differences(results))
+        return
     if args.shapes < 4 or args.held_out < 1 or args.seeds < 1:
         raise SystemExit("need --shapes >= 4, --held-out >= 1 and --seeds >= 1")
     t0 = time.perf_counter()
