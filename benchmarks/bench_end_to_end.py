@@ -458,27 +458,34 @@ def merged(paths: list[Path]) -> dict:
 
 
 def paired_differences(results: dict) -> str:
-    """Today's end to end minus round 1's end to end (its model and its own fit), paired by
-    population and held-out shape: mean +- standard error, per family, layout and method."""
-    out = ["", "today minus round 1 end to end (mm), paired by population and held-out shape", "",
-           "| family | fit | contours | populations | today | round 1 | difference |",
-           "|---|---|---|---|---|---|---|"]
+    """Today's end to end minus round 1's end to end (its model and its own fit), and on round
+    1's model today's fit minus its own, paired by population and held-out shape: mean +-
+    standard error, per family, layout and method."""
+    out = ["", "today minus round 1 end to end (mm), paired by population and held-out shape; "
+           "last: on round 1's model, today's fit minus round 1's own", "",
+           "| family | fit | contours | populations | today | round 1 | difference | "
+           "fit only |", "|---|---|---|---|---|---|---|---|"]
+
+    def mean_se(d: np.ndarray) -> str:
+        return f"{d.mean():+.3f} +- {d.std(ddof=1) / np.sqrt(len(d)):.3f}"
+
     for family, runs in results.items():
         for method in METHODS:
             for layout in LAYOUTS:
-                key, a, b, n = f"{layout}|{method}", [], [], 0
+                key, cols, n = f"{layout}|{method}", ([], [], []), 0
                 for run in runs.values():
-                    mine = run.get("today", {}).get("fits", {}).get(key)
-                    theirs = run.get("round 1", {}).get("own_fits", {}).get(key)
-                    if mine and theirs and len(mine) == len(theirs):
-                        a += [v[0] for v in mine]
-                        b += [v[0] for v in theirs]
+                    three = (run.get("today", {}).get("fits", {}).get(key),
+                             run.get("round 1", {}).get("own_fits", {}).get(key),
+                             run.get("round 1", {}).get("fits", {}).get(key))
+                    if all(three) and len({len(x) for x in three}) == 1:
+                        for col, fits in zip(cols, three):
+                            col += [v[0] for v in fits]
                         n += 1
-                if len(a) > 1:
-                    d = np.subtract(a, b)
-                    se = d.std(ddof=1) / np.sqrt(len(d))
-                    out.append(f"| {family} | {method} | {layout} | {n} | {np.mean(a):.3f} | "
-                               f"{np.mean(b):.3f} | {d.mean():+.3f} +- {se:.3f} |")
+                if len(cols[0]) > 1:
+                    today, own, theirs_today = (np.asarray(c) for c in cols)
+                    out.append(f"| {family} | {method} | {layout} | {n} | {today.mean():.3f} | "
+                               f"{own.mean():.3f} | {mean_se(today - own)} | "
+                               f"{mean_se(theirs_today - own)} |")
     return "\n".join(out) + "\n"
 
 
