@@ -22,7 +22,8 @@ import sys
 import time
 from pathlib import Path
 
-from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtCore import QSize, Qt, QTimer, Signal
+from PySide6.QtGui import QScreen
 from PySide6.QtWidgets import QApplication, QMainWindow, QMessageBox
 
 from app import demo
@@ -467,6 +468,21 @@ class MainWindow(QMainWindow):
         event.accept()
 
 
+WINDOW_SIZE = QSize(1600, 1000)  # what the window asks for, and what screenshots are rendered at
+TITLE_BAR = 40                   # px the window manager's frame may add above it
+
+
+def fits_screen(screen: QScreen | None) -> bool:
+    """Whether :data:`WINDOW_SIZE` and a title bar fit the screen's available area. Where they
+    do not (a 1280 x 800 laptop), the window opens maximised instead of with its panel and
+    status bar off the screen."""
+    if screen is None:
+        return True
+    available = screen.availableGeometry()
+    return available.width() >= WINDOW_SIZE.width() \
+        and available.height() >= WINDOW_SIZE.height() + TITLE_BAR
+
+
 def run_gui(image: str | None = None, model: str | None = None, session: str | None = None,
             screenshot: str | None = None, tab: str = "segment", series: str | None = None,
             tour: bool = False, record: str | None = None) -> int:
@@ -476,7 +492,9 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
     app.setStyle("Fusion")
     started = time.perf_counter()
     window = MainWindow(recovery=screenshot is None, defer_3d=screenshot is None)
-    window.resize(1600, 1000)
+    window.resize(WINDOW_SIZE)
+    # screenshots and recorded tours are the same picture on any screen
+    maximise = screenshot is None and record is None and not fits_screen(app.primaryScreen())
     try:
         if session:
             window.open_session(session)
@@ -496,7 +514,11 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
         return 2
     if tab == "build" and window.ensure_builder() is not None:
         window.tabs.setCurrentWidget(window.builder)
-    window.show()
+    if maximise:   # sized to the screen too: without a window manager, maximised does nothing
+        window.setGeometry(app.primaryScreen().availableGeometry())
+        window.showMaximized()
+    else:
+        window.show()
     if screenshot:
         app.processEvents()
         try:

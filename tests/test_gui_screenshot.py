@@ -8,11 +8,11 @@ import pytest
 pytest.importorskip("PySide6")
 pytestmark = pytest.mark.gui
 
-from PySide6.QtCore import QPoint  # noqa: E402
+from PySide6.QtCore import QPoint, QRect  # noqa: E402
 from PySide6.QtGui import QImage  # noqa: E402
 
 from app import demo  # noqa: E402
-from app.window import MainWindow, run_gui  # noqa: E402
+from app.window import MainWindow, fits_screen, run_gui  # noqa: E402
 from core.io import load_model  # noqa: E402
 from core.io.model_library import structure_info  # noqa: E402
 
@@ -103,6 +103,23 @@ def test_screenshot_command_writes_a_png(tmp_path, monkeypatch, qapp):
     assert rgb.shape[0] > 500 and rgb.shape[1] > 800
     assert rgb.std() > 30
     assert _contour_pixels(rgb) > 150
+    assert rgb.shape[:2] == (1000, 1600)          # the same picture whatever the screen
+
+
+class _Screen:
+    def __init__(self, width: int, height: int) -> None:
+        self.area = QRect(0, 0, width, height)
+
+    def availableGeometry(self) -> QRect:  # noqa: N802 (QScreen's name)
+        return self.area
+
+
+@pytest.mark.parametrize("width, height, fits", [(1920, 1080, True), (1600, 1000, False),
+                                                 (1280, 800, False), (1440, 900, False)])
+def test_the_window_opens_maximised_on_a_screen_smaller_than_it(width, height, fits):
+    # a 1280 x 800 laptop would otherwise show the window with its side panel off the screen
+    assert fits_screen(_Screen(width, height)) is fits
+    assert fits_screen(None) is True
 
 
 def test_bad_image_on_the_command_line_exits_with_message(tmp_path, capsys, qapp, monkeypatch):
