@@ -61,6 +61,7 @@ from core.evaluation.simulated_user import pca_model, simulate_user  # noqa: E40
 from core.geometry.toolkit import vertex_normals  # noqa: E402
 from core.planning.frames import anchored_point_weights, volume_centroid  # noqa: E402
 from core.reconstruction import fit_points, uncertainty  # noqa: E402
+from core.reconstruction.fit import information_inflation  # noqa: E402
 from core.reconstruction.uncertainty import SD_CALIBRATION, ellipsoid, fit_posterior  # noqa: E402
 
 TUNING_CASES = (0, 1, 2, 3)
@@ -138,8 +139,12 @@ def family_coverage(kinds, stored: bool = False, residual: float | None = None):
                 fit = fit_points(model, user.points, user.normals,
                                  placement=None if stored else "points")
                 t0 = time.perf_counter()
+                factor = residual
+                if RESIDUAL_FROM_CORRELATION:  # the residuals' correlated share, per fit
+                    shrunk = information_inflation(fit.residual_correlation, len(user.points))[0]
+                    factor = RESIDUAL_FROM_CORRELATION * shrunk
                 post = fit_posterior(model, user.points, fit.coef, fit.pose,
-                                     pose_mode=fit.pose_mode, fit=fit, residual_var_factor=residual)
+                                     pose_mode=fit.pose_mode, fit=fit, residual_var_factor=factor)
                 sd = post.vertex_sd()
                 times.append(time.perf_counter() - t0)
                 normals = vertex_normals(fit.vertices, faces)
@@ -164,6 +169,10 @@ EXACT_DRAWS = 400
 #: mode or of its mirror, each with the SD without the mirror term: the bimodal posterior's
 #: own region).
 MIRROR_BAND = "mixed"
+#: A probe (``--residual-from-correlation C``): the out-of-span GP residual's variance factor
+#: per fit, C x the shrunk correlation of neighbouring points' normal residuals (a fit whose
+#: residuals run along the contour misses the shape, white ones are noise); 0: off.
+RESIDUAL_FROM_CORRELATION = 0.0
 
 
 def union_error(post, offset: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -329,6 +338,9 @@ def main(argv=None) -> int:
     parser.add_argument("--mirror-band", choices=("mixed", "union"), default="mixed",
                         help="the mirror mode in the band: the mixture's SD about the fit "
                              "(today's), or either mode within 2 SD of its own (MIRROR_BAND)")
+    parser.add_argument("--residual-from-correlation", type=float, default=0.0, metavar="C",
+                        help="probe: GP residual factor per fit = C x the residuals' shrunk "
+                             "neighbour correlation")
     parser.add_argument("--sd-factor", type=float, default=None,
                         help="SD widening to use instead of SD_CALIBRATION (e.g. the rule's value "
                              "for --residual, from --families tune --calibrate --residual F)")
@@ -342,8 +354,9 @@ def main(argv=None) -> int:
         if args.mirror_weight is not None:
             uncertainty.MIRROR_WEIGHT = args.mirror_weight
         uncertainty.MIRROR_PARALLEL = not args.no_parallel_mirror
-        global MIRROR_BAND
+        global MIRROR_BAND, RESIDUAL_FROM_CORRELATION
         MIRROR_BAND = args.mirror_band
+        RESIDUAL_FROM_CORRELATION = args.residual_from_correlation
         t0 = time.perf_counter()
         rows, times = family_coverage(kinds, stored=args.stored, residual=args.residual)
         if args.calibrate:
