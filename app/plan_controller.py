@@ -178,6 +178,7 @@ class PlanController(QObject):
         with threadpool_limits(limits=1, user_api="blas"):   # see posterior()
             post = self.posterior()
             sd = post.vertex_sd()
+            notes = post.notes(sd)
         self.last_sd = sd
         s = self.workspace.active
         self.slice_overlay.sd = (s.id, sd, float(sd.max()))
@@ -189,7 +190,7 @@ class PlanController(QObject):
             radius = e.radius_mm
             if self.volume_overlay is not None:
                 self.volume_overlay.ellipsoid = e
-        self.panel.show_uncertainty(float(sd.mean()), float(sd.max()), radius)
+        self.panel.show_uncertainty(float(sd.mean()), float(sd.max()), radius, notes)
         if view is not None:
             view.show_scalars(sd, "SD mm")
         self._repaint()

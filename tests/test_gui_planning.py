@@ -105,6 +105,7 @@ def test_uncertainty_and_next_slice(window):
     panel, state = window.plan.panel, window.state
     panel.uncertainty_check.setChecked(True)
     assert "Surface SD" in panel.uncertainty_label.text()
+    assert "is uncertain" in panel.uncertainty_label.text()   # the pose or the shape: what, not only how much
     sd_prior = window.plan.last_sd.mean()
     before = state.crosshair.copy()
     window.plan.suggest_next_slice()

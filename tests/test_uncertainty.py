@@ -283,6 +283,8 @@ def test_the_band_widens_where_the_residuals_run_along_the_contours():
                                        vertex_normals(fit.vertices, faces)))
                 bare = dataclasses.replace(post, widening=1.0).vertex_sd()
                 gain.append(np.mean(err <= 2 * post.vertex_sd()) - np.mean(err <= 2 * bare))
+    assert "may not reach this shape" in dataclasses.replace(post, widening=2.0).message()
+    assert "may not reach" not in dataclasses.replace(post, widening=1.0).message()
     # measured: 1.00 for all six in-span shapes; 1.0-4.1 (median 2.3) with the bump
     assert max(inside) == pytest.approx(1.0)
     assert sum(w > 1.3 for w in outside) >= 4, outside

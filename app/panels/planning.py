@@ -411,11 +411,13 @@ class PlanningPanel(QWidget):
                 lines.append(f"{s.label}: {enter:.1f} → {leave:.1f} mm from the entry")
         return "\n".join(lines)
 
-    def show_uncertainty(self, mean_sd: float, max_sd: float, target_radius: float | None) -> None:
+    def show_uncertainty(self, mean_sd: float, max_sd: float, target_radius: float | None,
+                         notes: list[str] = ()) -> None:
+        """The read-out; ``notes``: what is uncertain and why (``FitPosterior.notes``)."""
         text = f"Surface SD: mean {mean_sd:.2f} mm, max {max_sd:.2f} mm"
         if target_radius is not None:
             text += f"; target within ±{target_radius:.2f} mm (2 SD)"
-        self.uncertainty_label.setText(text)
+        self.uncertainty_label.setText("; ".join([text, *notes]))
 
     def set_depth_mm(self, depth: float) -> None:
         self.depth_slider.setValue(int(round(2 * depth)))

@@ -193,13 +193,25 @@ class FitPosterior:
     def message(self) -> str:
         """One line for the user: how sure the fit is and what is uncertain."""
         sd = self.vertex_sd()
+        return "; ".join([f"surface SD mean {sd.mean():.2f} mm, max {sd.max():.2f} mm",
+                          *self.notes(sd)])
+
+    def notes(self, sd: np.ndarray | None = None) -> list[str]:
+        """What is uncertain and why, as short clauses for the user (``message`` without the SD
+        figures): pose or shape, the mirror side of parallel contours, a shape the model
+        cannot follow, the fit's warnings. ``sd``: ``vertex_sd()``, when already computed."""
+        sd = self.vertex_sd() if sd is None else sd
         shape, pose = self.variance_shares()
         what = "the pose" if self.pose_dominates else "the shape"
-        text = (f"surface SD mean {sd.mean():.2f} mm, max {sd.max():.2f} mm; mostly {what} is "
-                f"uncertain (pose {100 * pose / max(shape + pose, 1e-300):.0f} % of the variance)")
-        side = (["parallel contours: the shape may lie on either side of them; draw a crossing "
-                 "one"] if self.mirror is not None and np.linalg.norm(self.mirror) > sd.mean() else [])
-        return "; ".join([text, *side, *self.warnings])
+        out = [f"mostly {what} is uncertain (pose {100 * pose / max(shape + pose, 1e-300):.0f} % "
+               f"of the variance)"]
+        if self.mirror is not None and np.linalg.norm(self.mirror) > sd.mean():
+            out.append("parallel contours: the shape may lie on either side of them; draw a "
+                       "crossing one")
+        if self.widening >= 1.5:  # the band alone does not say why it is wide
+            out.append(f"the points' residuals run along the contours: the model may not reach "
+                       f"this shape (band widened x{self.widening:.1f})")
+        return [*out, *self.warnings]
 
     def vertex_sd(self) -> np.ndarray:
         """(N,) posterior SD (mm) of the fitted surface along its normal at each vertex."""
