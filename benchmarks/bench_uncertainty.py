@@ -157,7 +157,7 @@ def family_coverage(kinds, stored: bool = False, residual: float | None = None,
                 normals = vertex_normals(fit.vertices, faces)
                 err = np.abs(np.einsum("ij,ij->i", truth - fit.vertices, normals))
                 if MIRROR_BAND == "union" and post.mirror is not None:
-                    err, sd = union_error(post, truth - fit.vertices, normals)
+                    err, sd = union_error(post, truth - fit.vertices)
                 cell["cover"].append(float(np.mean(err <= 2 * sd)))
                 cell["z"].append(err / np.maximum(sd, 1e-12) * uncertainty.SD_CALIBRATION)
                 cell["pose"].append(post.pose_dominates)
@@ -183,7 +183,7 @@ MIRROR_BAND = "mixed"
 RESIDUAL_FROM_CORRELATION = 0.0
 
 
-def union_error(post, offset: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def union_error(post, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For :data:`MIRROR_BAND` "union": (the normal error to the nearer of the two modes, the
     SD without the mirror term) per vertex; ``offset`` (N, 3) truth minus fit."""
     shift = post.normals @ post.mirror / np.sqrt(uncertainty.MIRROR_WEIGHT)

@@ -187,7 +187,9 @@ class FitPosterior:
         """True when the pose, not the shape, is what is uncertain: the pose's share of the
         surface's variance exceeds the shape's, or the fit warned that the points lie far
         from the placement."""
-        shape, pose = self.variance_shares()
+        return self._pose_dominates(*self.variance_shares())
+
+    def _pose_dominates(self, shape: float, pose: float) -> bool:
         return bool(self.warnings) or pose > shape
 
     def message(self) -> str:
@@ -201,8 +203,8 @@ class FitPosterior:
         figures): pose or shape, the mirror side of parallel contours, a shape the model
         cannot follow, the fit's warnings. ``sd``: ``vertex_sd()``, when already computed."""
         sd = self.vertex_sd() if sd is None else sd
-        shape, pose = self.variance_shares()
-        what = "the pose" if self.pose_dominates else "the shape"
+        shape, pose = self.variance_shares()   # once: it is the costly part
+        what = "the pose" if self._pose_dominates(shape, pose) else "the shape"
         out = [f"mostly {what} is uncertain (pose {100 * pose / max(shape + pose, 1e-300):.0f} % "
                f"of the variance)"]
         if self.mirror is not None and np.linalg.norm(self.mirror) > sd.mean():
