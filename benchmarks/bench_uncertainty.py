@@ -37,6 +37,9 @@ mean of the cells, the worst cell and the worst shape, and the posterior's time 
 Variants side by side: ``--residual F`` (the GP out-of-span residual; calibrate it with
 ``--families tune --calibrate --residual F`` and pass the factor printed as ``--sd-factor``),
 ``--mirror-weight W`` and ``--no-parallel-mirror`` (the mirror mode of one contour),
+``--mirror-temperature T`` (``MIRROR_TEMPERATURE``: the mirror mode's weight from the objective
+gap of a parallel-slice fit's two starts; the table then says how often the kept side was the
+nearer one to the truth),
 ``--correlation-widening A`` (``CORRELATION_WIDENING``: the band of a fit whose residuals run
 along the contours), and the probes ``--mirror-band union`` and ``--residual-from-correlation
 C`` (RESULTS, 2026-12-07).
@@ -136,7 +139,7 @@ def family_coverage(kinds, stored: bool = False, residual: float | None = None,
         for layout, (label, (orientation, k)) in enumerate(CONTOURS.items()):
             cell = rows.setdefault((kind, label), {"cover": [], "z": [], "pose": [], "warn": [],
                                                    "err": [], "true_pose": [], "exact": [],
-                                                   "widening": []})
+                                                   "widening": [], "gap": []})
             for h, truth in enumerate(truths):
                 rng = np.random.default_rng(100 * h + k)
                 user = simulate_user(truth, faces, k, orientations=orientation, spacing=2.0,
@@ -162,6 +165,12 @@ def family_coverage(kinds, stored: bool = False, residual: float | None = None,
                 cell["z"].append(err / np.maximum(sd, 1e-12) * uncertainty.SD_CALIBRATION)
                 cell["pose"].append(post.pose_dominates)
                 cell["widening"].append(post.widening)
+                if np.isfinite(fit.mirror_gap) and post.mirror is not None:
+                    # (the objective gap, was the kept side the nearer one to the truth)
+                    other = fit.vertices + post.mirror / np.sqrt(post.mirror_weight)
+                    cell["gap"].append((fit.mirror_gap, float(
+                        np.linalg.norm(truth - fit.vertices, axis=1).mean()
+                        < np.linalg.norm(truth - other, axis=1).mean())))
                 cell["warn"].append(bool(fit.warnings))
                 cell["err"].append(float(np.linalg.norm(fit.vertices - truth, axis=1).mean()))
                 cell["true_pose"].append(pose_part_dominates(fit.vertices, truth))
@@ -186,7 +195,7 @@ RESIDUAL_FROM_CORRELATION = 0.0
 def union_error(post, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For :data:`MIRROR_BAND` "union": (the normal error to the nearer of the two modes, the
     SD without the mirror term) per vertex; ``offset`` (N, 3) truth minus fit."""
-    shift = post.normals @ post.mirror / np.sqrt(uncertainty.MIRROR_WEIGHT)
+    shift = post.normals @ post.mirror / np.sqrt(post.mirror_weight)
     e = np.einsum("ij,ij->i", offset, post.normals)
     sd = dataclasses.replace(post, mirror=None).vertex_sd()
     return np.minimum(np.abs(e), np.abs(e - shift)), sd
@@ -209,8 +218,8 @@ def exact_calibration_coverage(post, rng: np.random.Generator, draws: int = EXAC
         err += u @ post.offset
     err += np.sqrt(post.model_noise_var) * rng.standard_normal(err.shape)
     if post.mirror is not None:
-        shift = post.normals @ post.mirror / np.sqrt(uncertainty.MIRROR_WEIGHT)
-        flip = rng.random(draws) < uncertainty.MIRROR_WEIGHT
+        shift = post.normals @ post.mirror / np.sqrt(post.mirror_weight)
+        flip = rng.random(draws) < post.mirror_weight
         err[flip] += shift
         if MIRROR_BAND == "union":
             sd = dataclasses.replace(post, mirror=None, widening=1.0).vertex_sd() \
@@ -327,6 +336,12 @@ def print_family_coverage(rows, title, times=()):
               f"{uncertainty.CORRELATION_WIDENING:g}): 1 in {np.mean(widening == 1.0):.0%} of the "
               f"fits, median {np.median(widening):.2f}, 90th percentile "
               f"{np.percentile(widening, 90):.2f}, max {widening.max():.2f}")
+    gaps = np.array([g for r in rows.values() for g in r.get("gap", ())]).reshape(-1, 2)
+    if len(gaps):
+        print(f"parallel slices fitted from both sides: {len(gaps)} fits, the kept side the nearer "
+              f"to the truth in {int(gaps[:, 1].sum())}; objective gap (other minus kept) "
+              f"where right: median {np.median(gaps[gaps[:, 1] == 1, 0]) if gaps[:, 1].any() else np.nan:.1f}, "
+              f"where wrong: {np.round(np.sort(gaps[gaps[:, 1] == 0, 0]), 1).tolist()}")
     print_exact_summary(rows)
     agree = [a == b for r in rows.values() for a, b in zip(r["pose"], r["true_pose"])]
     print(f"'pose dominates' agrees with the true error's split (best similarity to the truth) "
@@ -351,6 +366,9 @@ def main(argv=None) -> int:
                         help="out-of-span residual variance factor (default: the module's)")
     parser.add_argument("--mirror-weight", type=float, default=None,
                         help="weight of the mirror mode of one contour / parallel slices")
+    parser.add_argument("--mirror-temperature", type=float, default=None, metavar="T",
+                        help="MIRROR_TEMPERATURE: the mirror mode's weight from the objective gap "
+                             "of the fit's two starts (parallel slices)")
     parser.add_argument("--no-parallel-mirror", action="store_true",
                         help="the mirror mode for a single contour only")
     parser.add_argument("--mirror-band", choices=("mixed", "union"), default="mixed",
@@ -376,6 +394,8 @@ def main(argv=None) -> int:
             uncertainty.SD_CALIBRATION = args.sd_factor
         if args.mirror_weight is not None:
             uncertainty.MIRROR_WEIGHT = args.mirror_weight
+        if args.mirror_temperature is not None:
+            uncertainty.MIRROR_TEMPERATURE = args.mirror_temperature
         uncertainty.MIRROR_PARALLEL = not args.no_parallel_mirror
         global MIRROR_BAND, RESIDUAL_FROM_CORRELATION
         if args.correlation_widening is not None:

@@ -702,6 +702,8 @@ def test_two_parallel_contours_restart_from_the_mirror_mode():
                 for restart in (True, False)}
         assert fits[True].objective[-1] <= fits[False].objective[-1] + 1e-9, h
         assert fits[False].mirror_restart == "" and fits[True].mirror_restart in ("fit", "mirror")
+        # the other start's objective minus the kept one's; not measured without the restart
+        assert fits[True].mirror_gap >= 0.0 and np.isnan(fits[False].mirror_gap)
         kept.append(fits[True].mirror_restart)
         for restart, fit in fits.items():
             errors[restart].append(float(np.linalg.norm(fit.vertices - truth, axis=1).mean()))

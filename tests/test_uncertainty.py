@@ -310,3 +310,20 @@ def test_the_widening_scales_the_laplace_part_and_not_the_mirror_mode():
     np.testing.assert_allclose(wide.point_covariance(idx, w) / SD_CALIBRATION ** 2,
                                4.0 * (post.point_covariance(idx, w) / SD_CALIBRATION ** 2
                                       - mirror_cov) + mirror_cov, rtol=1e-9, atol=1e-12)
+
+
+def test_the_mirror_weight_follows_the_objective_gap_only_when_a_temperature_is_set(monkeypatch):
+    """``MIRROR_TEMPERATURE`` (off by default): the mirror mode's weight is MIRROR_WEIGHT x
+    2 / (1 + exp(gap / T)), the two starts' odds under the fit's objective; without a gap (no
+    restart) or a temperature it is MIRROR_WEIGHT."""
+    from types import SimpleNamespace
+
+    from core.reconstruction import uncertainty as u
+
+    fit = SimpleNamespace(mirror_gap=2.0)
+    assert u.mirror_weight(fit) == u.MIRROR_WEIGHT
+    monkeypatch.setattr(u, "MIRROR_TEMPERATURE", 1.0)
+    assert u.mirror_weight(fit) == pytest.approx(u.MIRROR_WEIGHT * 2.0 / (1.0 + np.exp(2.0)))
+    assert u.mirror_weight(SimpleNamespace(mirror_gap=0.0)) == pytest.approx(u.MIRROR_WEIGHT)
+    assert u.mirror_weight(SimpleNamespace(mirror_gap=float("nan"))) == u.MIRROR_WEIGHT
+    assert u.mirror_weight(None) == u.MIRROR_WEIGHT

@@ -341,11 +341,11 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     # (tuning families end to end, 2 parallel contours: concave 0.171 -> 0.174 mm)
     stack = slice_stack(pts) if mirror_restart and pose != "none" and method != "icp" else None
     stack = stack if stack is not None and stack.n_planes >= 2 else None
-    restart = ""
+    restart, gap = "", float("nan")
     # a warm start from a fit that looked at these slices' mirror already stays on its side
     if stack is not None and (init is None or getattr(init, "mirror_key", None) != stack.key):
-        fitter, start, restart = _restart_from_mirror(fitter, start, make_fitter, run, stack,
-                                                      xtol_mm)
+        fitter, start, restart, gap = _restart_from_mirror(fitter, start, make_fitter, run,
+                                                           stack, xtol_mm)
     rho, inflation = 0.0, 1.0
     if correlated_residuals and snap.n_factors > 0:
         rho, inflation = _tempered_refit(fitter, start, run, prior_weight)
@@ -353,7 +353,7 @@ def fit_points(model: ShapeModel, points: np.ndarray, normals: np.ndarray | None
     result.residual_correlation, result.prior_inflation = rho, inflation
     result.prior_weight = float(prior_weight)
     result.warnings, result.placement_source = warnings, source
-    result.mirror_restart = restart
+    result.mirror_restart, result.mirror_gap = restart, gap
     result.mirror_key = None if stack is None else stack.key
     return result
 
@@ -364,14 +364,14 @@ _Run = Callable[[GMMFitter, "FitState | None"], GMMFitter]
 
 def _restart_from_mirror(fitter: GMMFitter, start: FitState | None,
                          make_fitter: Callable[[], GMMFitter], run: _Run, stack: SliceStack,
-                         xtol_mm: float) -> tuple[GMMFitter, FitState | None, str]:
+                         xtol_mm: float) -> tuple[GMMFitter, FitState | None, str, float]:
     """The fit of parallel slices run again from its mirror mode (``mirror_restart`` of
     :func:`fit_points`; ``run(fitter, start)`` fits the points): (the fitter with the lower
-    objective, its start, "fit" or "mirror"; "" when the mirror mode is within ``xtol_mm``
-    of the fit)."""
+    objective, its start, "fit" or "mirror", and the other start's objective minus the kept
+    one's, >= 0; "" and NaN when the mirror mode is within ``xtol_mm`` of the fit)."""
     shift = mirror_shift(fitter.vertices_, stack)
     if np.linalg.norm(shift) <= xtol_mm:
-        return fitter, start, ""
+        return fitter, start, "", float("nan")
     # the same objective (same priors about the same placement) from the mirror mode: the
     # fitted pose moved across the slices' middle plane, the mean shape, the cold variance
     snap, fitted = fitter.snap_, fitter.state_.pose
@@ -380,9 +380,10 @@ def _restart_from_mirror(fitter: GMMFitter, start: FitState | None,
                             float("nan"), float("nan"))
     other = run(make_fitter(), mirror_start)
     other.n_iter_ += fitter.n_iter_
+    gap = float(abs(other.objective_[-1] - fitter.objective_[-1]))
     if other.objective_[-1] < fitter.objective_[-1]:
-        return other, mirror_start, "mirror"
-    return fitter, start, "fit"
+        return other, mirror_start, "mirror", gap
+    return fitter, start, "fit", gap
 
 
 def _tempered_refit(fitter: GMMFitter, start: FitState | None, run: _Run,

@@ -85,6 +85,7 @@ class FitResult:
     placement_source: str = "stored"   # "stored", "given" (a matrix) or "points" (Place here)
     mirror_restart: str = ""          # "fit" / "mirror": which start won (fit_points); "": none
     mirror_key: tuple | None = None   # the parallel slices the mirror was looked at for
+    mirror_gap: float = float("nan")  # the other start's objective minus the kept one's
 
     @property
     def coef_covariance(self) -> np.ndarray | None:
@@ -138,6 +139,7 @@ class FitResult:
             "prior_weight": self.prior_weight,
             "warnings": list(self.warnings),
             "mirror_restart": self.mirror_restart,
+            "mirror_gap": None if not np.isfinite(self.mirror_gap) else self.mirror_gap,
         }
         if self.placement is not None:
             out["placement"] = np.asarray(self.placement).tolist()

@@ -152,6 +152,7 @@ class FitPosterior:
     offset: np.ndarray | None = None  # (M + K + R,) the posterior's mode minus the fit
     mirror: np.ndarray | None = None  # (3,) sqrt(weight) x the mirror mode's shift (world mm)
     widening: float = 1.0  # of the band, for residuals that run along the contours (fit_posterior)
+    mirror_weight: float = 0.0  # the mirror mode's weight w (``mirror`` is sqrt(w) x its shift)
 
     @property
     def coef_cov(self) -> np.ndarray:
@@ -457,14 +458,15 @@ def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose:
                                 np.zeros(k) if dev is None else dev, np.zeros(r)])
         offset = cov @ (g.T @ resid / noise_var - full_prior @ theta)
     jac = np.concatenate([jac, normals[:, :, None] * (scale * psi)[:, None, :]], axis=2)
-    mirror = _mirror_shift(world, points) if MIRROR_WEIGHT > 0 else None
-    mirror = None if mirror is None else np.sqrt(MIRROR_WEIGHT) * mirror
+    weight = mirror_weight(fit)
+    mirror = _mirror_shift(world, points) if weight > 0 else None
+    mirror = None if mirror is None else np.sqrt(weight) * mirror
     # the fit's residual correlation, shrunk by its standard error, from its inflation
     # (1 + rho) / (1 - rho) (0 where the fit found none or lies on the points to the floor)
     shrunk = (inflation - 1.0) / (inflation + 1.0) if len(points) else 0.0
     return FitPosterior(model, world, normals, jac, cov, noise_var, float(model_noise_var),
                         tuple(getattr(fit, "warnings", ()) or ()), r, offset, mirror,
-                        1.0 + CORRELATION_WIDENING * shrunk)
+                        1.0 + CORRELATION_WIDENING * shrunk, 0.0 if mirror is None else weight)
 
 
 #: Weight of the mirror mode of one contour or parallel slices (:func:`_mirror_shift`):
@@ -474,6 +476,20 @@ def fit_posterior(model: ShapeModel, points: np.ndarray, coef: np.ndarray, pose:
 #: tuning kinds it leaves SD_CALIBRATION's rule unchanged (1.351) and raises their mean
 #: coverage from 96.5 to 97.5 % (1 axial 94.0 -> 97.0 %, 2 parallel 94.0 -> 99.1 %).
 MIRROR_WEIGHT = 0.5
+#: Temperature T of the mirror mode's weight where the fit of parallel slices ran from both
+#: sides (``FitResult.mirror_gap``, the other side's objective minus the kept one's, g >= 0):
+#: w = MIRROR_WEIGHT x 2 / (1 + exp(g / T)), the two modes' odds under the fit's own
+#: objective, tempered. inf: the weight stays MIRROR_WEIGHT.
+MIRROR_TEMPERATURE = float("inf")
+
+
+def mirror_weight(fit) -> float:
+    """The mirror mode's weight for a fit (:data:`MIRROR_WEIGHT`, lowered by
+    :data:`MIRROR_TEMPERATURE` where the fit of parallel slices compared both sides)."""
+    gap = float(getattr(fit, "mirror_gap", float("nan")))
+    if not np.isfinite(gap) or not np.isfinite(MIRROR_TEMPERATURE):
+        return MIRROR_WEIGHT
+    return MIRROR_WEIGHT * 2.0 / (1.0 + np.exp(min(gap / MIRROR_TEMPERATURE, 700.0)))
 
 
 def _mirror_shift(world: np.ndarray, points: np.ndarray) -> np.ndarray | None:
