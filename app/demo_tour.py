@@ -59,9 +59,11 @@ def truth_surface():
     return mesh.vertices, mesh.faces
 
 
-def tour_steps(window, truth, out_dir: Path, seed: int = 0, spacing: float = 3.0) -> list[tuple]:
+def tour_steps(window, truth, out_dir: Path | None, seed: int = 0,
+               spacing: float = 3.0) -> list[tuple]:
     """The tour as a list of steps ``(kind, *args)`` for :class:`DemoTour`; ``spacing`` (mm)
-    between the contour points the simulated user clicks."""
+    between the contour points the simulated user clicks; ``out_dir`` None: the export goes
+    to a temporary folder made when the tour gets there."""
     vertices, faces = truth
     state = window.state
     steps: list[tuple] = [("message", "Demo tour: contours drawn slice by slice, the model "
@@ -200,7 +202,9 @@ class DemoTour(QObject):
             w.factors_panel.set_factor_sd(step[1], step[2])
             w._show_factor_region(step[1])
         elif kind == "export":
-            w._guarded(lambda: w.export_all(step[1]))
+            # made only here, so a tour stopped before its export leaves no folder behind
+            folder = step[1] or Path(tempfile.mkdtemp(prefix="ssm-studio-demo-"))
+            w._guarded(lambda: w.export_all(folder))
         elif kind == "add_structure":
             w.add_structure(step[1])
         elif kind == "stn_contours":        # drawn on the structure just added and placed
@@ -235,8 +239,7 @@ def start_tour(window, record: str | Path | None = None, interval_ms: int = 120,
         return None
     if window.state.volume is None or window.state.active.model is None:
         window.load_demo()
-    out = Path(record) / "export" if record is not None else \
-        Path(tempfile.mkdtemp(prefix="ssm-studio-demo-"))
+    out = Path(record) / "export" if record is not None else None
     tour = DemoTour(window, tour_steps(window, truth, out, spacing=spacing), interval_ms, record)
     if quit_at_end:     # a recording has nobody to answer "save before closing?"
         tour.finished.connect(lambda completed: window.close_unattended())

@@ -84,7 +84,11 @@ def test_tour_draws_refits_sweeps_exports_and_records(window, qtbot, tmp_path):
     assert frames[0].name == "frame_0001.png"
 
 
-def test_any_key_stops_the_tour_and_leaves_the_session_editable(window, qtbot):
+def test_any_key_stops_the_tour_and_leaves_the_session_editable(window, qtbot, tmp_path,
+                                                                monkeypatch):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     tour = demo_tour.start_tour(window, interval_ms=5)
     qtbot.waitUntil(lambda: len(window.state.active.points) >= 3, timeout=20000)
     with qtbot.waitSignal(tour.finished, timeout=5000) as done:
@@ -95,3 +99,5 @@ def test_any_key_stops_the_tour_and_leaves_the_session_editable(window, qtbot):
     assert len(window.state.active.points) == n                # nothing more is drawn
     window.undo()                                       # and the user can go on
     assert len(window.state.active.points) < n
+    # stopped before its export step, the tour leaves no temporary folder behind
+    assert not list(tmp_path.glob("ssm-studio-demo-*"))
