@@ -40,10 +40,20 @@ def _slow_job(arg, common):
 
 
 @pytest.fixture(scope="module")
-def local_cluster():
+def local_cluster(tmp_path_factory):
+    """A LocalCluster for the module's tests; at the end its workers' scratch folders (one of
+    a worker killed by a test among them) must be gone."""
     pytest.importorskip("distributed")
-    with use_scheduler("local:2") as client:
-        yield client
+    import tempfile
+
+    temp, former = tmp_path_factory.mktemp("temp"), tempfile.tempdir
+    tempfile.tempdir = str(temp)
+    try:
+        with use_scheduler("local:2") as client:
+            yield client
+    finally:
+        tempfile.tempdir = former
+    assert not list(temp.iterdir())
 
 
 def test_pool_and_inline_give_the_same_results():
@@ -345,7 +355,8 @@ def test_cluster_started_with_the_dask_command_line(tmp_path):
         pytest.skip("the dask command line is not installed")
     (tmp_path / "cli_jobs.py").write_text("import os, time\n\ndef square(arg, common):\n"
                                           "    time.sleep(0.1)\n    return arg * arg + common, os.getpid()\n")
-    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}")
+    # the user's cluster keeps its scratch space (dask-scratch-space) in the test's folder
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{tmp_path}", TMPDIR=str(tmp_path))
     sched_file = tmp_path / "scheduler.json"
     common = ["--no-dashboard"]
     procs = [subprocess.Popen([str(dask_cli), "scheduler", "--scheduler-file", str(sched_file),

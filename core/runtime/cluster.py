@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import shutil
+import tempfile
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -42,6 +44,7 @@ def check_scheduler(value: str | None) -> str | None:
 
 
 def _dask_client(scheduler: str):
+    """(client, the LocalCluster or None, its workers' scratch folder or None)."""
     try:
         from distributed import Client, LocalCluster
     except ImportError:
@@ -55,14 +58,24 @@ def _dask_client(scheduler: str):
         # taken by another cluster, which Dask would warn about). Without a dashboard nobody
         # sees the workers' statistical profiles: their sampler thread (every 10 ms) is off
         # (it cost each idle worker about 2 % of a core, and takes the GIL from the jobs).
-        with dask.config.set({"distributed.worker.profile.enabled": False}):
-            cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]), threads_per_worker=1,
-                                   processes=True, dashboard_address=None,
-                                   scheduler_kwargs={"dashboard": False, "dashboard_address": ":0"},
-                                   silence_logs=logging.ERROR)
-        return Client(cluster), cluster
+        # The workers' scratch space is ours, removed at the end: a worker that was killed
+        # leaves its folder in Dask's shared dask-scratch-space otherwise.
+        scratch = tempfile.mkdtemp(prefix="ssm-studio-dask-")
+        try:
+            with dask.config.set({"distributed.worker.profile.enabled": False,
+                                  "temporary-directory": scratch}):  # the scheduler's too
+                cluster = LocalCluster(n_workers=int(scheduler.split(":", 1)[1]),
+                                       threads_per_worker=1, processes=True,
+                                       dashboard_address=None, local_directory=scratch,
+                                       scheduler_kwargs={"dashboard": False,
+                                                         "dashboard_address": ":0"},
+                                       silence_logs=logging.ERROR)
+        except BaseException:
+            shutil.rmtree(scratch, ignore_errors=True)
+            raise
+        return Client(cluster), cluster, scratch
     try:
-        return Client(scheduler, timeout="10s"), None
+        return Client(scheduler, timeout="10s"), None, None
     except (OSError, TimeoutError) as exc:
         raise ValueError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
 
@@ -82,7 +95,7 @@ def use_scheduler(scheduler: str | None) -> Iterator[Any]:
         finally:
             _SCHEDULER.reset(token)
         return
-    client, cluster = _dask_client(scheduler)
+    client, cluster, scratch = _dask_client(scheduler)
     token = _SCHEDULER.set(client)
     try:
         yield client
@@ -93,6 +106,8 @@ def use_scheduler(scheduler: str | None) -> Iterator[Any]:
         if cluster is not None:
             with contextlib.suppress(Exception):
                 cluster.close(timeout=2)
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
 
 
 def active_client():
