@@ -395,3 +395,11 @@ def test_mesh_list_shows_what_grooming_repaired(panel, qtbot, tmp_path):
     assert panel.mesh_list.headerItem().text(4) == "Grooming"
     assert rows["shape_2.vtk"].text(4).startswith("dropped 1 piece"), rows["shape_2.vtk"].text(4)
     assert all("dropped" not in rows[f"shape_{k}.vtk"].text(4) for k in (0, 1, 3))
+    # the run box says what the correspondence safeguard tried and kept, as the record does
+    record = panel.state.stages["correspondence"].result.safeguard
+    remesh = {s["stage"]: s for s in record["stages"]}["remesh"]
+    shown = panel.run_box.safeguard_label
+    assert shown.isVisibleTo(panel) and shown.text().startswith("Safeguard: remesh ")
+    assert f"{remesh['criterion_mm']['no remesh']:.3f} mm without" in shown.text()
+    assert shown.text().count("Safeguard: ") == 1 + len(
+        {s["stage"]: s for s in record["stages"]}["refinement"]["passes"])

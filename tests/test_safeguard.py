@@ -175,7 +175,7 @@ def test_the_safeguard_rolls_back_a_pass_that_hurts():
     assert _true_spread(pop, guarded) < _true_spread(pop, forced)
 
 
-def test_correspondence_json_records_the_safeguard(tmp_path):
+def test_correspondence_json_records_the_safeguard(tmp_path, capsys):
     from core.cli import main
     from core.io import save_mesh
 
@@ -193,11 +193,23 @@ def test_correspondence_json_records_the_safeguard(tmp_path):
     assert stages["remesh"]["kept"] in ("remesh", "no remesh")
     assert all(v > 0 for v in stages["remesh"]["criterion_mm"].values())
     assert stages["refinement"]["before_mm"] > 0 and stages["refinement"]["passes"]
+    # the command says what was kept, with the criterion's values of the record
+    printed = [line for line in capsys.readouterr().out.splitlines() if "safeguard:" in line]
+    remesh = stages["remesh"]
+    assert printed[0].strip() == (
+        f"safeguard: remesh {'kept' if remesh['kept'] == 'remesh' else 'left out'}: leave-one-out "
+        f"error {remesh['criterion_mm']['remesh']:.3f} mm with it, "
+        f"{remesh['criterion_mm']['no remesh']:.3f} mm without (on 5 shapes)")
+    first = stages["refinement"]["passes"][0]
+    assert printed[1].strip().startswith("safeguard: refinement pass 1: ")
+    assert f"{first['before_mm']:.3f} mm before" in printed[1]
+    assert len(printed) == 1 + len(stages["refinement"]["passes"])
     out2 = tmp_path / "corr2"
     assert main(["correspond", *paths, "--out", str(out2), "--jobs", "1", "--no-safeguard",
                  "--refine", "0"]) == 0
     record = json.loads((out2 / "correspondence.json").read_text())["safeguard"]
     assert record == {"enabled": False, "stages": []}
+    assert "safeguard: off: " in capsys.readouterr().out
 
 
 def test_the_remesh_trial_judges_the_reference_the_batch_takes():

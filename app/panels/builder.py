@@ -241,6 +241,7 @@ class BuilderPanel(QWidget):
         self.meshes_box.show_entries(self.state.entries, fits, failures,
                                      self.state.grooming_report())
         self.pipeline.set_reference_names([e.name for e in self.usable_entries()])
+        self.run_box.show_safeguard(self.state.safeguard_report())
         self._refresh_stage_labels()
         self._update_buttons()
 

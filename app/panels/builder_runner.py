@@ -205,6 +205,14 @@ class RunBox(QGroupBox):
         self.status_label.setWordWrap(True)
         self.status_label.setTextInteractionFlags(Qt.TextSelectableByMouse)
         self.stage_labels = {s: QLabel("—") for s in STAGES}
+        self.safeguard_label = QLabel("")
+        self.safeguard_label.setObjectName("safeguard")
+        self.safeguard_label.setWordWrap(True)
+        self.safeguard_label.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        self.safeguard_label.setToolTip("The correspondence safeguard keeps the remesh and each "
+                                        "refinement pass only where the model's leave-one-out "
+                                        "error against the raw inputs says it helps")
+        self.safeguard_label.hide()
         layout = QVBoxLayout(self)
         row = QHBoxLayout()
         row.addWidget(self.build_button, 1)
@@ -215,6 +223,7 @@ class RunBox(QGroupBox):
         for s in STAGES:
             stage_form.addRow(STAGE_TITLES[s], self.stage_labels[s])
         layout.addLayout(stage_form)
+        layout.addWidget(self.safeguard_label)
         layout.addWidget(self.status_label)
 
     def job_started(self, stage: str) -> None:
@@ -247,6 +256,11 @@ class RunBox(QGroupBox):
                 label.setText(f"out of date (done in {seconds[stage]:.1f} s)")
             else:
                 label.setText("not run")
+
+    def show_safeguard(self, lines: list[str]) -> None:
+        """The safeguard's decisions of the last correspondence (hidden when there are none)."""
+        self.safeguard_label.setText("\n".join(f"Safeguard: {line}" for line in lines))
+        self.safeguard_label.setVisible(bool(lines))
 
     def set_status(self, text: str, error: bool = False) -> None:
         self.status_label.setStyleSheet("color: #b00020;" if error else "")

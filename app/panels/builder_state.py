@@ -56,6 +56,15 @@ class BuilderState:
         grooming = getattr(self.stages["correspondence"].result, "grooming", None) or {}
         return {name: describe(rep) for name, rep in grooming.items()}
 
+    def safeguard_report(self) -> list[str]:
+        """What the correspondence safeguard tried and kept, one line a judged stage, from the
+        cached correspondence (:func:`core.correspondence.safeguard.describe`)."""
+        if "correspondence" not in self.stages:
+            return []
+        from core.correspondence.safeguard import describe
+
+        return describe(getattr(self.stages["correspondence"].result, "safeguard", None) or {})
+
     def meshes_for(self, which: str) -> MeshTriples:
         """The training shapes "as loaded", "corresponded" or "aligned" (empty if not built)."""
         if which == "as loaded":

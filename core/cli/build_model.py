@@ -126,6 +126,11 @@ def run(args: argparse.Namespace) -> int:
     model = result.model
     for name, reason in result.failures.items():
         print(f"skipped {name}: {reason}", file=sys.stderr)
+    if result.correspondence is not None:
+        from core.correspondence.safeguard import describe as describe_safeguard
+
+        for line in describe_safeguard(result.correspondence.safeguard):
+            print(f"  safeguard: {line}")
     times = ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items())
     print(f"{args.out}: {model.method} model, {model.n_factors} factors, {model.n_vertices} "
           f"vertices, {len(result.names)} training shapes ({times})")

@@ -48,6 +48,7 @@ from pathlib import Path
 
 from core.cli._options import add_scheduler_option, say_changed_formats
 from core.correspondence import DEFAULT_CPD_PARAMS, establish_correspondence
+from core.correspondence.safeguard import describe as describe_safeguard
 from core.correspondence.store import SCRATCH_NAME
 from core.io import DataFileError, TriMesh, atomic_write_json, load_meshes, save_mesh
 from core.io.meshes import order_keeping_suffixes
@@ -228,6 +229,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{args.out}: {n_ok}/{len(args.meshes)} meshes corresponded to {result.reference_name} "
           f"({len(result.faces)} triangles), mean residual "
           f"{'n/a' if mean is None else f'{mean:.3f} mm'}, {result.timings['total']:.1f} s")
+    for line in describe_safeguard(result.safeguard):
+        print(f"  safeguard: {line}")
     for name, problem in report["failures"].items():
         print(f"ssm-studio correspond: {name}: {problem}", file=sys.stderr)
     say_changed_formats("correspond", written)

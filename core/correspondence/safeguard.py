@@ -349,3 +349,37 @@ def _unguarded(run_pass: Callable, params: dict, passes: int) -> list[float]:
     for _ in range(int(passes)):
         changes += run_pass(params)
     return changes
+
+
+def describe(record: Mapping) -> list[str]:
+    """One line a judged stage of ``CorrespondenceResult.safeguard`` (the record above): what
+    was tried, the criterion's values (mm) and what was kept, for the command line and the
+    builder; ["off: ..."] when it was disabled, [] when nothing was judged."""
+    if not record:
+        return []
+    if not record.get("enabled", True):
+        return ["off: the remesh and every refinement pass kept as configured"]
+    lines = []
+    for stage in record.get("stages", ()):
+        if stage.get("stage") == "remesh":
+            values = stage.get("criterion_mm", {})
+            lines.append(f"remesh {'kept' if stage.get('kept') == 'remesh' else 'left out'}: "
+                         f"leave-one-out error {_mm(values.get('remesh'))} with it, "
+                         f"{_mm(values.get('no remesh'))} without (on {len(stage.get('shapes', ()))} "
+                         f"shapes)")
+        elif stage.get("stage") == "refinement":
+            if stage.get("note"):
+                lines.append(f"refinement {stage['note']}")
+            for entry in stage.get("passes", ()):
+                tried = ", ".join(f"{name.replace('_', ' ')} {_mm(value)}"
+                                  for name, value in entry.get("criterion_mm", {}).items())
+                kept = str(entry.get("kept", ""))
+                verdict = ("rolled back (no deformation " f"{100 * KEEP_MARGIN:.0f} % better)"
+                           if kept.startswith("none") else f"{kept.replace('_', ' ')} kept")
+                lines.append(f"refinement pass {entry.get('pass')}: {verdict}; leave-one-out "
+                             f"error {_mm(entry.get('before_mm'))} before, {tried}")
+    return lines
+
+
+def _mm(value) -> str:
+    return "n/a" if value is None else f"{float(value):.3f} mm"
