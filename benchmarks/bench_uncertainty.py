@@ -338,9 +338,10 @@ def print_family_coverage(rows, title, times=()):
               f"{np.percentile(widening, 90):.2f}, max {widening.max():.2f}")
     gaps = np.array([g for r in rows.values() for g in r.get("gap", ())]).reshape(-1, 2)
     if len(gaps):
+        right = gaps[gaps[:, 1] == 1, 0]
         print(f"parallel slices fitted from both sides: {len(gaps)} fits, the kept side the nearer "
-              f"to the truth in {int(gaps[:, 1].sum())}; objective gap (other minus kept) "
-              f"where right: median {np.median(gaps[gaps[:, 1] == 1, 0]) if gaps[:, 1].any() else np.nan:.1f}, "
+              f"to the truth in {len(right)}; objective gap (other minus kept) where right: median "
+              f"{np.median(right) if len(right) else np.nan:.1f}, "
               f"where wrong: {np.round(np.sort(gaps[gaps[:, 1] == 0, 0]), 1).tolist()}")
     print_exact_summary(rows)
     agree = [a == b for r in rows.values() for a, b in zip(r["pose"], r["true_pose"])]
