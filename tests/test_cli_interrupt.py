@@ -82,12 +82,13 @@ def test_sigint_to_correspond_leaves_finished_shapes_and_a_report(tmp_path):
     for mesh in population.meshes:
         paths.append(tmp_path / f"{mesh.name}.vtk")
         save_mesh(paths[-1], mesh)
-    out = tmp_path / "out"
+    out, temp = tmp_path / "out", tmp_path / "temp"
+    temp.mkdir()
     proc = subprocess.Popen(
         [sys.executable, "-m", "core.cli", "correspond", *map(str, paths), "--reference",
          str(paths[0]), "--out", str(out), "--jobs", "2", "--max-iterations", "30"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        env=dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(temp)))
     try:
         _wait_for(lambda: any(out.glob("bean_*.vtk")), proc)  # outputs arrive as they finish
         workers = descendants(proc.pid)
@@ -118,6 +119,8 @@ def test_sigint_to_correspond_leaves_finished_shapes_and_a_report(tmp_path):
         assert mesh.vertices.shape == first.vertices.shape and (mesh.faces == first.faces).all()
     assert len(workers) >= 2
     assert still_alive(workers) == []
+    # nor its temporary folder (multiprocessing's pymp-*, the fork server's socket in it)
+    assert list(temp.iterdir()) == []
 
 
 def test_a_killed_command_leaves_no_worker_or_fork_server(tmp_path):

@@ -155,6 +155,17 @@ def exit_if_interrupted(code: int, as_program: bool) -> int:
             from multiprocessing import util
 
             util._run_finalizers(0)  # type: ignore[attr-defined]  # private: not in typeshed
+        # and its last one: the process's temporary folder (/tmp/pymp-*, the fork server's
+        # socket in it), removed at priority -100, which os._exit skips: it was left behind
+        # by every interrupted command. The server follows its parent; its socket is no
+        # longer needed.
+        with contextlib.suppress(Exception):
+            import multiprocessing.process
+            import shutil
+
+            tempdir = multiprocessing.process.current_process()._config.get("tempdir")
+            if tempdir:
+                shutil.rmtree(tempdir, ignore_errors=True)
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
                 stream.flush()
