@@ -163,7 +163,8 @@ def exit_if_interrupted(code: int, as_program: bool) -> int:
             import multiprocessing.process
             import shutil
 
-            tempdir = multiprocessing.process.current_process()._config.get("tempdir")
+            process = multiprocessing.process.current_process()
+            tempdir = process._config.get("tempdir")  # type: ignore[attr-defined]  # private
             if tempdir:
                 shutil.rmtree(tempdir, ignore_errors=True)
         for stream in (sys.stdout, sys.stderr):
