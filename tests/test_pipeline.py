@@ -177,6 +177,14 @@ def test_build_model_with_correspondence(tmp_path):
     assert res.model.n_vertices == res.faces.max() + 1
     assert len(res.names) + len(res.failures) == 5
     assert res.correspondence is not None and "correspondence" in res.timings
+    # the model keeps what the correspondence safeguard tried and kept, through its file
+    from core.io import load_model, save_model
+
+    save_model(tmp_path / "m.npz", res.model)
+    kept = load_model(tmp_path / "m.npz").info["correspondence"]
+    assert kept["safeguard"] == res.correspondence.safeguard and kept["safeguard"]["enabled"]
+    assert {s["stage"] for s in kept["safeguard"]["stages"]} == {"remesh", "refinement"}
+    assert kept["reference"] == res.correspondence.reference_name
     # corresponded meshes reproduce the inputs' surfaces: every vertex on its input's surface
     # (the final projection is exact) and the surfaces close (0.02-0.07 mm measured; fairing
     # moves vertices along the surface, off the input's vertices, so the piecewise-linear

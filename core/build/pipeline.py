@@ -223,7 +223,7 @@ def build_model(meshes: Sequence[TriMesh] | np.ndarray, *, correspond: bool = Fa
             "n_iter": getattr(estimator, "n_iter_", None),
             "converged": getattr(estimator, "converged_", None)}
     if corr is not None:
-        info["correspondence"] = {"reference": corr.reference_name, "failures": failures}
+        info["correspondence"] = corr.provenance()
     model = estimator.to_shape_model(faces, world_transform=world, source_meshes=names, info=info)
     report(progress, 1.0, f"{estimator.method} model: {estimator.n_factors_} factors")
     return BuildResult(model=model, estimator=estimator, names=names, meshes=corresponded,

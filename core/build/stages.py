@@ -241,14 +241,9 @@ class StagedBuild:
         the correspondence report and the stage timings in its ``info``."""
         self.cache.store(stage, key, result, seconds)
         if stage == "model":
-            corr = self.cache["correspondence"].result
-            residuals = [r for r in corr.residuals_mm if r is not None]
             result.info.setdefault("timings", {}).update(
                 {f"{s}_seconds": round(self.cache[s].seconds, 3) for s in STAGES if s in self.cache})
-            result.info["correspondence"] = {
-                "reference": corr.reference_name,
-                "mean_residual_mm": float(np.mean(residuals)) if residuals else None,
-                "failures": dict(corr.failures)}
+            result.info["correspondence"] = self.cache["correspondence"].result.provenance()
 
     def run(self, settings: BuildSettings, progress: ProgressCallback | None = None):
         """Run the stale stages in this thread; returns the ShapeModel (cached stages reused)."""

@@ -107,6 +107,16 @@ class CorrespondenceResult:
     safeguard: dict = field(default_factory=dict)
     mirror_report: dict = field(default_factory=dict)
 
+    def provenance(self) -> dict:
+        """What a model built from this result keeps of it (``ShapeModel.info["correspondence"]``):
+        the reference, the mean residual, the failures, what the safeguard kept and the mirror
+        check's findings."""
+        ok = [r for r in self.residuals_mm if r is not None]
+        return {"reference": self.reference_name,
+                "mean_residual_mm": float(np.mean(ok)) if ok else None,
+                "failures": dict(self.failures), "safeguard": self.safeguard,
+                "mirror_report": self.mirror_report}
+
     def to_report(self, names: list[str] | None = None) -> dict:
         """JSON-ready summary (per shape: residual, grooming, error; reference and why)."""
         names = names or [m.name if m is not None else f"shape_{i}" for i, m in enumerate(self.meshes)]
