@@ -40,20 +40,29 @@ def _slow_job(arg, common):
 
 
 @pytest.fixture(scope="module")
-def local_cluster(tmp_path_factory):
-    """A LocalCluster for the module's tests; at the end its workers' scratch folders (one of
-    a worker killed by a test among them) must be gone."""
+def local_cluster():
+    """A LocalCluster for the module's tests; at the end its scratch folder (the scheduler's
+    and the workers', one of a worker killed by a test among them) must be gone."""
     pytest.importorskip("distributed")
-    import tempfile
+    import core.runtime.cluster as cluster
 
-    temp, former = tmp_path_factory.mktemp("temp"), tempfile.tempdir
-    tempfile.tempdir = str(temp)
+    made: list[str] = []
+    mkdtemp = cluster.tempfile.mkdtemp
+
+    def recorded(*args, **kwargs):
+        made.append(mkdtemp(*args, **kwargs))
+        return made[-1]
+
+    cluster.tempfile.mkdtemp = recorded
     try:
         with use_scheduler("local:2") as client:
+            cluster.tempfile.mkdtemp = mkdtemp
+            # ours is the first (Dask makes its own inside it); in use by the cluster
+            assert Path(made[0]).name.startswith("ssm-studio-dask-") and any(Path(made[0]).iterdir())
             yield client
     finally:
-        tempfile.tempdir = former
-    assert not list(temp.iterdir())
+        cluster.tempfile.mkdtemp = mkdtemp
+    assert not Path(made[0]).exists()
 
 
 def test_pool_and_inline_give_the_same_results():

@@ -225,6 +225,15 @@ def run(args: argparse.Namespace) -> int:
     report["complete"] = True
     atomic_write_json(args.out / REPORT_NAME, report)
     n_ok = len(written)
+    _print_summary(args, result, report, n_ok)
+    say_changed_formats("correspond", written)
+    if n_ok == 0:
+        raise ValueError("no mesh could be corresponded (see " + str(args.out / REPORT_NAME) + ")")
+    return 1 if report["failures"] else 0
+
+
+def _print_summary(args, result, report: dict, n_ok: int) -> None:
+    """What was written, what the safeguard kept, and each failure (on stderr)."""
     mean = report["mean_residual_mm"]
     print(f"{args.out}: {n_ok}/{len(args.meshes)} meshes corresponded to {result.reference_name} "
           f"({len(result.faces)} triangles), mean residual "
@@ -233,10 +242,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  safeguard: {line}")
     for name, problem in report["failures"].items():
         print(f"ssm-studio correspond: {name}: {problem}", file=sys.stderr)
-    say_changed_formats("correspond", written)
-    if n_ok == 0:
-        raise ValueError("no mesh could be corresponded (see " + str(args.out / REPORT_NAME) + ")")
-    return 1 if report["failures"] else 0
 
 
 def _complete_report(result, names: list[str], written: dict) -> dict:
