@@ -400,6 +400,6 @@ def test_mesh_list_shows_what_grooming_repaired(panel, qtbot, tmp_path):
     remesh = {s["stage"]: s for s in record["stages"]}["remesh"]
     shown = panel.run_box.safeguard_label
     assert shown.isVisibleTo(panel) and shown.text().startswith("Safeguard: remesh ")
-    assert f"{remesh['criterion_mm']['no remesh']:.3f} mm without" in shown.text()
+    assert f"{remesh['criterion_mm']['no remesh']:.3f} mm" in shown.text()
     assert shown.text().count("Safeguard: ") == 1 + len(
         {s["stage"]: s for s in record["stages"]}["refinement"]["passes"])

@@ -196,10 +196,12 @@ def test_correspondence_json_records_the_safeguard(tmp_path, capsys):
     # the command says what was kept, with the criterion's values of the record
     printed = [line for line in capsys.readouterr().out.splitlines() if "safeguard:" in line]
     remesh = stages["remesh"]
+    with_it, without = remesh["criterion_mm"]["remesh"], remesh["criterion_mm"]["no remesh"]
     assert printed[0].strip() == (
+        f"safeguard: remesh left out: it changed nothing here (leave-one-out error {with_it:.3f} "
+        "mm either way, on 5 shapes)" if with_it == without else
         f"safeguard: remesh {'kept' if remesh['kept'] == 'remesh' else 'left out'}: leave-one-out "
-        f"error {remesh['criterion_mm']['remesh']:.3f} mm with it, "
-        f"{remesh['criterion_mm']['no remesh']:.3f} mm without (on 5 shapes)")
+        f"error {with_it:.3f} mm with it, {without:.3f} mm without (on 5 shapes)")
     first = stages["refinement"]["passes"][0]
     assert printed[1].strip().startswith("safeguard: refinement pass 1: ")
     assert f"{first['before_mm']:.3f} mm before" in printed[1]

@@ -363,10 +363,15 @@ def describe(record: Mapping) -> list[str]:
     for stage in record.get("stages", ()):
         if stage.get("stage") == "remesh":
             values = stage.get("criterion_mm", {})
+            with_it, without = values.get("remesh"), values.get("no remesh")
+            shapes = len(stage.get("shapes", ()))
+            if with_it is not None and with_it == without:  # grooming kept the tessellations
+                lines.append(f"remesh left out: it changed nothing here (leave-one-out error "
+                             f"{_mm(with_it)} either way, on {shapes} shapes)")
+                continue
             lines.append(f"remesh {'kept' if stage.get('kept') == 'remesh' else 'left out'}: "
-                         f"leave-one-out error {_mm(values.get('remesh'))} with it, "
-                         f"{_mm(values.get('no remesh'))} without (on {len(stage.get('shapes', ()))} "
-                         f"shapes)")
+                         f"leave-one-out error {_mm(with_it)} with it, {_mm(without)} without "
+                         f"(on {shapes} shapes)")
         elif stage.get("stage") == "refinement":
             if stage.get("note"):
                 lines.append(f"refinement {stage['note']}")
