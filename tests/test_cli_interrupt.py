@@ -134,7 +134,10 @@ def test_a_killed_command_leaves_no_worker_or_fork_server(tmp_path):
     meshes = sorted((ROOT / "resources" / "demo" / "meshes").glob("*.vtk"))[:6]
     if len(meshes) < 6:
         pytest.skip("demo meshes missing")
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    # a killed process cannot remove its temporary folder (the fork server's socket): the
+    # test gives it one of its own (short: AF_UNIX paths) and removes it
+    temp = Path(tempfile.mkdtemp(prefix="ssm-t-"))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(temp))
     proc = subprocess.Popen(
         [sys.executable, "-m", "core.cli", "correspond", *map(str, meshes), "--jobs", "2",
          "--out", str(tmp_path / "out")], env=env, stdout=subprocess.DEVNULL,
@@ -153,6 +156,7 @@ def test_a_killed_command_leaves_no_worker_or_fork_server(tmp_path):
     deadline = time.monotonic() + 20
     while session() and time.monotonic() < deadline:
         time.sleep(0.2)
+    shutil.rmtree(temp, ignore_errors=True)
     assert session() == []
 
 
