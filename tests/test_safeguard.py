@@ -255,3 +255,29 @@ def test_the_remesh_trial_judges_both_runs_on_the_shapes_both_kept(truth, monkey
         assert record["criterion_mm"][label] == pytest.approx(expected["value"], rel=1e-9)
     assert record["failed"] == {"remesh": 1, "no remesh": 1}
     assert record["kept"] == "remesh"  # the true correspondences beat the slid ones
+
+
+def test_the_remesh_trial_reports_progress_and_stops_on_cancel():
+    """The remesh trial runs the batch's subset twice; it reports as it goes, on the first
+    part of the bar, so Cancel stops it inside its first run (it ran silently until
+    2026-12-08: Cancel, or closing the builder, waited for the whole trial)."""
+    from core.correspondence import establish_correspondence
+    from core.correspondence.safeguard import REMESH_TRIAL_SHARE
+    from core.datasets.families import population
+    from core.runtime.progress import Cancelled
+
+    pop = population("coarse", 6, 100)
+    seen: list[tuple[float, str]] = []
+
+    def progress(fraction: float, message: str) -> None:
+        seen.append((fraction, message))
+        if message.startswith("remesh trial: remesh: corresponding"):
+            raise Cancelled
+
+    with pytest.raises(Cancelled):
+        establish_correspondence(pop.meshes, n_jobs=1, progress=progress)
+    messages = [m for _, m in seen]
+    assert messages[0].startswith("remesh trial: reference")
+    assert not any(m.startswith("remesh trial: no remesh") for m in messages)
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] <= REMESH_TRIAL_SHARE

@@ -464,10 +464,14 @@ def establish_correspondence(meshes: Sequence[TriMesh | InputFile | str | os.Pat
     if cpd_params.get("labelling"):  # given: the first pass labels too (CorrespondenceRun.run pops it)
         record["labelling"] = True
     if safeguard:
-        from core.correspondence.safeguard import choose_remesh
+        from core.correspondence.safeguard import REMESH_TRIAL_SHARE, choose_remesh
 
-        groom, trial = choose_remesh(list(meshes), reference, groom, vertices, n_jobs, cpd_params)
+        # the trial reports (and so can be cancelled) like the run itself
+        groom, trial = choose_remesh(list(meshes), reference, groom, vertices, n_jobs, cpd_params,
+                                     sub_progress(progress, 0.0, REMESH_TRIAL_SHARE,
+                                                  "remesh trial: "))
         record["stages"] += [trial] if trial else []
+        progress = sub_progress(progress, REMESH_TRIAL_SHARE if trial else 0.0, 1.0)
     store = None if scratch is None else Scratch(scratch)
     try:
         run = CorrespondenceRun(list(meshes), params, store, record,

@@ -53,12 +53,14 @@ import numpy as np
 
 from core.correspondence.store import VertexRows
 from core.correspondence.tasks import spread_pick
+from core.runtime.progress import ProgressCallback, sub_progress
 from core.types import TriMesh
 
 MODEL_SHAPES = 24   # shapes of the generalisation model (evenly spread over the data set)
 FOLDS = 12          # of them left out in turn
 REMESH_SHAPES = 8   # shapes of the remesh trial
 MIN_SHAPES = 4      # fewer usable shapes: no safeguard (a model of 2 shapes says nothing)
+REMESH_TRIAL_SHARE = 0.25  # of a batch's progress bar (the trial runs a subset twice)
 KEEP_MARGIN = 0.05  # a stage is kept only when it lowers the criterion by more than this share.
 # Chosen on the tuning populations (bench_safeguard.py): the stages that truly helped lowered
 # it by 7-11 %; a remesh that truly hurt by 1.7 % (bean-even, true spread 1.165 against 1.009
@@ -115,9 +117,11 @@ def _remesh_on(groom) -> bool:
 
 
 def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jobs: int | None,
-                  cpd_params: dict) -> tuple[bool | dict, dict | None]:
+                  cpd_params: dict, progress: ProgressCallback | None = None
+                  ) -> tuple[bool | dict, dict | None]:
     """(grooming options to use, the record) after the remesh trial (module docstring); the
-    options unchanged and no record when the remesh is off or there are too few shapes."""
+    options unchanged and no record when the remesh is off or there are too few shapes.
+    ``progress`` may raise :class:`core.runtime.progress.Cancelled` to stop the trial."""
     from core.correspondence.batch import default_vertex_count, establish_correspondence
 
     if not _remesh_on(groom) or len(meshes) < MIN_SHAPES:
@@ -128,7 +132,8 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
     if not isinstance(reference, (int, np.integer, TriMesh)) and not (
             isinstance(reference, (str, os.PathLike)) and os.path.isfile(str(reference))):
         try:  # "auto" or an input's name: the input the whole batch will take
-            ref = batch_reference(meshes, reference, options, vertices, n_jobs, cpd_params)
+            ref = batch_reference(meshes, reference, options, vertices, n_jobs, cpd_params,
+                                  sub_progress(progress, 0.0, 0.2, "reference: "))
         except ValueError:  # no input can serve: the batch says so itself
             return groom, None
     if isinstance(ref, (int, np.integer)) and not isinstance(ref, bool):
@@ -152,11 +157,13 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
     if vertices is None and all(isinstance(m, TriMesh) for m in meshes):
         vertices = default_vertex_count(list(meshes))
     values, results = {}, {}
-    for label, remesh in (("remesh", True), ("no remesh", False)):
+    for span, (label, remesh) in zip(((0.2, 0.6), (0.6, 1.0)), (("remesh", True),
+                                                               ("no remesh", False))):
         try:
-            results[label] = establish_correspondence(raw, ref, groom=dict(options, remesh=remesh),
-                                                      vertices=vertices, refine=0, n_jobs=n_jobs,
-                                                      safeguard=False, **cpd_params)
+            results[label] = establish_correspondence(
+                raw, ref, groom=dict(options, remesh=remesh), vertices=vertices, refine=0,
+                n_jobs=n_jobs, safeguard=False, progress=sub_progress(progress, *span, f"{label}: "),
+                **cpd_params)
         except ValueError as exc:
             values[label] = {"value": None, "error": str(exc)}
     # both judged on the shapes both kept (the mirror check may leave out different members
@@ -178,7 +185,8 @@ def choose_remesh(meshes: Sequence, reference, groom, vertices: int | None, n_jo
 
 
 def batch_reference(meshes: Sequence, reference, options: dict, vertices: int | None,
-                    n_jobs: int | None, cpd_params: dict) -> int | None:
+                    n_jobs: int | None, cpd_params: dict,
+                    progress: ProgressCallback | None = None) -> int | None:
     """The index of the input that the batch of all ``meshes`` takes as its reference
     (``"auto"``: the most typical one; or an input's name), from the inputs groomed as the
     batch grooms them but without the remesh (a remesh hardly moves the pose- and
@@ -195,7 +203,7 @@ def batch_reference(meshes: Sequence, reference, options: dict, vertices: int | 
 
     run = CorrespondenceRun(list(meshes), _check_params(dict(cpd_params), "compactness"), None,
                             {"enabled": False, "stages": []},
-                            (os.cpu_count() or 1) if n_jobs is None else int(n_jobs))
+                            (os.cpu_count() or 1) if n_jobs is None else int(n_jobs), progress)
     run.prepare(dict(options, remesh=False), vertices, None)
     candidates, external, _ = resolve_reference(run, reference, 1)
     return None if external is not None or candidates[0] is None else int(candidates[0])

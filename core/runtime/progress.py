@@ -26,13 +26,16 @@ def report(progress: ProgressCallback | None, fraction: float, message: str = ""
         progress(min(max(float(fraction), 0.0), 1.0), message)
 
 
-def sub_progress(progress: ProgressCallback | None, start: float, stop: float) -> ProgressCallback | None:
-    """A callback mapping [0, 1] onto [start, stop] of ``progress`` (for nested steps)."""
+def sub_progress(progress: ProgressCallback | None, start: float, stop: float,
+                 prefix: str = "") -> ProgressCallback | None:
+    """A callback mapping [0, 1] onto [start, stop] of ``progress`` (for nested steps), its
+    messages after ``prefix`` (a nested step that says what it is part of)."""
     if progress is None:
         return None
 
     def inner(fraction: float, message: str = "") -> None:
-        progress(start + (stop - start) * min(max(fraction, 0.0), 1.0), message)
+        progress(start + (stop - start) * min(max(fraction, 0.0), 1.0),
+                 f"{prefix}{message}" if message else prefix.rstrip(": "))
 
     return inner
 
