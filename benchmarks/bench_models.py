@@ -169,9 +169,14 @@ def bench_cancel(shapes, faces, args) -> None:
     from core.io import TriMesh
 
     meshes = [TriMesh(s, faces, f"s{i}") for i, s in enumerate(shapes[:6])]
+    every = [TriMesh(s, faces, f"s{i}") for i, s in enumerate(shapes)]
     stages = {
         "correspondence (6 meshes, 2 workers)":
             lambda p: correspond(meshes, reference=0, n_jobs=2, progress=p),
+        # the first seconds of a larger batch are the safeguard's remesh trial (silent, and so
+        # deaf to Cancel, until 2026-12-08)
+        f"correspondence ({len(every)} meshes, reference auto, 2 workers)":
+            lambda p: correspond(every, reference="auto", n_jobs=2, progress=p),
         "alignment (sync)": lambda p: align(shapes, progress=p),
         "evaluation (pca, 2 workers)":
             lambda p: evaluate_model("pca", shapes, faces, n_jobs=2, progress=p),
