@@ -55,7 +55,7 @@ from app.registry import ActionRegistry, SliceTools
 from app.tabs import WorkspaceTabs
 from app.tools_install import install_segment_tools
 from app.views.grid import SegmentWorkspace
-from app.workers import error_message
+from app.workers import error_message, settle_at_exit
 from core.io.model_library import list_library
 
 __all__ = ["MainWindow", "SegmentWorkspace", "SHORTCUTS", "OPEN_DIALOGS", "run_gui"]
@@ -546,4 +546,4 @@ def run_gui(image: str | None = None, model: str | None = None, session: str | N
         QTimer.singleShot(800, play)
     else:
         QTimer.singleShot(0, window.offer_recovery)
-    return app.exec()
+    return settle_at_exit(app.exec())

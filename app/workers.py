@@ -39,7 +39,8 @@ from PySide6.QtCore import QObject, Qt, QThread, Signal, Slot
 
 from core.runtime.progress import Cancelled
 
-__all__ = ["Worker", "DialogTask", "LatestWinsRunner", "error_message", "running_workers"]
+__all__ = ["Worker", "DialogTask", "LatestWinsRunner", "error_message", "running_workers",
+           "settle_at_exit"]
 
 # Workers still running are kept alive here: a QThread garbage-collected while running aborts
 # the process ("QThread: Destroyed while thread is still running").
@@ -49,6 +50,27 @@ _RUNNING: set[Worker] = set()
 def running_workers() -> list[Worker]:
     """Workers started and not yet finished (for tests and for waiting at exit)."""
     return list(_RUNNING)
+
+
+def settle_at_exit(code: int, wait_ms: int = 30000) -> int:
+    """The end of the GUI (after the event loop): cancel the workers still running and wait
+    for them; each stops at its next progress report. A worker that does not stop within
+    ``wait_ms`` (inside a long call that reports nothing) would be destroyed running by the
+    interpreter's shutdown, which aborts the process: then exit at once with ``code``
+    (:func:`core.runtime.signals.exit_now`). Returns ``code`` otherwise."""
+    import time
+
+    deadline = time.monotonic() + wait_ms / 1000.0
+    workers = running_workers()  # (finished ones leave the set in the event loop, now over)
+    for worker in workers:
+        worker.cancel()
+    for worker in workers:
+        worker.wait(max(0, int(1000 * (deadline - time.monotonic()))))
+    if not all(worker.isFinished() for worker in workers):
+        from core.runtime.signals import exit_now
+
+        exit_now(code)
+    return code
 
 
 def error_message(exc: BaseException) -> str:

@@ -150,3 +150,44 @@ def test_dialog_task_delivers_its_outcome_in_the_gui_thread(qtbot, outcome):
         assert delivered[0][1] == (5,)
     elif outcome == "failed":
         assert "bad input" in delivered[0][1][0]
+
+
+_EXIT_SCRIPT = """
+import sys, time
+from PySide6.QtWidgets import QApplication
+from app.workers import Worker, settle_at_exit
+
+app = QApplication([])
+stoppable = Worker(lambda progress: [progress(0.0) or time.sleep(0.05) for _ in range(400)])
+deaf = Worker(lambda: time.sleep(float(sys.argv[1])))  # reports nothing: Cancel cannot reach it
+stoppable.start()
+if float(sys.argv[1]) > 0:
+    deaf.start()
+time.sleep(0.2)
+code = settle_at_exit(7, wait_ms=int(sys.argv[2]))
+print("stoppable finished:", stoppable.isFinished(), flush=True)
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("deaf_seconds, wait_ms, expected", [(0, 20000, "True"), (30, 300, None)])
+def test_the_gui_ends_without_an_abort_while_a_worker_runs(deaf_seconds, wait_ms, expected):
+    """At the end of the event loop ``settle_at_exit`` cancels the running workers and waits
+    for them; one that reports nothing, and so cannot be cancelled, no longer aborts the
+    process as the interpreter destroys its running thread ("QThread: Destroyed while thread
+    is still running"): the process exits at once with the GUI's code."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", _EXIT_SCRIPT, str(deaf_seconds), str(wait_ms)],
+                          capture_output=True, text=True, timeout=60,  # a hang guard
+                          env=dict(os.environ, PYTHONPATH=str(root), QT_QPA_PLATFORM="offscreen"))
+    assert proc.returncode == 7, proc.stderr[-2000:]
+    assert "Destroyed while thread" not in proc.stderr
+    if expected is not None:  # every worker stopped: the normal return
+        assert f"stoppable finished: {expected}" in proc.stdout
+    else:                     # the deaf one still ran: exited at once, before the print
+        assert "stoppable finished" not in proc.stdout

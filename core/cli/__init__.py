@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
-import os
 import pkgutil
 import re
 import sys
@@ -23,6 +22,7 @@ from types import ModuleType
 
 from core import __version__
 from core.runtime.progress import Cancelled
+from core.runtime.signals import exit_now
 
 
 def command_names() -> dict[str, str]:
@@ -148,29 +148,7 @@ def exit_if_interrupted(code: int, as_program: bool) -> int:
     the finished outputs are written by then; the fork server and its workers follow their
     parent (core.runtime.parallel)."""
     if as_program and code in (130, 143):
-        # multiprocessing's own first exit step: finalizers of priority >= 0 unlink the stopped
-        # pool's semaphores and close its queues (the joins that can block have priority < 0);
-        # skipped, the resource tracker warned of "leaked semaphore objects" after the report
-        with contextlib.suppress(Exception):
-            from multiprocessing import util
-
-            util._run_finalizers(0)  # type: ignore[attr-defined]  # private: not in typeshed
-        # and its last one: the process's temporary folder (/tmp/pymp-*, the fork server's
-        # socket in it), removed at priority -100, which os._exit skips: it was left behind
-        # by every interrupted command. The server follows its parent; its socket is no
-        # longer needed.
-        with contextlib.suppress(Exception):
-            import multiprocessing.process
-            import shutil
-
-            process = multiprocessing.process.current_process()
-            tempdir = process._config.get("tempdir")  # type: ignore[attr-defined]  # private
-            if tempdir:
-                shutil.rmtree(tempdir, ignore_errors=True)
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()
-        os._exit(code)
+        exit_now(code)
     return code
 
 

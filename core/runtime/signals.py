@@ -14,9 +14,13 @@ exits 128 + the signal number (130 SIGINT, 143 SIGTERM), POSIX shells' conventio
 from __future__ import annotations
 
 import contextlib
+import os
+import shutil
 import signal
+import sys
 import threading
 from collections.abc import Iterator
+from typing import NoReturn
 
 
 class Terminated(BaseException):
@@ -126,3 +130,31 @@ def signals_deferred() -> Iterator[None]:
         if pending:
             _raise_for(pending[0])
 
+
+
+def exit_now(code: int) -> NoReturn:
+    """End the process at once with ``code``, without the interpreter's shutdown (which can
+    wait on a pool's management thread, or destroy a GUI worker thread still running, which
+    aborts), after the cleanup that must not be skipped:
+
+    - multiprocessing's own first exit step: finalizers of priority >= 0 unlink a stopped
+      pool's semaphores and close its queues (the joins that can block have priority < 0);
+      skipped, the resource tracker warned of "leaked semaphore objects";
+    - and its last one: the process's temporary folder (/tmp/pymp-*, the fork server's socket
+      in it), removed at priority -100; skipped, every interrupted command left one behind.
+      The fork server follows its parent and needs the socket no more;
+    - the standard streams, flushed.
+    """
+    with contextlib.suppress(Exception):
+        import multiprocessing.process
+        from multiprocessing import util
+
+        util._run_finalizers(0)  # type: ignore[attr-defined]  # private: not in typeshed
+        process = multiprocessing.process.current_process()
+        tempdir = process._config.get("tempdir")  # type: ignore[attr-defined]  # private
+        if tempdir:
+            shutil.rmtree(tempdir, ignore_errors=True)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
