@@ -155,6 +155,11 @@ class SessionActions:
     def offer_recovery(self, ask=None) -> bool:
         """If a recovery file exists, ask (``ask(text) -> bool``) and restore it; True if restored."""
         w = self.w
+        if ask is None and w._quiet_errors():
+            # no one to answer (SSM_STUDIO_NO_DIALOGS): the question waits for a start that
+            # can ask it, with the left-over files unclaimed (a modal box here kept the app
+            # from ever ending)
+            return False
         try:
             pending = w.sessions.pending_recovery()
         except (ValueError, OSError) as exc:

@@ -168,6 +168,11 @@ def test_recovered_session_saves_to_its_own_file(make_window, tmp_path, monkeypa
     window.close()
 
     fresh = make_window(load_demo=False, recovery=True)
+    # without dialogs (no one to answer) the offer waits, no modal box, the files unclaimed
+    boxes = []
+    monkeypatch.setattr(QMessageBox, "question", staticmethod(
+        lambda *a, **k: boxes.append(a) or QMessageBox.StandardButton.No))
+    assert not fresh.offer_recovery() and not boxes
     assert fresh.offer_recovery(ask=lambda text: True)
     assert fresh.session_path == saved.resolve() and fresh.unsaved
     dialogs = []
