@@ -167,7 +167,7 @@ def family_coverage(kinds, stored: bool = False, residual: float | None = None,
                 cell["widening"].append(post.widening)
                 if np.isfinite(fit.mirror_gap) and post.mirror is not None:
                     # (the objective gap, was the kept side the nearer one to the truth)
-                    other = fit.vertices + post.mirror / np.sqrt(post.mirror_weight)
+                    other = fit.vertices + post.mirror_shift
                     cell["gap"].append((fit.mirror_gap, float(
                         np.linalg.norm(truth - fit.vertices, axis=1).mean()
                         < np.linalg.norm(truth - other, axis=1).mean())))
@@ -195,7 +195,7 @@ RESIDUAL_FROM_CORRELATION = 0.0
 def union_error(post, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For :data:`MIRROR_BAND` "union": (the normal error to the nearer of the two modes, the
     SD without the mirror term) per vertex; ``offset`` (N, 3) truth minus fit."""
-    shift = post.normals @ post.mirror / np.sqrt(post.mirror_weight)
+    shift = post.normals @ post.mirror_shift
     e = np.einsum("ij,ij->i", offset, post.normals)
     sd = dataclasses.replace(post, mirror=None).vertex_sd()
     return np.minimum(np.abs(e), np.abs(e - shift)), sd
@@ -218,7 +218,7 @@ def exact_calibration_coverage(post, rng: np.random.Generator, draws: int = EXAC
         err += u @ post.offset
     err += np.sqrt(post.model_noise_var) * rng.standard_normal(err.shape)
     if post.mirror is not None:
-        shift = post.normals @ post.mirror / np.sqrt(post.mirror_weight)
+        shift = post.normals @ post.mirror_shift
         flip = rng.random(draws) < post.mirror_weight
         err[flip] += shift
         if MIRROR_BAND == "union":

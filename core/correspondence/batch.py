@@ -470,8 +470,9 @@ def establish_correspondence(meshes: Sequence[TriMesh | InputFile | str | os.Pat
         groom, trial = choose_remesh(list(meshes), reference, groom, vertices, n_jobs, cpd_params,
                                      sub_progress(progress, 0.0, REMESH_TRIAL_SHARE,
                                                   "remesh trial: "))
-        record["stages"] += [trial] if trial else []
-        progress = sub_progress(progress, REMESH_TRIAL_SHARE if trial else 0.0, 1.0)
+        if trial:
+            record["stages"].append(trial)
+            progress = sub_progress(progress, REMESH_TRIAL_SHARE, 1.0)
     store = None if scratch is None else Scratch(scratch)
     try:
         run = CorrespondenceRun(list(meshes), params, store, record,

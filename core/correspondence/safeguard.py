@@ -387,7 +387,7 @@ def describe(record: Mapping) -> list[str]:
                 tried = ", ".join(f"{name.replace('_', ' ')} {_mm(value)}"
                                   for name, value in entry.get("criterion_mm", {}).items())
                 kept = str(entry.get("kept", ""))
-                verdict = ("rolled back (no deformation " f"{100 * KEEP_MARGIN:.0f} % better)"
+                verdict = (f"rolled back (no deformation {100 * KEEP_MARGIN:.0f} % better)"
                            if kept.startswith("none") else f"{kept.replace('_', ' ')} kept")
                 lines.append(f"refinement pass {entry.get('pass')}: {verdict}; leave-one-out "
                              f"error {_mm(entry.get('before_mm'))} before, {tried}")

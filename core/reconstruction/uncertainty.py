@@ -155,6 +155,11 @@ class FitPosterior:
     mirror_weight: float = 0.0  # the mirror mode's weight w (``mirror`` is sqrt(w) x its shift)
 
     @property
+    def mirror_shift(self) -> np.ndarray | None:
+        """(3,) the move from the fit to its mirror mode (world mm; ``mirror`` unweighted)."""
+        return None if self.mirror is None else self.mirror / np.sqrt(self.mirror_weight)
+
+    @property
     def coef_cov(self) -> np.ndarray:
         m = self.model.n_factors
         return self.cov[:m, :m]

@@ -131,7 +131,6 @@ def signals_deferred() -> Iterator[None]:
             _raise_for(pending[0])
 
 
-
 def exit_now(code: int) -> NoReturn:
     """End the process at once with ``code``, without the interpreter's shutdown (which can
     wait on a pool's management thread, or destroy a GUI worker thread still running, which
@@ -145,11 +144,12 @@ def exit_now(code: int) -> NoReturn:
       The fork server follows its parent and needs the socket no more;
     - the standard streams, flushed.
     """
-    with contextlib.suppress(Exception):
-        import multiprocessing.process
-        from multiprocessing import util
+    import multiprocessing.process
+    from multiprocessing import util
 
+    with contextlib.suppress(Exception):  # each step apart: one failing skips no other
         util._run_finalizers(0)  # type: ignore[attr-defined]  # private: not in typeshed
+    with contextlib.suppress(Exception):
         process = multiprocessing.process.current_process()
         tempdir = process._config.get("tempdir")  # type: ignore[attr-defined]  # private
         if tempdir:
